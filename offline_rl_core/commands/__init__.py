@@ -1,0 +1,1 @@
+"""One module per `offline-rl` subcommand; each exposes ``register(subparsers)``."""

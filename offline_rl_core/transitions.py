@@ -1,0 +1,108 @@
+"""The dataset's unit: a batch of transitions as flat numpy arrays, plus the bag layout.
+
+One row per environment step. The field order and sizes are the `/pusher/transition`
+layout of the design (25 float32 values per message, each field labelled).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+from .env import ACT_DIM, OBS_DIM
+
+# Who chose the action of a transition (the `source` field).
+SOURCE_EXPERT = 0
+SOURCE_RANDOM = 1
+SOURCE_POLICY = 2
+SOURCE_HUMAN = 3
+SOURCE_NAMES = {SOURCE_EXPERT: "expert", SOURCE_RANDOM: "random", SOURCE_POLICY: "policy", SOURCE_HUMAN: "human"}
+
+# (label, size) in message order; readers check the labels, not just the length.
+TRANSITION_LAYOUT: tuple[tuple[str, int], ...] = (
+    ("obs", OBS_DIM),
+    ("action", ACT_DIM),
+    ("reward", 1),
+    ("next_obs", OBS_DIM),
+    ("terminated", 1),
+    ("truncated", 1),
+    ("success", 1),
+    ("episode", 1),
+    ("step", 1),
+    ("source", 1),
+)
+TRANSITION_WIDTH = sum(size for _, size in TRANSITION_LAYOUT)  # 25
+
+# Column slices into one 25-float row.
+_offsets = np.cumsum([0] + [size for _, size in TRANSITION_LAYOUT])
+LAYOUT_SLICES = {label: slice(int(_offsets[i]), int(_offsets[i + 1])) for i, (label, _) in enumerate(TRANSITION_LAYOUT)}
+
+
+@dataclass
+class Transitions:
+    """Flat arrays of N transitions. Vector fields are (N, dim); scalars are (N,)."""
+
+    obs: np.ndarray  # float32 (N, 8)
+    action: np.ndarray  # float32 (N, 2)
+    reward: np.ndarray  # float32 (N,)
+    next_obs: np.ndarray  # float32 (N, 8)
+    terminated: np.ndarray  # bool (N,)
+    truncated: np.ndarray  # bool (N,)
+    success: np.ndarray  # bool (N,)
+    episode: np.ndarray  # int64 (N,)
+    step: np.ndarray  # int64 (N,)
+    source: np.ndarray  # int64 (N,)
+
+    def __len__(self) -> int:
+        return int(self.obs.shape[0])
+
+    def to_rows(self) -> np.ndarray:
+        """The (N, 25) float32 matrix, one bag message per row."""
+        rows = np.empty((len(self), TRANSITION_WIDTH), dtype=np.float32)
+        for label, _ in TRANSITION_LAYOUT:
+            rows[:, LAYOUT_SLICES[label]] = getattr(self, label).reshape(len(self), -1)
+        return rows
+
+    @classmethod
+    def from_rows(cls, rows: np.ndarray) -> "Transitions":
+        """Split an (N, 25) float32 matrix into typed columns (copies, contiguous)."""
+        rows = np.asarray(rows, dtype=np.float32)
+        col = {label: rows[:, LAYOUT_SLICES[label]] for label, _ in TRANSITION_LAYOUT}
+        return cls(
+            obs=np.ascontiguousarray(col["obs"]),
+            action=np.ascontiguousarray(col["action"]),
+            reward=col["reward"][:, 0].copy(),
+            next_obs=np.ascontiguousarray(col["next_obs"]),
+            terminated=col["terminated"][:, 0] != 0,
+            truncated=col["truncated"][:, 0] != 0,
+            success=col["success"][:, 0] != 0,
+            episode=col["episode"][:, 0].astype(np.int64),
+            step=col["step"][:, 0].astype(np.int64),
+            source=col["source"][:, 0].astype(np.int64),
+        )
+
+    @classmethod
+    def concatenate(cls, parts: list["Transitions"]) -> "Transitions":
+        return cls(**{f.name: np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(cls)})
+
+    def select(self, mask_or_index) -> "Transitions":
+        return Transitions(**{f.name: getattr(self, f.name)[mask_or_index] for f in fields(self)})
+
+    def episode_keys(self) -> np.ndarray:
+        """An id per row that is unique per episode even across merged bags."""
+        return self.episode
+
+    def episode_returns(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(episode ids, undiscounted returns, source of each episode), sorted by id."""
+        ids, inverse = np.unique(self.episode, return_inverse=True)
+        returns = np.zeros(len(ids), dtype=np.float64)
+        np.add.at(returns, inverse, self.reward.astype(np.float64))
+        source = np.zeros(len(ids), dtype=np.int64)
+        source[inverse] = self.source
+        return ids, returns, source
+
+    def content_hash(self) -> str:
+        """sha256 of the rows: identifies the dataset a checkpoint was trained on."""
+        return hashlib.sha256(np.ascontiguousarray(self.to_rows()).tobytes()).hexdigest()
