@@ -1,0 +1,48 @@
+"""rosbag2 datasets: the bag is the dataset.
+
+- ``read_transitions(path)`` / ``write_transitions(path, transitions, storage=None)``: the
+  ``/pusher/transition`` topic of a bag as Transitions, and back.
+- ``BagWriter``: streaming writer of already-serialized messages (the recorder node).
+- ``bag_info(path)``: ``ros2 bag info`` plus a dataset summary, for any rosbag2 bag.
+- ``encode_transition_rows`` / ``decode_transition_payloads``: vectorised CDR of
+  std_msgs/Float32MultiArray transitions.
+
+Paths: ``x.db3`` / ``x.mcap`` is a single self-describing storage file, any other path a bag
+directory with metadata.yaml (see ``paths``).
+"""
+
+from .cdr import (
+    TRANSITION_CDR_HEADER,
+    TRANSITION_MESSAGE_SIZE,
+    TRANSITION_MSGTYPE,
+    TRANSITION_TOPIC,
+    TransitionDecodeError,
+    decode_transition_payloads,
+    encode_transition_rows,
+    transition_layout_msg_fields,
+)
+from .info import BagInfo, bag_info
+from .reader import open_bag, read_transition_rows, read_transitions, topic_payloads
+from .writer import TRANSITION_PERIOD_NS, TRANSITION_START_NS, BagWriter, typestore, write_transitions
+
+__all__ = [
+    "TRANSITION_CDR_HEADER",
+    "TRANSITION_MESSAGE_SIZE",
+    "TRANSITION_MSGTYPE",
+    "TRANSITION_PERIOD_NS",
+    "TRANSITION_START_NS",
+    "TRANSITION_TOPIC",
+    "BagInfo",
+    "BagWriter",
+    "TransitionDecodeError",
+    "bag_info",
+    "decode_transition_payloads",
+    "encode_transition_rows",
+    "open_bag",
+    "read_transition_rows",
+    "read_transitions",
+    "topic_payloads",
+    "transition_layout_msg_fields",
+    "typestore",
+    "write_transitions",
+]

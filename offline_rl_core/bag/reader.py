@@ -1,0 +1,170 @@
+"""Reading transitions from any rosbag2 bag: a directory, a bare ``.db3`` or ``.mcap`` file.
+
+Only ``/pusher/transition`` is read; other topics are ignored and need no definitions. Raw
+CDR payloads are fetched without deserializing (for sqlite3 storage, one SQL query on the
+``messages`` table) and decoded together by ``decode_transition_payloads``.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+from rosbags.rosbag2 import Reader
+from rosbags.rosbag2.reader import DirectoryReader
+from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
+
+from ..errors import UserError
+from ..transitions import Transitions
+from .cdr import TRANSITION_MSGTYPE, TRANSITION_TOPIC, TransitionDecodeError, decode_transition_payloads
+from .paths import SUFFIX_STORAGE
+from .writer import field_of_column
+
+RECORD_HINT = "record one with `offline-rl collect` or `ros2 run recorder node`"
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if len(text) <= 300 else text[:297] + "..."
+
+
+def check_bag_path(path: Path) -> None:
+    """Refuse, in one line, a path that cannot be a rosbag2 bag."""
+    if not path.exists():
+        raise UserError(f"{path}: no such file or directory")
+    if path.is_dir():
+        if not (path / "metadata.yaml").is_file():
+            raise UserError(f"{path} is not a rosbag2 bag: the directory has no metadata.yaml")
+    elif path.suffix.lower() not in SUFFIX_STORAGE:
+        raise UserError(f"{path} is not a rosbag2 bag: expected a bag directory with metadata.yaml, or a .db3 or .mcap file")
+
+
+def check_sqlite_size(path: Path) -> None:
+    """Refuse a sqlite3 file shorter than its header says: SQLite would read it silently."""
+    with path.open("rb") as f:
+        header = f.read(100)
+    if len(header) < 100 or not header.startswith(b"SQLite format 3\x00"):
+        return  # not sqlite at all: SQLite itself reports it
+    page_size = int.from_bytes(header[16:18], "big")
+    page_size = 65536 if page_size == 1 else page_size
+    pages = int.from_bytes(header[28:32], "big")
+    header_valid = header[24:28] == header[92:96]  # in-header page count is current
+    size = path.stat().st_size
+    if size % page_size or (header_valid and size < pages * page_size):
+        raise UserError(
+            f"{path}: the sqlite3 file is truncated ({size} bytes; its header says {pages * page_size}); "
+            "the bag may have been copied or recorded incompletely"
+        )
+
+
+@contextmanager
+def open_bag(path: str | os.PathLike) -> Iterator[Reader]:
+    """rosbags' Reader on a bag, opened and closed; rosbags and storage failures as UserError."""
+    path = Path(path)
+    check_bag_path(path)
+    try:
+        reader = Reader(path)
+        reader.open()
+        for storage in _sqlite_storages(reader) or ():
+            check_sqlite_size(Path(storage.path))
+    except UserError:
+        raise
+    except Exception as exc:  # rosbags, apsw, YAML and struct errors all mean "unreadable"
+        raise UserError(f"{path}: cannot open the bag, it may be truncated or corrupt ({_one_line(exc)})") from exc
+    try:
+        yield reader
+    except (UserError, KeyboardInterrupt):
+        raise
+    except Exception as exc:
+        raise UserError(f"{path}: cannot read the bag, it may be truncated or corrupt ({_one_line(exc)})") from exc
+    finally:
+        try:
+            reader.close()
+        except Exception:
+            pass
+
+
+def _sqlite_storages(reader: Reader) -> list[Sqlite3Reader] | None:
+    """The sqlite3 storage files of a bag whose payloads can be read straight from SQL."""
+    storage = reader.storage
+    if isinstance(storage, Sqlite3Reader):
+        return [storage]
+    if (
+        isinstance(storage, DirectoryReader)
+        and not storage.metadata.compression_mode
+        and storage.storages
+        and all(isinstance(s, Sqlite3Reader) for s in storage.storages)
+    ):
+        return list(storage.storages)
+    return None
+
+
+def topic_payloads(reader: Reader, topic: str) -> list[bytes]:
+    """Raw CDR payloads of a topic in timestamp order, without deserializing any."""
+    connections = [c for c in reader.connections if c.topic == topic]
+    if not connections:
+        return []
+    sqlite_files = _sqlite_storages(reader)
+    if sqlite_files is None:  # MCAP or compressed: rosbags yields raw bytes
+        return [data for _, _, data in reader.messages(connections)]
+    payloads: list[bytes] = []
+    for storage in sqlite_files:
+        ids = [c.id for c in storage.connections if c.topic == topic]
+        if not ids:
+            continue
+        query = f"SELECT data FROM messages WHERE topic_id IN ({','.join('?' * len(ids))}) ORDER BY timestamp, id"
+        payloads.extend(row[0] for row in storage.dbconn.execute(query, ids))
+    return payloads
+
+
+def _check_finite(path: Path, rows: np.ndarray) -> None:
+    bad = ~np.isfinite(rows)
+    if not bad.any():
+        return
+    columns = np.flatnonzero(bad.any(axis=0))
+    fields = list(dict.fromkeys(field_of_column(int(c)) for c in columns))
+    raise UserError(
+        f"{path}: {int(bad.any(axis=1).sum())} of {len(rows)} {TRANSITION_TOPIC} rows hold NaN or inf "
+        f"(in field{'s' if len(fields) > 1 else ''} {', '.join(fields)})"
+    )
+
+
+def transition_rows_from_reader(reader: Reader, path: Path) -> np.ndarray:
+    """The (N, 25) float32 transition rows of an open bag, checked; UserError otherwise."""
+    if reader.message_count == 0:
+        raise UserError(f"{path} is an empty bag (no messages); {RECORD_HINT}")
+    connections = [c for c in reader.connections if c.topic == TRANSITION_TOPIC]
+    if not connections:
+        found = ", ".join(sorted({c.topic for c in reader.connections})) or "none"
+        raise UserError(f"{path} has no {TRANSITION_TOPIC} topic (found: {found}); {RECORD_HINT}")
+    types = sorted({c.msgtype for c in connections})
+    if types != [TRANSITION_MSGTYPE]:
+        raise UserError(f"{path}: {TRANSITION_TOPIC} has type {', '.join(types)}; expected {TRANSITION_MSGTYPE}")
+    payloads = topic_payloads(reader, TRANSITION_TOPIC)
+    if not payloads:
+        raise UserError(f"{path}: {TRANSITION_TOPIC} has no messages; {RECORD_HINT}")
+    try:
+        rows = decode_transition_payloads(payloads)
+    except TransitionDecodeError as exc:
+        raise UserError(f"{path}: {TRANSITION_TOPIC}: {exc}") from exc
+    _check_finite(path, rows)
+    return rows
+
+
+def read_transition_rows(path: str | os.PathLike) -> np.ndarray:
+    """The (N, 25) float32 rows of ``/pusher/transition`` in a bag, in timestamp order."""
+    with open_bag(path) as reader:
+        return transition_rows_from_reader(reader, Path(path))
+
+
+def read_transitions(path: str | os.PathLike) -> Transitions:
+    """The transitions of a rosbag2 bag (a directory, or a bare .db3/.mcap file).
+
+    Raises UserError, one line naming the file, for a missing path, something that is not a
+    bag, a corrupt or empty bag, one without ``/pusher/transition``, an unknown layout, or
+    rows holding NaN/inf.
+    """
+    return Transitions.from_rows(read_transition_rows(path))

@@ -1,0 +1,329 @@
+"""Roll policies out in pusher-reach on held-out reset seeds and score them.
+
+``rollout`` runs N episodes either batched (N MuJoCo ``MjData`` on one shared
+``MjModel``, one policy call per control step for all of them) or sequentially
+(the plain one-env loop, kept as the reference). For a policy that treats rows
+independently both modes give the same per-episode numbers, bit for bit: they share
+the reset, the physics and the observation/reward code of ``offline_rl_core.env``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import glob
+import os
+import tempfile
+from dataclasses import dataclass
+from typing import Callable, Sequence
+
+import mujoco
+import numpy as np
+
+from .env import ACT_DIM, FRAME_SKIP, MAX_STEPS, OBS_DIM, SUCCESS_BONUS, SUCCESS_TOL, PusherReachEnv, build_model, wrap_angle
+from .stats import wilson_ci
+
+ActFn = Callable[[np.ndarray], np.ndarray]
+
+
+@dataclass
+class RolloutResult:
+    """Per-episode outcomes, in the order of ``seeds``."""
+
+    seeds: np.ndarray  # int64 (N,) reset seeds
+    success: np.ndarray  # bool (N,) latched info['success'] at episode end
+    final_dist: np.ndarray  # float64 (N,) info['dist'] of the last step
+    returns: np.ndarray  # float64 (N,) undiscounted return
+    lengths: np.ndarray  # int64 (N,) steps taken
+
+    @property
+    def successes(self) -> int:
+        return int(self.success.sum())
+
+    @property
+    def episodes(self) -> int:
+        return int(len(self.seeds))
+
+    @property
+    def success_rate(self) -> float:
+        return self.successes / self.episodes
+
+    @property
+    def mean_final_dist(self) -> float:
+        return float(self.final_dist.mean())
+
+    @classmethod
+    def concatenate(cls, parts: Sequence["RolloutResult"]) -> "RolloutResult":
+        return cls(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("seeds", "success", "final_dist", "returns", "lengths")))
+
+
+def batch_observations(qpos: np.ndarray, qvel: np.ndarray, target_xy: np.ndarray, fingertip_xy: np.ndarray) -> np.ndarray:
+    """``env.observation_from_joints`` for N rows at once: (N, 8) float32.
+
+    Same operations in the same order (wrap, cos/sin of the wrapped angles, float32
+    cast of each entry), so each row equals the single-env observation exactly;
+    ``tests/test_evaluation.py`` checks that.
+    """
+    angles = wrap_angle(qpos[:, :2])
+    obs = np.empty((qpos.shape[0], OBS_DIM), dtype=np.float32)
+    obs[:, 0] = np.cos(angles[:, 0])
+    obs[:, 1] = np.sin(angles[:, 0])
+    obs[:, 2] = np.cos(angles[:, 1])
+    obs[:, 3] = np.sin(angles[:, 1])
+    obs[:, 4:6] = qvel[:, :2]
+    obs[:, 6:8] = target_xy[:, :2] - fingertip_xy[:, :2]
+    return obs
+
+
+_POOL: dict[int, list[PusherReachEnv]] = {}
+_MODEL: list[mujoco.MjModel] = []
+
+
+def _shared_model() -> mujoco.MjModel:
+    if not _MODEL:
+        _MODEL.append(build_model())
+    return _MODEL[0]
+
+
+def _pooled_envs(model: mujoco.MjModel, n: int) -> list[PusherReachEnv]:
+    """n envs on ``model``, reused across calls: an ``MjData`` costs ~0.4 ms to
+    allocate, as much as the physics of a short evaluation. Every episode starts
+    with ``mj_resetData``, so nothing carries over from the previous user."""
+    pool = _POOL.setdefault(id(model), [])
+    while len(pool) < n:
+        pool.append(PusherReachEnv(model=model))
+    return pool[:n]
+
+
+class BatchedPusherEnv:
+    """N pusher-reach episodes stepped together, one ``MjData`` each on one model.
+
+    Resets go through ``PusherReachEnv.reset`` (the one place randomness is drawn);
+    the per-step bookkeeping (reward, success latch, truncation) mirrors
+    ``PusherReachEnv.step`` over arrays.
+    """
+
+    def __init__(self, n: int, terminate_on_success: bool = False, model: mujoco.MjModel | None = None):
+        self.model = model if model is not None else _shared_model()
+        self.envs = _pooled_envs(self.model, n)
+        self.terminate_on_success = terminate_on_success
+        self.n = n
+        for env in self.envs:
+            env.terminate_on_success = terminate_on_success
+        fid = self.envs[0]._fingertip
+        mocap = self.envs[0]._mocap
+        # Views into each MjData, taken once: reading them costs no attribute lookups per step.
+        self._ctrl = [e.data.ctrl for e in self.envs]
+        self._qpos = [e.data.qpos for e in self.envs]
+        self._qvel = [e.data.qvel for e in self.envs]
+        self._tip = [e.data.site_xpos[fid] for e in self.envs]
+        self._target = [e.data.mocap_pos[mocap] for e in self.envs]
+        self.steps = np.zeros(n, np.int64)
+        self.success = np.zeros(n, bool)
+
+    def _gather(self, idx) -> np.ndarray:
+        qpos = np.array([self._qpos[i][:2] for i in idx])
+        qvel = np.array([self._qvel[i][:2] for i in idx])
+        tip = np.array([self._tip[i][:2] for i in idx])
+        target = np.array([self._target[i][:2] for i in idx])
+        return qpos, qvel, tip, target
+
+    def reset(self, seeds: Sequence[int]) -> np.ndarray:
+        if len(seeds) != self.n:
+            raise ValueError(f"{len(seeds)} seeds for {self.n} envs")
+        for env, seed in zip(self.envs, seeds):
+            env.reset(int(seed))
+        self.steps[:] = 0
+        self.success[:] = False
+        qpos, qvel, tip, target = self._gather(range(self.n))
+        return batch_observations(qpos, qvel, target, tip)
+
+    def step(self, actions: np.ndarray, idx: np.ndarray):
+        """Step the envs ``idx`` (an int array) with ``actions`` (len(idx), 2).
+
+        Returns ``(obs, reward, done, success, dist)`` arrays for those envs.
+        """
+        actions = np.clip(np.asarray(actions, dtype=np.float32).reshape(len(idx), ACT_DIM), -1.0, 1.0)
+        model = self.model
+        for row, i in enumerate(idx):
+            self._ctrl[i][:] = actions[row]
+            mujoco.mj_step(model, self.envs[i].data, FRAME_SKIP)
+        self.steps[idx] += 1
+        qpos, qvel, tip, target = self._gather(idx)
+        delta = target - tip
+        dist = np.sqrt(delta[:, 0] * delta[:, 0] + delta[:, 1] * delta[:, 1])
+        reward = -dist
+        newly = ~self.success[idx] & (dist < SUCCESS_TOL)
+        reward[newly] += SUCCESS_BONUS
+        self.success[idx] |= newly
+        success = self.success[idx]
+        done = (self.steps[idx] >= MAX_STEPS) | (success & self.terminate_on_success)
+        return batch_observations(qpos, qvel, target, tip), reward, done, success.copy(), dist
+
+
+def _openblas_thread_controls():
+    """numpy's bundled OpenBLAS set/get-threads functions, or None where not found."""
+    libs = glob.glob(os.path.join(os.path.dirname(np.__file__) + ".libs", "*openblas*"))
+    for path in libs:
+        try:
+            lib = ctypes.CDLL(path)
+        except OSError:
+            continue
+        for suffix in ("64_", "_64_", ""):
+            get = getattr(lib, f"scipy_openblas_get_num_threads{suffix}", None) or getattr(lib, f"openblas_get_num_threads{suffix}", None)
+            put = getattr(lib, f"scipy_openblas_set_num_threads{suffix}", None) or getattr(lib, f"openblas_set_num_threads{suffix}", None)
+            if get is not None and put is not None:
+                return get, put
+    return None
+
+
+@contextlib.contextmanager
+def single_threaded_blas():
+    """Run numpy's BLAS on one thread inside the block.
+
+    A rollout makes ~100 small matmuls per episode batch; handing each to a thread
+    pool costs more than the maths, and on a busy machine it made evaluation 10x
+    slower. Where the BLAS cannot be reached this does nothing.
+    """
+    controls = _openblas_thread_controls()
+    if controls is None:
+        yield
+        return
+    get, put = controls
+    before = int(get())
+    put(1)
+    try:
+        yield
+    finally:
+        put(before)
+
+
+def _rollout_sequential(act_fn: ActFn, seeds: np.ndarray, terminate_on_success: bool) -> RolloutResult:
+    env = PusherReachEnv(terminate_on_success=terminate_on_success)
+    n = len(seeds)
+    success = np.zeros(n, bool)
+    final_dist = np.zeros(n)
+    returns = np.zeros(n)
+    lengths = np.zeros(n, np.int64)
+    for k, seed in enumerate(seeds):
+        obs = env.reset(int(seed))
+        done = False
+        while not done:
+            action = np.asarray(act_fn(obs[None, :]))[0]
+            obs, reward, done, info = env.step(action)
+            returns[k] += reward
+            lengths[k] += 1
+        success[k] = info["success"]
+        final_dist[k] = info["dist"]
+    return RolloutResult(seeds.copy(), success, final_dist, returns, lengths)
+
+
+def _rollout_batched(act_fn: ActFn, seeds: np.ndarray, terminate_on_success: bool) -> RolloutResult:
+    n = len(seeds)
+    venv = BatchedPusherEnv(n, terminate_on_success)
+    obs = venv.reset(seeds)
+    final_dist = np.zeros(n)
+    returns = np.zeros(n)
+    active = np.arange(n)
+    while len(active):
+        actions = np.asarray(act_fn(obs))
+        next_obs, reward, done, _, dist = venv.step(actions, active)
+        returns[active] += reward
+        final_dist[active] = dist
+        keep = ~done
+        active = active[keep]
+        obs = next_obs[keep]
+    return RolloutResult(seeds.copy(), venv.success.copy(), final_dist, returns, venv.steps.copy())
+
+
+def rollout(
+    act_fn: ActFn,
+    reset_seeds: Sequence[int],
+    terminate_on_success: bool = False,
+    batched: bool = True,
+) -> RolloutResult:
+    """Run one episode per reset seed with ``act_fn(obs (N, 8) float32) -> (N, 2)``.
+
+    ``batched`` steps all episodes together with one ``act_fn`` call per control
+    step; ``batched=False`` is the plain loop, one env and one call per step.
+    """
+    seeds = np.asarray(list(reset_seeds), dtype=np.int64)
+    if seeds.size == 0:
+        raise ValueError("rollout needs at least one reset seed")
+    run = _rollout_batched if batched else _rollout_sequential
+    with single_threaded_blas():
+        return run(act_fn, seeds, terminate_on_success)
+
+
+def expert_act_fn() -> ActFn:
+    """The scripted expert as a batch ``act_fn``, from the observation alone.
+
+    The observation carries (cos, sin) of the joint angles, the joint velocities and
+    target - fingertip; ``expert.expert_action`` needs angles and the target, which
+    we recover exactly enough (atan2 and planar forward kinematics) for it to reach.
+    """
+    from .env import fingertip_from_joints
+    from .expert import expert_action
+
+    def act(obs: np.ndarray) -> np.ndarray:
+        obs = np.asarray(obs, dtype=np.float64)
+        out = np.empty((obs.shape[0], ACT_DIM), np.float32)
+        for row, o in enumerate(obs):
+            q = np.array([np.arctan2(o[1], o[0]), np.arctan2(o[3], o[2])])
+            target = fingertip_from_joints(q) + o[6:8]
+            out[row] = expert_action(q, o[4:6], target)
+        return out
+
+    return act
+
+
+def round6(x: float) -> float:
+    return round(float(x), 6)
+
+
+def evaluate_policy(policy, episodes: int, seed: int, batched: bool = True, checkpoint: str | None = None) -> dict:
+    """Score ``policy`` (anything with ``act(obs)``, or a callable) on reset seeds
+    ``seed .. seed + episodes - 1``; the dict ``offline-rl eval`` prints and writes."""
+    if episodes < 1:
+        raise ValueError(f"episodes must be >= 1, got {episodes}")
+    act_fn = policy.act if hasattr(policy, "act") else policy
+    result = rollout(act_fn, range(seed, seed + episodes), batched=batched)
+    lo, hi = wilson_ci(result.successes, result.episodes)
+    return {
+        "checkpoint": checkpoint if checkpoint is not None else getattr(policy, "source", None),
+        "algorithm": getattr(policy, "algorithm", None),
+        "episodes": result.episodes,
+        "seed": int(seed),
+        "successes": result.successes,
+        "success_rate": round6(result.success_rate),
+        "wilson_ci_lo": round6(lo),
+        "wilson_ci_hi": round6(hi),
+        "mean_final_dist": round6(result.mean_final_dist),
+        "mean_return": round6(result.returns.mean()),
+    }
+
+
+def write_json_atomic(path, payload) -> "os.PathLike":
+    """``json.dumps(indent=2, sort_keys=True)`` + newline, via a temp file and rename,
+    so a reader never sees half a file and equal payloads give equal bytes."""
+    import json
+    from pathlib import Path
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    text = json.dumps(payload, indent=2, sort_keys=True) + "\n"
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def format_rate(successes: int, episodes: int) -> str:
+    """'27/100 = 0.270 [0.193, 0.363]': a success rate with its Wilson 95 % CI."""
+    lo, hi = wilson_ci(successes, episodes)
+    return f"{successes}/{episodes} = {successes / episodes:.3f} [{lo:.3f}, {hi:.3f}]"

@@ -1,0 +1,129 @@
+"""What every learner shares: the policy ensemble, its optimiser, the critic helpers.
+
+A learner sees tensors shaped (members, batch, dim) and returns per-member losses
+as tensors (no host sync in the step; the loop reads them every ``log_every`` steps).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from ..networks import EnsembleMLP
+from .config import TrainConfig
+from .data import Batch, MemberData
+
+
+def make_adam(params, lr: float) -> torch.optim.Adam:
+    # foreach: one fused multi-tensor kernel per update instead of one per parameter
+    return torch.optim.Adam(params, lr=lr, foreach=True)
+
+
+def per_member_mean(x: torch.Tensor) -> torch.Tensor:
+    """(M, B, ...) -> (M,) means. Summing these over members gives each member the
+    gradient of its own mean loss: members never mix."""
+    return x.flatten(1).mean(1)
+
+
+class Learner:
+    """Base: a tanh policy ensemble trained by ``policy_loss``; no critic."""
+
+    name = "base"
+    uses_critic = False
+
+    def __init__(self, cfg: TrainConfig, members: int, generators: list[torch.Generator], obs_dim: int, act_dim: int):
+        self.cfg = cfg
+        self.members = members
+        self.obs_dim, self.act_dim = obs_dim, act_dim
+        self.policy = EnsembleMLP(members, obs_dim, cfg.hidden, act_dim, generators, tanh_output=True)
+        self.policy_opt = make_adam(self.policy.parameters(), cfg.lr)
+
+    def update(self, batch: Batch) -> dict[str, torch.Tensor]:
+        raise NotImplementedError
+
+    def step_policy(self, loss_per_member: torch.Tensor) -> None:
+        self.policy_opt.zero_grad(set_to_none=True)
+        loss_per_member.sum().backward()
+        self.policy_opt.step()
+
+    def mean_abs_q(self, data: MemberData) -> list[float] | None:
+        return None
+
+    def learner_state(self, m: int) -> dict:
+        return {}
+
+    def load_learner_state(self, m: int, state: dict) -> None:
+        pass
+
+
+def regression_error(pred: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+    """Per-sample squared error, averaged over action dims: (M, B, 1)."""
+    return (pred - action).pow(2).mean(-1, keepdim=True)
+
+
+class TwinCritic:
+    """Two Q(s, a) networks per member, stacked as one ensemble of 2M, with Polyak
+    targets. Member m's critics are rows 2m and 2m+1."""
+
+    def __init__(self, cfg: TrainConfig, members: int, generators, obs_dim: int, act_dim: int):
+        self.members = members
+        gens = [g for g in generators for _ in range(2)]
+        self.online = EnsembleMLP(2 * members, obs_dim + act_dim, cfg.hidden, 1, gens)
+        self.target = EnsembleMLP(2 * members, obs_dim + act_dim, cfg.hidden, 1)
+        self.target.load_state_dict(self.online.state_dict())
+        self.target.requires_grad_(False)
+        self.opt = make_adam(self.online.parameters(), cfg.lr)
+        self.tau = cfg.tau
+
+    def _pairs(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        x = torch.cat([obs, action], dim=-1)  # (M, B, in)
+        m, b, d = x.shape
+        return x.unsqueeze(1).expand(m, 2, b, d).reshape(2 * m, b, d)
+
+    def q_both(self, obs, action, target: bool = False) -> torch.Tensor:
+        """(M, 2, B, 1): both critics' Q for each member."""
+        net = self.target if target else self.online
+        q = net(self._pairs(obs, action))
+        return q.view(self.members, 2, *q.shape[1:])
+
+    def q_min(self, obs, action, target: bool = False) -> torch.Tensor:
+        return self.q_both(obs, action, target).min(dim=1).values
+
+    def fit(self, obs, action, target_q: torch.Tensor) -> torch.Tensor:
+        """One MSE step of both critics toward ``target_q`` (M, B, 1); per-member loss
+        (q1 loss + q2 loss, the chapter's sum)."""
+        q = self.q_both(obs, action)
+        loss = (q - target_q.unsqueeze(1)).pow(2).flatten(2).mean(2).sum(1)
+        self.opt.zero_grad(set_to_none=True)
+        loss.sum().backward()
+        self.opt.step()
+        return loss.detach()
+
+    @torch.no_grad()
+    def polyak(self) -> None:
+        online = list(self.online.parameters())
+        target = list(self.target.parameters())
+        torch._foreach_lerp_(target, online, self.tau)
+
+    @torch.no_grad()
+    def mean_abs_q(self, data: MemberData, chunk: int = 32768) -> list[float]:
+        """|mean over the logged (s, a) of (Q1 + Q2) / 2|, per member (the chapter's
+        Break-It figure), over the whole dataset in chunks."""
+        sizes = torch.tensor(data.sizes)
+        totals = torch.zeros(self.members, dtype=torch.float64)
+        for lo in range(0, max(data.sizes), chunk):
+            obs = data.obs[:, lo: lo + chunk].expand(self.members, -1, -1)
+            act = data.action[:, lo: lo + chunk].expand(self.members, -1, -1)
+            q = self.q_both(obs, act).mean(1)[..., 0]  # (M, b)
+            valid = (lo + torch.arange(q.shape[1])).unsqueeze(0) < sizes.unsqueeze(1)
+            totals += (q.double() * valid).sum(1)
+        return [abs(float(totals[m]) / data.sizes[m]) for m in range(self.members)]
+
+    def state(self, m: int) -> dict:
+        return {"critic1": self.online.member_state(2 * m), "critic2": self.online.member_state(2 * m + 1),
+                "critic1_target": self.target.member_state(2 * m), "critic2_target": self.target.member_state(2 * m + 1)}
+
+    def load_state(self, m: int, state: dict) -> None:
+        self.online.load_member_state(2 * m, state["critic1"])
+        self.online.load_member_state(2 * m + 1, state["critic2"])
+        self.target.load_member_state(2 * m, state.get("critic1_target", state["critic1"]))
+        self.target.load_member_state(2 * m + 1, state.get("critic2_target", state["critic2"]))

@@ -1,0 +1,51 @@
+"""Training configuration: one dataclass whose fields are the `offline-rl train` flags.
+
+Defaults are the chapter's hyper-parameters (and Kostrikov et al.'s for IQL).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+ALGORITHMS = ("bc", "filtered_bc", "awac", "iql", "naive")
+
+
+@dataclass
+class TrainConfig:
+    algo: str = "awac"
+    steps: int = 8000
+    batch_size: int = 256
+    hidden: int = 256
+    lr: float = 3e-4
+    gamma: float = 0.99
+    tau: float = 0.005  # Polyak rate of the target critics
+    # AWAC
+    beta: float = 0.3
+    weight_clip: float = 20.0
+    # IQL
+    expectile: float = 0.7
+    temperature: float = 3.0
+    max_weight: float = 100.0
+    # filtered BC: keep the top fraction of episodes by return
+    filter_top_frac: float = 0.1
+    # corrections: share of each batch drawn from correction transitions (None = uniform)
+    correction_ratio: float | None = None
+    # how often (steps) losses are read back and progress is reported
+    log_every: int = 100
+    # True: fp32 everywhere, byte-identical results for a seed on CPU.
+    # False: allows bf16 autocast where the CPU has native bf16 (AMX / AVX512-BF16).
+    deterministic: bool = True
+
+    def __post_init__(self) -> None:
+        if self.algo not in ALGORITHMS:
+            raise ValueError(f"unknown algorithm '{self.algo}'; expected one of {', '.join(ALGORITHMS)}")
+        for name in ("steps", "batch_size", "hidden", "log_every"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if not 0.0 < self.filter_top_frac <= 1.0:
+            raise ValueError(f"filter_top_frac must be in (0, 1], got {self.filter_top_frac}")
+        if self.correction_ratio is not None and not 0.0 <= self.correction_ratio <= 1.0:
+            raise ValueError(f"correction_ratio must be in [0, 1], got {self.correction_ratio}")
+
+    def to_dict(self) -> dict:
+        return asdict(self)

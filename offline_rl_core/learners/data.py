@@ -1,0 +1,177 @@
+"""The fixed dataset as tensors, and the seeded batch sampler.
+
+Every run ("member") of an ensemble has its own dataset view and its own index
+stream. Indices are drawn ahead, a chunk of steps at a time, from the member's own
+generator, so the hot loop never calls the RNG and a member's batches do not depend
+on which other members train beside it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..transitions import SOURCE_HUMAN, SOURCE_POLICY, Transitions
+
+INDEX_CHUNK_STEPS = 1000
+
+
+@dataclass
+class Batch:
+    """A batch for all members: tensors shaped (members, batch, dim)."""
+
+    obs: torch.Tensor
+    action: torch.Tensor
+    reward: torch.Tensor  # (M, B, 1)
+    next_obs: torch.Tensor
+    not_done: torch.Tensor  # (M, B, 1): 1 - terminated; truncation still bootstraps
+    actor_mask: torch.Tensor  # (M, B, 1): 0 where the action must not be imitated
+
+
+class MemberData:
+    """The tensors of the members' datasets, stacked on a leading member axis.
+
+    When every member trains on the same Transitions object the arrays are shared,
+    not copied (a view with a member axis of size 1 broadcast in gather).
+    """
+
+    def __init__(self, datasets: list[Transitions]):
+        self.members = len(datasets)
+        self.shared = all(d is datasets[0] for d in datasets)
+        sources = [datasets[0]] if self.shared else datasets
+        self.sizes = [len(d) for d in datasets]
+        n_max = max(len(d) for d in sources)
+
+        def stack(name: str, width: int, fn=lambda a: a) -> torch.Tensor:
+            if len(sources) == 1:
+                arr = fn(getattr(sources[0], name)).reshape(len(sources[0]), width)
+                return torch.from_numpy(np.ascontiguousarray(arr, dtype=np.float32)).unsqueeze(0)
+            out = torch.zeros(len(sources), n_max, width)
+            for i, d in enumerate(sources):
+                out[i, : len(d)] = torch.from_numpy(np.ascontiguousarray(fn(getattr(d, name)), dtype=np.float32).reshape(len(d), width))
+            return out
+
+        self.obs = stack("obs", datasets[0].obs.shape[1])
+        self.action = stack("action", datasets[0].action.shape[1])
+        self.reward = stack("reward", 1)
+        self.next_obs = stack("next_obs", datasets[0].obs.shape[1])
+        self.not_done = stack("terminated", 1, lambda t: 1.0 - t.astype(np.float32))
+        # Actions that must not be imitated: the policy's last steps before a human
+        # takeover (see ``intervention_actor_mask``); the critic still learns from them.
+        self.actor_mask = torch.cat([stack_one(intervention_actor_mask(d), n_max) for d in sources])
+
+    def gather(self, idx: torch.Tensor) -> Batch:
+        """idx: (M, B) row indices, one row of indices per member."""
+        if self.shared:
+            flat = idx.reshape(-1)
+            m, b = idx.shape
+            take = lambda t: t[0].index_select(0, flat).view(m, b, -1)  # noqa: E731
+        else:
+            rows = torch.arange(idx.shape[0]).unsqueeze(1)
+            take = lambda t: t[rows, idx]  # noqa: E731
+        return Batch(take(self.obs), take(self.action), take(self.reward), take(self.next_obs), take(self.not_done),
+                     take(self.actor_mask))
+
+
+class IndexSampler:
+    """Uniform-with-replacement row indices, optionally from two pools at a set ratio.
+
+    ``pools[m]`` is None (all rows of member m), or a tuple ``(main, extra)`` of index
+    arrays: each batch takes ``round(ratio * batch)`` rows from ``extra`` (e.g. the
+    correction transitions) and the rest from ``main``.
+    """
+
+    def __init__(self, sizes: list[int], batch_size: int, generators: list[torch.Generator],
+                 pools: list | None = None, ratio: float | None = None):
+        self.sizes = sizes
+        self.batch_size = batch_size
+        self.generators = generators
+        self.pools = pools or [None] * len(sizes)
+        self.ratio = ratio
+        self._chunk: torch.Tensor | None = None
+        self._pos = 0
+
+    def _draw(self, m: int, steps: int) -> torch.Tensor:
+        gen = self.generators[m]
+        pool = self.pools[m]
+        if pool is None:
+            return torch.randint(0, self.sizes[m], (steps, self.batch_size), generator=gen)
+        main, extra = pool
+        n_extra = 0 if extra is None or len(extra) == 0 else int(round((self.ratio or 0.0) * self.batch_size))
+        if main is None or len(main) == 0:
+            n_extra = self.batch_size
+        parts = []
+        if n_extra < self.batch_size:
+            pick = torch.randint(0, len(main), (steps, self.batch_size - n_extra), generator=gen)
+            parts.append(main[pick])
+        if n_extra > 0:
+            pick = torch.randint(0, len(extra), (steps, n_extra), generator=gen)
+            parts.append(extra[pick])
+        return torch.cat(parts, dim=1)
+
+    def next(self) -> torch.Tensor:
+        """(M, B) indices for the next step."""
+        if self._chunk is None or self._pos == self._chunk.shape[1]:
+            self._chunk = torch.stack([self._draw(m, INDEX_CHUNK_STEPS) for m in range(len(self.sizes))])
+            self._pos = 0
+        idx = self._chunk[:, self._pos]
+        self._pos += 1
+        return idx
+
+
+def top_episode_rows(data: Transitions, top_frac: float) -> np.ndarray:
+    """Row indices of the best ``top_frac`` of episodes by undiscounted return
+    (at least one episode): the filtered-BC dataset."""
+    ids, returns, _ = data.episode_returns()
+    keep = max(1, int(np.ceil(top_frac * len(ids))))
+    # stable sort on -return: ties keep episode order, so the choice is reproducible
+    best = ids[np.argsort(-returns, kind="stable")[:keep]]
+    return np.flatnonzero(np.isin(data.episode, best))
+
+
+def stack_one(values: np.ndarray, n_max: int) -> torch.Tensor:
+    out = torch.zeros(1, n_max, 1)
+    out[0, : len(values), 0] = torch.from_numpy(values.astype(np.float32))
+    return out
+
+
+# How many policy steps before a takeover count as the failure the person corrected.
+PRE_TAKEOVER_STEPS = 5
+
+
+def intervention_actor_mask(data: Transitions, pre_steps: int = PRE_TAKEOVER_STEPS) -> np.ndarray:
+    """1.0 for rows whose action the actor may imitate, 0.0 for the policy's last
+    ``pre_steps`` actions before each human takeover.
+
+    A takeover is evidence that what the policy was doing was failing, so those
+    actions are not regression targets (AWAC/IQL/BC). They stay in the critic's data:
+    they teach Q what the failure cost. Rows are matched within an episode by step.
+    """
+    mask = np.ones(len(data), dtype=np.float32)
+    if len(data) == 0 or not np.any(data.source == SOURCE_HUMAN):
+        return mask
+    order = np.lexsort((data.step, data.episode))
+    src = data.source[order]
+    ep = data.episode[order]
+    # a takeover: a human row whose predecessor in the same episode is a policy row
+    takeover = np.flatnonzero((src[1:] == SOURCE_HUMAN) & (src[:-1] == SOURCE_POLICY) & (ep[1:] == ep[:-1])) + 1
+    for t in takeover:
+        lo = t - 1
+        while lo >= 0 and t - lo <= pre_steps and ep[lo] == ep[t] and src[lo] == SOURCE_POLICY:
+            mask[order[lo]] = 0.0
+            lo -= 1
+    return mask
+
+
+def correction_pools(data: Transitions) -> tuple[np.ndarray, np.ndarray]:
+    """(offline prior rows, correction-run rows).
+
+    Correction runs are the transitions logged while the served policy acted with a
+    person (or the scripted corrector) ready to take over: sources policy and human.
+    Sampling them at a fixed share of each batch is RLPD / HIL-SERL's symmetric
+    sampling: the few new transitions are not drowned by the large prior dataset.
+    """
+    is_corr = (data.source == SOURCE_POLICY) | (data.source == SOURCE_HUMAN)
+    return np.flatnonzero(~is_corr), np.flatnonzero(is_corr)

@@ -1,0 +1,144 @@
+"""The one training loop: sample, update, log every k steps, package checkpoints.
+
+``train_seeds`` trains one run per seed, all together as one ensemble: the networks
+of all runs are stacked, so each step is a few batched matmuls instead of a few per
+run. Each run keeps its own init, its own batch stream and its own dataset, so its
+result does not depend on which runs train beside it.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+import torch
+
+from ..policy import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, LoadedPolicy
+from ..transitions import Transitions
+from .awac import AWAC
+from .bc import BC
+from .config import TrainConfig
+from .data import IndexSampler, MemberData, correction_pools, top_episode_rows
+from .filtered_bc import FilteredBC
+from .iql import IQL
+from .naive import NaiveMaxQ
+from .precision import autocast_context
+
+LEARNERS = {"bc": BC, "filtered_bc": FilteredBC, "awac": AWAC, "iql": IQL, "naive": NaiveMaxQ}
+
+
+@dataclass
+class Progress:
+    step: int
+    total: int
+    elapsed_s: float
+    scalars: dict[str, float]
+
+
+@dataclass
+class TrainResult:
+    seed: int
+    policy: LoadedPolicy
+    checkpoint: dict
+    history: dict[str, list[float]] = field(default_factory=dict)
+    mean_abs_q: float | None = None
+
+
+def seed_generators(seed: int) -> tuple[torch.Generator, torch.Generator]:
+    """(init generator, batch-index generator) for one run, from independent streams."""
+    init_seed, sample_seed = np.random.SeedSequence(seed).generate_state(2, dtype=np.uint64)
+    return (torch.Generator().manual_seed(int(init_seed)), torch.Generator().manual_seed(int(sample_seed)))
+
+
+def _member_pools(data: Transitions, cfg: TrainConfig):
+    if cfg.algo == "filtered_bc":
+        return (torch.from_numpy(top_episode_rows(data, cfg.filter_top_frac)), None)
+    if cfg.correction_ratio is not None:
+        prior, corrections = correction_pools(data)
+        if len(corrections) and len(prior):
+            return (torch.from_numpy(prior), torch.from_numpy(corrections))
+    return None
+
+
+def train_seeds(
+    datasets: Transitions | list[Transitions],
+    cfg: TrainConfig,
+    seeds: list[int],
+    progress: Callable[[Progress], None] | None = None,
+    init: dict | None = None,
+) -> list[TrainResult]:
+    """Train ``cfg.algo`` once per seed; ``datasets`` is one Transitions for all seeds
+    or one per seed. ``init`` (a checkpoint dict) warm-starts every run from it."""
+    seeds = [int(s) for s in seeds]
+    if not seeds:
+        raise ValueError("no seeds to train")
+    if isinstance(datasets, Transitions):
+        datasets = [datasets] * len(seeds)
+    if len(datasets) != len(seeds):
+        raise ValueError(f"{len(datasets)} datasets for {len(seeds)} seeds")
+    for d in datasets:
+        if len(d) == 0:
+            raise ValueError("cannot train on an empty dataset")
+    obs_dim, act_dim = datasets[0].obs.shape[1], datasets[0].action.shape[1]
+
+    gens = [seed_generators(s) for s in seeds]
+    learner = LEARNERS[cfg.algo](cfg, len(seeds), [g[0] for g in gens], obs_dim, act_dim)
+    if init is not None:
+        for m in range(len(seeds)):
+            learner.policy.load_member_state(m, init["policy_state"])
+            learner.load_learner_state(m, init.get("learner_state") or {})
+    data = MemberData(datasets)
+    pools = [_member_pools(d, cfg) for d in datasets]
+    sampler = IndexSampler(data.sizes, cfg.batch_size, [g[1] for g in gens],
+                           pools if any(p is not None for p in pools) else None, cfg.correction_ratio)
+
+    histories: list[dict[str, list[float]]] = [{"step": []} for _ in seeds]
+    start = time.perf_counter()
+    with autocast_context(cfg.deterministic):
+        for step in range(1, cfg.steps + 1):
+            losses = learner.update(data.gather(sampler.next()))
+            if step % cfg.log_every == 0 or step == cfg.steps:
+                values = {k: v.float().tolist() for k, v in losses.items()}  # the only host sync
+                for m, hist in enumerate(histories):
+                    hist["step"].append(step)
+                    for k, v in values.items():
+                        hist.setdefault(k, []).append(v[m])
+                if progress is not None:
+                    scalars = {k: float(np.mean(v)) for k, v in values.items()}
+                    progress(Progress(step, cfg.steps, time.perf_counter() - start, scalars))
+    mean_abs_q = learner.mean_abs_q(data)
+
+    hashes: dict[int, str] = {}
+    results = []
+    for m, seed in enumerate(seeds):
+        key = id(datasets[m])
+        if key not in hashes:
+            hashes[key] = datasets[m].content_hash()
+        checkpoint = {
+            "format": CHECKPOINT_FORMAT,
+            "version": CHECKPOINT_VERSION,
+            "algorithm": cfg.algo,
+            "obs_dim": obs_dim,
+            "act_dim": act_dim,
+            "hidden": cfg.hidden,
+            "policy_state": learner.policy.member_state(m),
+            "obs_mean": None,
+            "obs_std": None,
+            "learner_state": learner.learner_state(m),
+            "config": cfg.to_dict(),
+            "seed": seed,
+            "dataset_hash": hashes[key],
+            "transitions": len(datasets[m]),
+            "mean_abs_q": None if mean_abs_q is None else float(mean_abs_q[m]),
+            "train_seconds": round(time.perf_counter() - start, 3),
+        }
+        results.append(TrainResult(seed, LoadedPolicy(checkpoint), checkpoint, histories[m],
+                                   None if mean_abs_q is None else float(mean_abs_q[m])))
+    return results
+
+
+def train(dataset: Transitions, cfg: TrainConfig, seed: int, progress=None, init=None) -> TrainResult:
+    """One run: ``train_seeds`` with a single seed."""
+    return train_seeds(dataset, cfg, [seed], progress, init)[0]

@@ -1,0 +1,154 @@
+"""The checkpoint format and the policy that serves from it.
+
+A checkpoint is a plain dict saved with ``torch.save`` and loaded with
+``torch.load(weights_only=True)`` (tensors, numbers, strings, lists, dicts only):
+
+    format, version, algorithm, obs_dim, act_dim, hidden,
+    policy_state   -- Linear weights of obs -> hidden -> hidden -> act (tanh on top)
+    obs_mean, obs_std -- input normalisation (identity for the chapter's learners)
+    learner_state  -- optional: critic/value weights, for warm starts (``--init``)
+    config, seed, dataset_hash, datasets, metrics
+
+It is written atomically (temp file in the same directory, then ``os.replace``), so a
+policy node watching the file never reads half a checkpoint.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .env import ACT_DIM, OBS_DIM
+from .errors import UserError
+from .networks import policy_sequential
+
+CHECKPOINT_FORMAT = "pusher-rl/policy"
+CHECKPOINT_VERSION = 1
+
+
+def save_checkpoint(path: str | os.PathLike, checkpoint: dict) -> Path:
+    """Write ``checkpoint`` to ``path`` atomically; returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            torch.save(checkpoint, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def load_checkpoint(path: str | os.PathLike) -> dict:
+    """Read and validate a checkpoint; a clear ``UserError`` for anything wrong."""
+    path = Path(path)
+    if not path.exists():
+        raise UserError(f"{path}: no such checkpoint file")
+    if path.is_dir():
+        candidate = path / "policy.pt"
+        if not candidate.exists():
+            raise UserError(f"{path}: is a directory without policy.pt; expected a checkpoint file")
+        path = candidate
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises many types for corrupt files
+        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise UserError(f"{path}: not a readable pusher-rl checkpoint ({reason[:160]})") from None
+    if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
+        raise UserError(f"{path}: not a pusher-rl checkpoint (expected format '{CHECKPOINT_FORMAT}')")
+    if ckpt.get("version") != CHECKPOINT_VERSION:
+        raise UserError(f"{path}: checkpoint version {ckpt.get('version')} is not supported (expected {CHECKPOINT_VERSION})")
+    for key in ("obs_dim", "act_dim", "hidden", "policy_state", "algorithm"):
+        if key not in ckpt:
+            raise UserError(f"{path}: checkpoint lacks the field '{key}'")
+    state = ckpt["policy_state"]
+    expected = {
+        "0.weight": (ckpt["hidden"], ckpt["obs_dim"]),
+        "2.weight": (ckpt["hidden"], ckpt["hidden"]),
+        "4.weight": (ckpt["act_dim"], ckpt["hidden"]),
+    }
+    for name, shape in expected.items():
+        if name not in state or tuple(state[name].shape) != shape:
+            got = tuple(state[name].shape) if name in state else "missing"
+            raise UserError(f"{path}: policy weight '{name}' has shape {got}, expected {shape}")
+    return ckpt
+
+
+class LoadedPolicy:
+    """A trained policy ready to act: ``act(obs) -> actions`` in [-1, 1].
+
+    Inference runs in numpy (float32): for one observation that is several times
+    faster than a torch call, which is what the policy node serves.
+    """
+
+    def __init__(self, checkpoint: dict, source: str = "<memory>"):
+        self.checkpoint = checkpoint
+        self.source = source
+        self.algorithm = str(checkpoint["algorithm"])
+        self.obs_dim = int(checkpoint["obs_dim"])
+        self.act_dim = int(checkpoint["act_dim"])
+        self.hidden = int(checkpoint["hidden"])
+        state = checkpoint["policy_state"]
+        # Stored transposed once so a row of observations multiplies directly.
+        self._w = [state[f"{i}.weight"].detach().float().numpy().T.copy() for i in (0, 2, 4)]
+        self._b = [state[f"{i}.bias"].detach().float().numpy().copy() for i in (0, 2, 4)]
+        mean = checkpoint.get("obs_mean")
+        std = checkpoint.get("obs_std")
+        self._obs_mean = None if mean is None else np.asarray(mean, dtype=np.float32)
+        self._obs_std = None if std is None else np.asarray(std, dtype=np.float32)
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        """obs (obs_dim,) or (N, obs_dim) -> float32 actions of the same leading shape."""
+        x = np.asarray(obs, dtype=np.float32)
+        single = x.ndim == 1
+        if single:
+            x = x[None, :]
+        if x.shape[-1] != self.obs_dim:
+            raise ValueError(f"observation has {x.shape[-1]} values, the policy expects {self.obs_dim}")
+        if self._obs_mean is not None:
+            x = (x - self._obs_mean) / self._obs_std
+        h = np.maximum(x @ self._w[0] + self._b[0], 0.0)
+        h = np.maximum(h @ self._w[1] + self._b[1], 0.0)
+        a = np.tanh(h @ self._w[2] + self._b[2]).astype(np.float32, copy=False)
+        return a[0] if single else a
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        return self.act(obs)
+
+    def torch_module(self) -> torch.nn.Module:
+        """The policy as a torch module (obs -> tanh action), e.g. for ONNX export."""
+        net = policy_sequential(self.obs_dim, self.hidden, self.act_dim)
+        net.load_state_dict({k: v.float() for k, v in self.checkpoint["policy_state"].items()})
+        mean = self._obs_mean
+        std = self._obs_std
+
+        class TanhPolicy(torch.nn.Module):
+            def __init__(self):
+                super().__init__()
+                self.net = net
+                self.register_buffer("obs_mean", torch.as_tensor(mean if mean is not None else np.zeros(net[0].in_features, np.float32)))
+                self.register_buffer("obs_std", torch.as_tensor(std if std is not None else np.ones(net[0].in_features, np.float32)))
+
+            def forward(self, obs: torch.Tensor) -> torch.Tensor:
+                return torch.tanh(self.net((obs - self.obs_mean) / self.obs_std))
+
+        return TanhPolicy().eval()
+
+
+def load_policy(path: str | os.PathLike, obs_dim: int = OBS_DIM, act_dim: int = ACT_DIM) -> LoadedPolicy:
+    """Load a checkpoint for acting; refuses one whose dims do not match the task."""
+    ckpt = load_checkpoint(path)
+    if int(ckpt["obs_dim"]) != obs_dim or int(ckpt["act_dim"]) != act_dim:
+        raise UserError(
+            f"{path}: checkpoint has obs_dim={ckpt['obs_dim']}, act_dim={ckpt['act_dim']}; "
+            f"the pusher task needs obs_dim={obs_dim}, act_dim={act_dim}"
+        )
+    return LoadedPolicy(ckpt, source=str(path))

@@ -1,0 +1,160 @@
+"""One training run from bags to files: what `offline-rl train` and the trainer node do.
+
+Reads one or more rosbag2 bags, trains one learner, evaluates it on held-out
+resets, and writes ``DIR/policy.pt`` (atomic), ``DIR/metrics.json`` and
+``DIR/training_curve.png``. Everything is validated before anything is written, so a
+bad bag or flag leaves the output directory as it was.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from dataclasses import fields
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from .bag import read_transitions
+from .errors import UserError
+from .evaluation import evaluate_policy, write_json_atomic
+from .learners import ALGORITHMS, Progress, TrainConfig, train
+from .plots import plot_training_curve
+from .policy import load_checkpoint, save_checkpoint
+from .transitions import SOURCE_NAMES, Transitions
+
+DEFAULT_EVAL_SEED = 500000  # the chapter's held-out reset seeds start here
+_CONFIG_FIELDS = {f.name for f in fields(TrainConfig)}
+
+
+def add_train_arguments(parser: argparse.ArgumentParser) -> None:
+    """The flags of `offline-rl train` and `ros2 run trainer node`: TrainConfig's fields."""
+    d = TrainConfig()
+    parser.add_argument("--bag", action="append", required=True, metavar="PATH",
+                        help="rosbag2 bag (directory, .db3 or .mcap) with /pusher/transition; repeat to merge bags")
+    parser.add_argument("--algo", choices=ALGORITHMS, default=d.algo, help="learner (default: %(default)s)")
+    parser.add_argument("--steps", type=int, default=d.steps, help="gradient steps (default: %(default)s)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of init and batch sampling (default: %(default)s)")
+    parser.add_argument("--out", required=True, metavar="DIR", help="output directory (policy.pt, metrics.json, training_curve.png)")
+    parser.add_argument("--eval-episodes", type=int, default=100,
+                        help="held-out rollouts after training, 0 to skip (default: %(default)s)")
+    parser.add_argument("--eval-seed", type=int, default=DEFAULT_EVAL_SEED,
+                        help="first reset seed of the evaluation rollouts (default: %(default)s)")
+    parser.add_argument("--init", metavar="CHECKPOINT", help="warm-start policy (and critics if stored) from a checkpoint")
+    hp = parser.add_argument_group("hyper-parameters (defaults are the chapter's)")
+    hp.add_argument("--batch-size", type=int, default=d.batch_size)
+    hp.add_argument("--hidden", type=int, default=d.hidden)
+    hp.add_argument("--lr", type=float, default=d.lr)
+    hp.add_argument("--gamma", type=float, default=d.gamma)
+    hp.add_argument("--tau", type=float, default=d.tau, help="Polyak rate of the target critics")
+    hp.add_argument("--beta", type=float, default=d.beta, help="AWAC temperature")
+    hp.add_argument("--weight-clip", type=float, default=d.weight_clip, help="AWAC weight clip")
+    hp.add_argument("--expectile", type=float, default=d.expectile, help="IQL expectile")
+    hp.add_argument("--temperature", type=float, default=d.temperature, help="IQL inverse temperature")
+    hp.add_argument("--max-weight", type=float, default=d.max_weight, help="IQL weight clip")
+    hp.add_argument("--filter-top-frac", type=float, default=d.filter_top_frac, help="filtered BC: share of best episodes")
+    hp.add_argument("--correction-ratio", type=float, default=d.correction_ratio,
+                    help="share of each batch drawn from correction runs (policy/human transitions); default: uniform")
+    hp.add_argument("--log-every", type=int, default=d.log_every, help="steps between progress reports")
+    hp.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=d.deterministic,
+                    help="fp32, byte-identical results (default); --no-deterministic allows bf16 on CPUs with native bf16")
+
+
+def config_from_args(args: argparse.Namespace) -> TrainConfig:
+    values = {k: v for k, v in vars(args).items() if k in _CONFIG_FIELDS}
+    try:
+        return TrainConfig(**values)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+
+
+def load_bags(paths: list[str]) -> tuple[Transitions, list[dict]]:
+    """Read and merge bags; episode ids are offset so they stay unique per bag."""
+    parts, summary, offset = [], [], 0
+    for path in paths:
+        data = read_transitions(path)
+        data.episode = data.episode - data.episode.min() + offset
+        offset = int(data.episode.max()) + 1
+        parts.append(data)
+        counts = {SOURCE_NAMES.get(int(s), str(s)): int(n) for s, n in zip(*np.unique(data.source, return_counts=True))}
+        summary.append({"path": str(path), "transitions": len(data), "sources": counts})
+    return (parts[0] if len(parts) == 1 else Transitions.concatenate(parts)), summary
+
+
+def console_progress(stream=sys.stderr) -> Callable[[Progress], None]:
+    def report(p: Progress) -> None:
+        rate = p.step / p.elapsed_s if p.elapsed_s > 0 else 0.0
+        eta = (p.total - p.step) / rate if rate > 0 else 0.0
+        losses = "  ".join(f"{k} {v:.4g}" for k, v in p.scalars.items())
+        print(f"  step {p.step:>6}/{p.total}  {rate:6.0f} steps/s  eta {eta:5.0f}s  {losses}", file=stream, flush=True)
+    return report
+
+
+def run_training(
+    bags: list[str],
+    cfg: TrainConfig,
+    seed: int,
+    out_dir: str | os.PathLike,
+    eval_episodes: int = 100,
+    eval_seed: int = DEFAULT_EVAL_SEED,
+    init: str | None = None,
+    progress: Callable[[Progress], None] | None = None,
+    log: Callable[[str], None] = lambda s: print(s, file=sys.stderr),
+) -> Path:
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise UserError(f"{out}: exists and is not a directory; --out needs a directory")
+    if eval_episodes < 0:
+        raise UserError(f"--eval-episodes must be >= 0, got {eval_episodes}")
+    data, bag_summary = load_bags(bags)
+    init_ckpt = None
+    if init:
+        init_ckpt = load_checkpoint(init)
+        if int(init_ckpt["obs_dim"]) != data.obs.shape[1] or int(init_ckpt["act_dim"]) != data.action.shape[1]:
+            raise UserError(f"{init}: checkpoint dims ({init_ckpt['obs_dim']}, {init_ckpt['act_dim']}) do not match "
+                            f"the bag's ({data.obs.shape[1]}, {data.action.shape[1]})")
+        if int(init_ckpt["hidden"]) != cfg.hidden:
+            raise UserError(f"{init}: checkpoint hidden size {init_ckpt['hidden']} differs from --hidden {cfg.hidden}")
+    log(f"training {cfg.algo} on {len(data)} transitions from {len(bags)} bag(s), {cfg.steps} steps, seed {seed}")
+    result = train(data, cfg, seed, progress=progress, init=init_ckpt)
+
+    metrics: dict = {
+        "algorithm": cfg.algo,
+        "seed": seed,
+        "steps": cfg.steps,
+        "transitions": len(data),
+        "bags": bag_summary,
+        "dataset_hash": result.checkpoint["dataset_hash"],
+        "config": cfg.to_dict(),
+        "init": str(init) if init else None,
+        "final_losses": {k: round(float(v[-1]), 6) for k, v in result.history.items() if k != "step"},
+        "mean_abs_q": None if result.mean_abs_q is None else round(result.mean_abs_q, 6),
+    }
+    if eval_episodes:
+        log(f"evaluating on {eval_episodes} held-out rollouts (reset seeds {eval_seed}..{eval_seed + eval_episodes - 1})")
+        metrics["eval"] = evaluate_policy(result.policy, eval_episodes, eval_seed)
+    result.checkpoint["metrics"] = metrics
+    out.mkdir(parents=True, exist_ok=True)
+    save_checkpoint(out / "policy.pt", result.checkpoint)
+    write_json_atomic(out / "metrics.json", metrics)
+    plot_training_curve(result.history, out / "training_curve.png", title=f"{cfg.algo} seed {seed}")
+    return out
+
+
+def run_training_from_args(args: argparse.Namespace, progress: Callable[[Progress], None] | None = None) -> Path:
+    cfg = config_from_args(args)
+    return run_training(args.bag, cfg, args.seed, args.out, args.eval_episodes, args.eval_seed, args.init,
+                        progress=progress or console_progress())
+
+
+def summary_line(out: Path) -> str:
+    metrics = json.loads((out / "metrics.json").read_text())
+    line = f"wrote {out / 'policy.pt'}"
+    ev = metrics.get("eval")
+    if ev:
+        line += (f"  success {ev['success_rate']:.2f} [{ev['wilson_ci_lo']:.2f}, {ev['wilson_ci_hi']:.2f}]"
+                 f"  mean final dist {ev['mean_final_dist']:.4f} m over {ev['episodes']} rollouts")
+    return line

@@ -1,0 +1,1 @@
+"""The policy node of pusher-rl (see node.py)."""

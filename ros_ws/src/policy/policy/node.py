@@ -1,0 +1,179 @@
+"""``ros2 run policy node --checkpoint PATH``: serve a trained policy over topics.
+
+Every ``/pusher/state`` (with its ``/pusher/target``) is answered on ``/policy/action``:
+a JointState whose effort is the action in [-1, 1], stamped with the state's stamp,
+``frame_id`` 'policy' (the sim's source tag). A malformed or non-finite state gets no
+action and a throttled warning. The checkpoint (``--checkpoint`` or ``-p checkpoint:=``)
+is polled every ``poll_period`` seconds and hot-swapped when it changes; a file that
+fails to load leaves the previous policy serving, with an error logged. A missing or
+broken checkpoint at start is one error line and exit status 2.
+
+Target pairing: when the source stamps each target with the state it belongs to (the
+sim does), a state waits for the target with its stamp, so the first state of an
+episode is never answered with the previous episode's target. Otherwise the latest
+target is used.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+
+import numpy as np
+import rclpy
+from geometry_msgs.msg import PointStamped
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.utilities import remove_ros_args
+from sensor_msgs.msg import JointState
+
+from offline_rl_core.env import ACT_DIM, JOINT_NAMES, observation_from_joints
+from offline_rl_core.errors import UserError
+from offline_rl_core.policy import load_policy
+
+WARN_THROTTLE_S = 2.0
+
+
+def stamp_key(stamp) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def file_signature(path: str):
+    """What changes when a checkpoint is rewritten (also by an atomic rename)."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return (st.st_mtime_ns, st.st_size, st.st_ino)
+
+
+class PolicyServer(Node):
+    def __init__(self, checkpoint: str | None):
+        super().__init__("policy")
+        param = self.declare_parameter("checkpoint", "").value
+        self.poll_period = float(self.declare_parameter("poll_period", 0.5).value)
+        self.path = checkpoint or param
+        if not self.path:
+            raise UserError("no checkpoint given: pass --checkpoint PATH or -p checkpoint:=PATH")
+        if os.path.isdir(self.path):  # a run directory: watch the file the trainer replaces
+            self.path = os.path.join(self.path, "policy.pt")
+        self.signature = file_signature(self.path)
+        self.policy = load_policy(self.path)  # UserError with one clear line if missing/broken
+        self.target_stamp: int | None = None
+        self.target_xy: np.ndarray | None = None
+        self.co_stamped = False  # the source stamps targets with their state's stamp
+        self.pending: JointState | None = None
+        self.answered = 0
+
+        # Target subscription first: when both are ready the executor takes it first.
+        self.create_subscription(PointStamped, "/pusher/target", self.on_target, 10)
+        self.create_subscription(JointState, "/pusher/state", self.on_state, 10)
+        self.action_pub = self.create_publisher(JointState, "/policy/action", 10)
+        self.create_timer(self.poll_period, self.check_checkpoint)
+        self.get_logger().info(f"serving {self.policy.algorithm} policy from {self.path}")
+
+    # -------------------------------------------------------------- checkpoint
+    def check_checkpoint(self) -> None:
+        signature = file_signature(self.path)
+        if signature == self.signature:
+            return
+        self.signature = signature
+        if signature is None:
+            self.get_logger().warn(f"{self.path} disappeared; still serving the loaded policy")
+            return
+        try:
+            policy = load_policy(self.path)
+        except Exception as exc:  # noqa: BLE001 - whatever is wrong with the file, keep serving
+            self.get_logger().error(f"cannot reload {self.path}, keeping the previous policy: {exc}")
+            return
+        self.policy = policy  # one reference swap: a callback sees the old or the new policy
+        self.get_logger().info(f"reloaded {self.path} ({policy.algorithm})")
+
+    # -------------------------------------------------------------- serving
+    def on_target(self, msg: PointStamped) -> None:
+        x, y = msg.point.x, msg.point.y
+        if not (math.isfinite(x) and math.isfinite(y)):
+            self.get_logger().warn("ignoring /pusher/target: not finite", throttle_duration_sec=WARN_THROTTLE_S)
+            return
+        self.target_stamp = stamp_key(msg.header.stamp)
+        self.target_xy = np.array([x, y])
+        pending = self.pending
+        if pending is not None and stamp_key(pending.header.stamp) == self.target_stamp:
+            self.co_stamped = True
+            self.pending = None
+            self.answer(pending)
+
+    def on_state(self, msg: JointState) -> None:
+        stamp = stamp_key(msg.header.stamp)
+        if self.target_xy is not None and self.target_stamp == stamp:
+            self.co_stamped = True
+        elif self.target_xy is None or self.co_stamped:
+            self.pending = msg  # answered when its target arrives
+            return
+        self.pending = None
+        self.answer(msg)
+
+    def joints(self, msg: JointState):
+        """(position, velocity) of shoulder, elbow, or None (with a warning) if malformed."""
+        position, velocity = np.asarray(msg.position, np.float64), np.asarray(msg.velocity, np.float64)
+        problem = None
+        if len(position) < ACT_DIM or len(velocity) < ACT_DIM:
+            problem = f"needs {ACT_DIM} positions and velocities, got {len(position)} and {len(velocity)}"
+        elif len(msg.name) >= ACT_DIM and set(JOINT_NAMES) <= set(msg.name):
+            names = list(msg.name)
+            index = [names.index(j) for j in JOINT_NAMES]
+            if max(index) >= min(len(position), len(velocity)):
+                problem = "names and values differ in length"
+            else:
+                position, velocity = position[index], velocity[index]
+        if problem is None and not (np.all(np.isfinite(position[:ACT_DIM])) and np.all(np.isfinite(velocity[:ACT_DIM]))):
+            problem = "position or velocity is not finite"
+        if problem:
+            self.get_logger().warn(f"no action for /pusher/state: {problem}", throttle_duration_sec=WARN_THROTTLE_S)
+            return None
+        return position[:ACT_DIM], velocity[:ACT_DIM]
+
+    def answer(self, msg: JointState) -> None:
+        joints = self.joints(msg)
+        if joints is None:
+            return
+        obs = observation_from_joints(joints[0], joints[1], self.target_xy)
+        action = self.policy.act(obs)
+        if not np.all(np.isfinite(action)):
+            self.get_logger().warn("the policy produced a non-finite action; none sent", throttle_duration_sec=WARN_THROTTLE_S)
+            return
+        out = JointState(name=list(JOINT_NAMES), effort=[float(a) for a in np.clip(action, -1.0, 1.0)])
+        out.header.stamp = msg.header.stamp
+        out.header.frame_id = "policy"
+        self.action_pub.publish(out)
+        self.answered += 1
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv if argv is None else argv
+    parser = argparse.ArgumentParser(prog="ros2 run policy node", description="Serve a trained policy on /policy/action.")
+    parser.add_argument("--checkpoint", help="policy checkpoint (policy.pt, or a run directory holding one)")
+    args = parser.parse_args(remove_ros_args(argv)[1:])
+    rclpy.init(args=argv)
+    node = None
+    try:
+        node = PolicyServer(args.checkpoint)
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        executor.spin()
+    except UserError as exc:
+        print(f"policy: error: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

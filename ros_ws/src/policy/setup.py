@@ -1,0 +1,21 @@
+from setuptools import setup
+
+package_name = "policy"
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=[package_name],
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+    ],
+    install_requires=["setuptools"],
+    zip_safe=True,
+    maintainer="pusher-rl maintainers",
+    maintainer_email="maintainers@pusher-rl.invalid",
+    description="Serves a trained checkpoint: answers every /pusher/state with /policy/action; hot-reloads the checkpoint file.",
+    license="Apache-2.0",
+    # Kept a literal list: offline_rl_core.ros_install reads it to generate lib/policy/<exe>.
+    entry_points={"console_scripts": ["node = policy.node:main"]},
+)

@@ -1,0 +1,1 @@
+"""The recorder node of pusher-rl (see node.py)."""

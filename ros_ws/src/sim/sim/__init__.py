@@ -1,0 +1,1 @@
+"""The sim node of pusher-rl (see node.py)."""

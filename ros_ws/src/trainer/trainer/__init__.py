@@ -1,0 +1,1 @@
+"""The trainer node of pusher-rl (see node.py)."""

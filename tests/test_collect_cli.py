@@ -1,0 +1,51 @@
+"""`offline-rl collect` and `offline-rl bag-info` from the command line."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from offline_rl_core import cli
+from offline_rl_core.bag import read_transitions
+from offline_rl_core.collect import collect_transitions
+
+
+def _collect(out, *extra) -> int:
+    return cli.main(["collect", "--episodes", "4", "--expert-frac", "0.5", "--seed", "2", "--out", str(out), *extra])
+
+
+def test_collect_is_bit_reproducible(tmp_path, capsys):
+    first, second = tmp_path / "a", tmp_path / "b"
+    first.mkdir()
+    second.mkdir()
+    assert _collect(first / "d.db3") == 0
+    out = capsys.readouterr()
+    assert "400 transitions, 4 episodes" in out.out and "expert: 2 episodes" in out.out
+    assert "collect: 4/4 episodes" in out.err
+    assert _collect(second / "d.db3") == 0
+    assert (first / "d.db3").read_bytes() == (second / "d.db3").read_bytes()
+    expected = collect_transitions(4, 0.5, 2).to_rows()
+    assert np.array_equal(read_transitions(first / "d.db3").to_rows(), expected)
+    # Overwriting replaces the bag in place, byte for byte the same.
+    assert _collect(first / "d.db3") == 0
+    assert (first / "d.db3").read_bytes() == (second / "d.db3").read_bytes()
+    assert sorted(p.name for p in first.iterdir()) == ["d.db3"]
+
+
+def test_collect_mcap_directory_and_bag_info(tmp_path, capsys):
+    out = tmp_path / "mixdir"
+    assert _collect(out, "--storage", "mcap") == 0
+    assert (out / "mixdir.mcap").is_file() and (out / "metadata.yaml").is_file()
+    capsys.readouterr()
+    assert cli.main(["bag-info", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "Storage id:        mcap" in text
+    assert "Topic: /pusher/transition | Type: std_msgs/msg/Float32MultiArray | Count: 400" in text
+    assert "random:" in text and "expert:" in text
+
+
+def test_collect_refuses_missing_parent(tmp_path, capsys):
+    target = tmp_path / "nowhere" / "x.db3"
+    assert _collect(target) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and str(target) in err and "does not exist" in err
+    assert not (tmp_path / "nowhere").exists()

@@ -1,0 +1,67 @@
+"""The chapter's experiment: metrics.json keys, byte-identical reruns, multi-seed summary."""
+
+import json
+
+import pytest
+import torch
+
+from offline_rl_core.cli import main
+from offline_rl_core.experiment import METRIC_KEYS, ExperimentConfig, eval_reset_seeds, run_experiment
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def tiny(**kw) -> ExperimentConfig:
+    # Smaller than --smoke so the fast suite stays fast; same code path.
+    return ExperimentConfig.smoke_settings(episodes=4, steps=30, batch_size=16, hidden=16, n_seeds=2, eval_episodes=2, **kw)
+
+
+def test_eval_reset_seeds_are_the_chapters():
+    assert eval_reset_seeds(0, 5, 20) == list(range(500000, 500100))
+    assert eval_reset_seeds(2, 2, 4)[:5] == [500002, 500003, 500004, 500005, 500006]
+
+
+def test_tiny_experiment_is_byte_identical_and_has_the_chapters_keys(tmp_path):
+    for run in ("a", "b"):
+        run_experiment(tiny(), tmp_path / run, log=lambda line: None)
+    a = (tmp_path / "a" / "metrics.json").read_bytes()
+    assert a == (tmp_path / "b" / "metrics.json").read_bytes()
+    metrics = json.loads(a)
+    assert tuple(sorted(metrics)) == METRIC_KEYS
+    assert metrics["mode"] == "AWAC" and metrics["n_pooled"] == 4 and metrics["smoke"] is True
+    assert metrics["naive"] is False and metrics["offline_mean_abs_q"] > 0
+    assert metrics["diff_ci_lo"] <= metrics["diff_ci_hi"]
+    for name in ("bc.pt", "offline.pt", "offline_training.png"):
+        assert (tmp_path / "a" / name).is_file()
+
+
+def test_multi_seed_writes_per_seed_metrics_and_summary(tmp_path):
+    outcomes = run_experiment(tiny(seeds=[0, 1], algo="naive"), tmp_path, log=lambda line: None)
+    assert [o.seed for o in outcomes] == [0, 1]
+    for s in (0, 1):
+        m = json.loads((tmp_path / f"seed_{s}" / "metrics.json").read_text())
+        assert m["seed"] == s and m["mode"] == "naive-maxQ" and m["naive"] is True
+        assert (tmp_path / f"seed_{s}" / "offline.pt").is_file()
+    summary = (tmp_path / "summary.md").read_text()
+    assert "seed 0" in summary and "seed 1" in summary and "pooled" in summary
+    assert (tmp_path / "summary.png").stat().st_size > 1000
+
+
+def test_experiment_cli_rejects_conflicting_flags(tmp_path, capsys):
+    assert main(["experiment", "--naive", "--algo", "iql", "--out", str(tmp_path)]) == 2
+    assert "--naive" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_smoke_cli_twice_gives_byte_identical_metrics(tmp_path, capsys):
+    for run in ("a", "b"):
+        assert main(["experiment", "--smoke", "--seed", "0", "--out", str(tmp_path / run)]) == 0
+    out = capsys.readouterr().out
+    assert "AWAC" in out and "Wilson" in out
+    assert (tmp_path / "a" / "metrics.json").read_bytes() == (tmp_path / "b" / "metrics.json").read_bytes()
