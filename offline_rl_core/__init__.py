@@ -1,23 +1,33 @@
 """pusher-rl's learning core: the pusher-reach env, rosbag2 datasets, offline learners,
-evaluation and statistics. No ROS import anywhere in this package."""
+evaluation and statistics. No ROS import anywhere in this package.
 
-from .env import (
-    ACT_DIM,
-    MAX_STEPS,
-    OBS_DIM,
-    PusherReachEnv,
-    observation_from_joints,
-)
+    from offline_rl_core import PusherReachEnv, reach_action, read_transitions
+"""
+
+from .bag import bag_info, read_transitions, write_transitions
+from .env import ACT_DIM, MAX_STEPS, OBS_DIM, PusherReachEnv, observation_from_joints
 from .expert import expert_action, reach_action
+from .gym_env import register_gym_envs
+from .policy import load_policy
+from .transitions import Transitions
 
 __version__ = "0.1.0"
+
+# `gymnasium.make("offline_rl_core/PusherReach-v0")` works once this package is imported.
+register_gym_envs()
 
 __all__ = [
     "ACT_DIM",
     "MAX_STEPS",
     "OBS_DIM",
     "PusherReachEnv",
+    "Transitions",
+    "bag_info",
     "expert_action",
+    "load_policy",
     "observation_from_joints",
     "reach_action",
+    "read_transitions",
+    "register_gym_envs",
+    "write_transitions",
 ]

@@ -4,15 +4,19 @@ Faithful to the chapter's environment (see docs in README): 50 Hz control,
 two 0.01 s physics steps per action, reward ``-dist`` plus a one-time success
 bonus, success latched for the episode, truncation at 100 steps.
 
-The observation is computed by :func:`observation_from_joints` from joint
-positions, velocities, the fingertip and the target. The ROS nodes call the same
-function on ``/pusher/state`` + ``/pusher/target`` so a policy trained here
-drives any arm that publishes those topics.
+The task's maths lives here once, in batch form over N arms: the observation
+(:func:`batch_observations`), the action (:func:`clip_actions`, :func:`apply_action`)
+and the reward / success latch / episode end (:func:`score_steps`).
+``PusherReachEnv`` calls them with N = 1, ``evaluation.BatchedPusherEnv`` with N
+episodes at once, so the two agree bit for bit. The ROS nodes build observations
+from ``/pusher/state`` + ``/pusher/target`` with :func:`observation_from_joints`,
+so a policy trained here drives any arm that publishes those topics.
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import mujoco
 import numpy as np
@@ -74,28 +78,93 @@ def fingertip_from_joints(qpos) -> np.ndarray:
     )
 
 
-def observation_from_joints(qpos, qvel, target_xy, fingertip_xy=None) -> np.ndarray:
-    """The 8-float observation ``[cos sh, sin sh, cos el, sin el, sh_vel, el_vel, dx, dy]``.
+def batch_observations(qpos, qvel, target_xy, fingertip_xy) -> np.ndarray:
+    """The observation of N arms at once: (N, 8) float32, one row per arm.
 
-    ``(dx, dy) = target - fingertip``. The env passes MuJoCo's fingertip site; a
-    caller with only joint states (a ROS node) leaves it out and gets the same
-    planar forward kinematics.
+    Row ``[cos sh, sin sh, cos el, sin el, sh_vel, el_vel, dx, dy]`` with the angles
+    wrapped to [-pi, pi) and ``(dx, dy) = target - fingertip``, all computed in
+    float64 and rounded to float32 once. The one implementation of the observation:
+    ``PusherReachEnv`` (N = 1), ``BatchedPusherEnv`` and :func:`observation_from_joints`
+    all call it.
+    """
+    angles = wrap_angle(np.asarray(qpos, dtype=np.float64)[:, :2])
+    obs = np.empty((angles.shape[0], OBS_DIM), dtype=np.float32)
+    obs[:, 0:4:2] = np.cos(angles)
+    obs[:, 1:4:2] = np.sin(angles)
+    obs[:, 4:6] = np.asarray(qvel, dtype=np.float64)[:, :2]
+    obs[:, 6:8] = np.asarray(target_xy, dtype=np.float64)[:, :2] - np.asarray(fingertip_xy, dtype=np.float64)[:, :2]
+    return obs
+
+
+def observation_from_joints(qpos, qvel, target_xy, fingertip_xy=None) -> np.ndarray:
+    """The 8-float observation of one arm (see :func:`batch_observations`).
+
+    The env passes MuJoCo's fingertip site; a caller with only joint states (a ROS
+    node) leaves it out and gets planar forward kinematics, which can differ from
+    the site in the last float64 bit (float32 observation: see tests/test_env.py).
     """
     qpos = np.asarray(qpos, dtype=np.float64)
-    qvel = np.asarray(qvel, dtype=np.float64)
     if fingertip_xy is None:
         fingertip_xy = fingertip_from_joints(qpos)
-    angles = wrap_angle(qpos[:2])
-    obs = np.empty(OBS_DIM, dtype=np.float32)
-    obs[0] = math.cos(angles[0])
-    obs[1] = math.sin(angles[0])
-    obs[2] = math.cos(angles[1])
-    obs[3] = math.sin(angles[1])
-    obs[4] = qvel[0]
-    obs[5] = qvel[1]
-    obs[6] = target_xy[0] - fingertip_xy[0]
-    obs[7] = target_xy[1] - fingertip_xy[1]
-    return obs
+    return batch_observations(
+        qpos[None, :2], np.asarray(qvel, dtype=np.float64)[None, :2],
+        np.asarray(target_xy, dtype=np.float64)[None, :2], np.asarray(fingertip_xy, dtype=np.float64)[None, :2],
+    )[0]
+
+
+def clip_actions(actions, n: int) -> np.ndarray:
+    """N actions as float32 (N, 2), clipped to the actuators' [-1, 1]."""
+    return np.clip(np.asarray(actions, dtype=np.float32).reshape(n, ACT_DIM), -1.0, 1.0)
+
+
+def apply_action(model: mujoco.MjModel, data: mujoco.MjData, action: np.ndarray) -> None:
+    """Hold ``action`` (already clipped) on the motors for one control step."""
+    data.ctrl[:ACT_DIM] = action
+    mujoco.mj_step(model, data, FRAME_SKIP)
+    # mj_step leaves site_xpos at the state *before* its last integration; refresh the
+    # kinematics so the fingertip (observation and reward) belongs to the new joint
+    # state -- the same state /pusher/state publishes and a ROS policy sees.
+    mujoco.mj_kinematics(model, data)
+
+
+def planar_distances(target_xy, fingertip_xy) -> np.ndarray:
+    """|target - fingertip| in the plane for N rows, float64 (N,).
+
+    Elementwise rather than ``np.linalg.norm``: the norm of a 2-vector goes through
+    BLAS ``ddot``, whose kernel (fused multiply-add or not) depends on the machine.
+    """
+    delta = np.asarray(target_xy, dtype=np.float64)[:, :2] - np.asarray(fingertip_xy, dtype=np.float64)[:, :2]
+    return np.sqrt(delta[:, 0] * delta[:, 0] + delta[:, 1] * delta[:, 1])
+
+
+class StepScore(NamedTuple):
+    """The outcome of one control step for N envs, as arrays of length N."""
+
+    reward: np.ndarray  # float64: -dist, plus SUCCESS_BONUS on the latching step
+    dist: np.ndarray  # float64: |target - fingertip| in the plane
+    success: np.ndarray  # bool: latched success after this step
+    terminated: np.ndarray  # bool: success latched and terminate_on_success
+    truncated: np.ndarray  # bool: the step count reached MAX_STEPS
+
+
+def score_steps(target_xy, fingertip_xy, steps, success_before, terminate_on_success: bool) -> StepScore:
+    """Reward, success latch and episode end for N envs after their ``steps``-th step.
+
+    ``target_xy``, ``fingertip_xy``: (N, 2); ``steps`` (int) and ``success_before``
+    (bool, the latch before this step): (N,).
+
+    The one implementation of the task's reward and episode logic, shared by
+    ``PusherReachEnv.step`` (N = 1) and ``BatchedPusherEnv.step``.
+    """
+    dist = planar_distances(target_xy, fingertip_xy)
+    success_before = np.asarray(success_before, dtype=bool)
+    reward = -dist
+    newly = ~success_before & (dist < SUCCESS_TOL)
+    reward[newly] += SUCCESS_BONUS  # a masked add: -dist + 0.0 would turn -0.0 into +0.0
+    success = success_before | newly
+    terminated = success & bool(terminate_on_success)
+    truncated = np.asarray(steps) >= MAX_STEPS
+    return StepScore(reward, dist, success, terminated, truncated)
 
 
 def sample_reset(seed: int):
@@ -148,10 +217,10 @@ class PusherReachEnv:
         return self.data.site_xpos[self._fingertip]
 
     def distance(self) -> float:
-        return float(np.linalg.norm(self.target[:2] - self.fingertip[:2]))
+        return float(planar_distances(self.target[None, :2], self.fingertip[None, :2])[0])
 
     def observation(self) -> np.ndarray:
-        return observation_from_joints(self.qpos, self.qvel, self.target[:2], self.fingertip[:2])
+        return batch_observations(self.qpos[None], self.qvel[None], self.target[None, :2], self.fingertip[None, :2])[0]
 
     def reset(self, seed: int) -> np.ndarray:
         joints, target = sample_reset(seed)
@@ -169,20 +238,16 @@ class PusherReachEnv:
     def step(self, action):
         if self.seed is None:
             raise RuntimeError("call reset(seed) before step()")
-        action = np.clip(np.asarray(action, dtype=np.float32).reshape(ACT_DIM), -1.0, 1.0)
-        self.data.ctrl[:] = action
-        for _ in range(FRAME_SKIP):
-            mujoco.mj_step(self.model, self.data)
+        apply_action(self.model, self.data, clip_actions(action, 1)[0])
         self.steps += 1
-        dist = self.distance()
-        reward = -dist
-        if not self.success and dist < SUCCESS_TOL:
-            self.success = True
-            reward += SUCCESS_BONUS
-        terminated = bool(self.terminate_on_success and self.success)
-        truncated = bool(self.steps >= MAX_STEPS)
-        info = {"terminated": terminated, "truncated": truncated, "success": self.success, "dist": dist}
-        return self.observation(), float(reward), terminated or truncated, info
+        score = score_steps(
+            self.target[None, :2], self.fingertip[None, :2], np.array([self.steps]), np.array([self.success]),
+            self.terminate_on_success,
+        )
+        self.success = bool(score.success[0])
+        terminated, truncated = bool(score.terminated[0]), bool(score.truncated[0])
+        info = {"terminated": terminated, "truncated": truncated, "success": self.success, "dist": float(score.dist[0])}
+        return self.observation(), float(score.reward[0]), terminated or truncated, info
 
 
 def build_model() -> mujoco.MjModel:

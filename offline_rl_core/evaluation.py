@@ -20,7 +20,15 @@ from typing import Callable, Sequence
 import mujoco
 import numpy as np
 
-from .env import ACT_DIM, FRAME_SKIP, MAX_STEPS, OBS_DIM, SUCCESS_BONUS, SUCCESS_TOL, PusherReachEnv, build_model, wrap_angle
+from .env import (  # batch_observations is re-exported: part of this module's API
+    ACT_DIM,
+    PusherReachEnv,
+    apply_action,
+    batch_observations,
+    build_model,
+    clip_actions,
+    score_steps,
+)
 from .stats import wilson_ci
 
 ActFn = Callable[[np.ndarray], np.ndarray]
@@ -57,24 +65,6 @@ class RolloutResult:
         return cls(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("seeds", "success", "final_dist", "returns", "lengths")))
 
 
-def batch_observations(qpos: np.ndarray, qvel: np.ndarray, target_xy: np.ndarray, fingertip_xy: np.ndarray) -> np.ndarray:
-    """``env.observation_from_joints`` for N rows at once: (N, 8) float32.
-
-    Same operations in the same order (wrap, cos/sin of the wrapped angles, float32
-    cast of each entry), so each row equals the single-env observation exactly;
-    ``tests/test_evaluation.py`` checks that.
-    """
-    angles = wrap_angle(qpos[:, :2])
-    obs = np.empty((qpos.shape[0], OBS_DIM), dtype=np.float32)
-    obs[:, 0] = np.cos(angles[:, 0])
-    obs[:, 1] = np.sin(angles[:, 0])
-    obs[:, 2] = np.cos(angles[:, 1])
-    obs[:, 3] = np.sin(angles[:, 1])
-    obs[:, 4:6] = qvel[:, :2]
-    obs[:, 6:8] = target_xy[:, :2] - fingertip_xy[:, :2]
-    return obs
-
-
 _POOL: dict[int, list[PusherReachEnv]] = {}
 _MODEL: list[mujoco.MjModel] = []
 
@@ -99,8 +89,9 @@ class BatchedPusherEnv:
     """N pusher-reach episodes stepped together, one ``MjData`` each on one model.
 
     Resets go through ``PusherReachEnv.reset`` (the one place randomness is drawn);
-    the per-step bookkeeping (reward, success latch, truncation) mirrors
-    ``PusherReachEnv.step`` over arrays.
+    actions, physics, observation, reward, success latch and truncation are the
+    batch functions of ``offline_rl_core.env`` that ``PusherReachEnv.step`` calls
+    with N = 1.
     """
 
     def __init__(self, n: int, terminate_on_success: bool = False, model: mujoco.MjModel | None = None):
@@ -113,7 +104,6 @@ class BatchedPusherEnv:
         fid = self.envs[0]._fingertip
         mocap = self.envs[0]._mocap
         # Views into each MjData, taken once: reading them costs no attribute lookups per step.
-        self._ctrl = [e.data.ctrl for e in self.envs]
         self._qpos = [e.data.qpos for e in self.envs]
         self._qvel = [e.data.qvel for e in self.envs]
         self._tip = [e.data.site_xpos[fid] for e in self.envs]
@@ -143,22 +133,15 @@ class BatchedPusherEnv:
 
         Returns ``(obs, reward, done, success, dist)`` arrays for those envs.
         """
-        actions = np.clip(np.asarray(actions, dtype=np.float32).reshape(len(idx), ACT_DIM), -1.0, 1.0)
-        model = self.model
+        actions = clip_actions(actions, len(idx))
         for row, i in enumerate(idx):
-            self._ctrl[i][:] = actions[row]
-            mujoco.mj_step(model, self.envs[i].data, FRAME_SKIP)
+            apply_action(self.model, self.envs[i].data, actions[row])
         self.steps[idx] += 1
         qpos, qvel, tip, target = self._gather(idx)
-        delta = target - tip
-        dist = np.sqrt(delta[:, 0] * delta[:, 0] + delta[:, 1] * delta[:, 1])
-        reward = -dist
-        newly = ~self.success[idx] & (dist < SUCCESS_TOL)
-        reward[newly] += SUCCESS_BONUS
-        self.success[idx] |= newly
-        success = self.success[idx]
-        done = (self.steps[idx] >= MAX_STEPS) | (success & self.terminate_on_success)
-        return batch_observations(qpos, qvel, target, tip), reward, done, success.copy(), dist
+        score = score_steps(target, tip, self.steps[idx], self.success[idx], self.terminate_on_success)
+        self.success[idx] = score.success
+        done = score.terminated | score.truncated
+        return batch_observations(qpos, qvel, target, tip), score.reward, done, score.success.copy(), score.dist
 
 
 def _openblas_thread_controls():

@@ -21,7 +21,10 @@ import math
 import os
 import sys
 
-import numpy as np
+# One observation per call: BLAS threads only add hand-off latency (set before numpy loads).
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
 import rclpy
 from geometry_msgs.msg import PointStamped
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor

@@ -235,6 +235,7 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         bag.close()  # every message received is in the bag, however we got here
         if node is not None:
+            interrupted = interrupted or not node.finished.done()  # SIGTERM: spin just returns
             elapsed = time.monotonic() - node.start_time
             print(
                 f"recorder: {'interrupted; ' if interrupted else ''}wrote {node.transitions} transitions "

@@ -187,7 +187,7 @@ class PusherSim(Node):
     def summary(self) -> dict:
         n = len(self.results)
         if n == 0:
-            return {"episodes": 0, "success_rate": 0.0, "mean_final_dist": float("nan"), "mean_return": float("nan")}
+            return {"episodes": 0, "success_rate": 0.0, "mean_final_dist": None, "mean_return": None}
         success, dist, ret = (np.array(col, np.float64) for col in zip(*self.results))
         return {
             "episodes": n,

@@ -64,10 +64,17 @@ def topic_command(args: list[str]) -> int:
 
 # ---------------------------------------------------------------- discovery
 def _spin_for_discovery(node, spin_time: float) -> list[tuple[str, list[str]]]:
-    """Spin until ``spin_time`` has passed and the graph has been quiet for a moment."""
+    """Spin at least ``spin_time``, then until other nodes are known and the graph is quiet.
+
+    Without a daemon every call starts discovery from scratch; on a busy machine the
+    first remote endpoints can take over a second to show, so a lone graph (only this
+    node) keeps waiting up to ``max(6 * spin_time, 3 s)``. Another node shows as a second
+    /rosout publisher (endpoint discovery; node names arrive later).
+    """
     import rclpy
 
     start = time.monotonic()
+    limit = max(6 * spin_time, 3.0)
     last = None
     last_change = start
     while True:
@@ -76,7 +83,8 @@ def _spin_for_discovery(node, spin_time: float) -> list[tuple[str, list[str]]]:
         current = sorted((name, tuple(types)) for name, types in node.get_topic_names_and_types())
         if current != last:
             last, last_change = current, now
-        if now - start >= spin_time and (now - last_change >= 0.25 or now - start >= 3 * spin_time):
+        others = node.count_publishers("/rosout") > 1
+        if now - start >= limit or (now - start >= spin_time and others and now - last_change >= 0.5):
             return [(name, list(types)) for name, types in current]
 
 

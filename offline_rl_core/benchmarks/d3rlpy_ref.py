@@ -1,0 +1,79 @@
+"""d3rlpy 2.8 AWAC and BC on the same data and sizes: a reference for training speed.
+
+d3rlpy is the ``bench`` extra (``pip install -e '.[bench]'``); nothing in the runtime
+package imports it. ``available()`` says whether it is installed. The timed loop is
+``fit()``'s own inner loop (sample a transition batch, ``update``) without its file
+logging and progress bar, so d3rlpy is not charged for I/O we skip ourselves.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from ..transitions import Transitions
+
+D3RLPY_VERSION = "2.8.1"
+
+
+def available() -> str | None:
+    """d3rlpy's version when importable, else None."""
+    try:
+        import d3rlpy
+    except Exception:
+        return None
+    return str(d3rlpy.__version__)
+
+
+def mdp_dataset(data: Transitions):
+    """The transitions as a d3rlpy MDPDataset; episodes end at termination or truncation."""
+    import d3rlpy
+
+    return d3rlpy.dataset.MDPDataset(
+        observations=data.obs.astype(np.float32),
+        actions=data.action.astype(np.float32),
+        rewards=data.reward.astype(np.float32).reshape(-1, 1),
+        terminals=data.terminated.astype(np.float32),
+        timeouts=(data.truncated & ~data.terminated).astype(np.float32),
+        action_space=d3rlpy.ActionSpace.CONTINUOUS,
+    )
+
+
+def make_algo(algo: str, hidden: int, batch_size: int, lr: float = 3e-4, beta: float = 0.3):
+    """d3rlpy's AWAC (twin critics, lam = the chapter's beta) or deterministic BC, with
+    ``hidden x hidden`` ReLU encoders like ours."""
+    import d3rlpy
+
+    enc = d3rlpy.models.VectorEncoderFactory(hidden_units=[hidden, hidden])
+    if algo == "awac":
+        cfg = d3rlpy.algos.AWACConfig(
+            actor_encoder_factory=enc, critic_encoder_factory=enc, batch_size=batch_size,
+            actor_learning_rate=lr, critic_learning_rate=lr, lam=beta, n_critics=2,
+        )
+    elif algo == "bc":
+        cfg = d3rlpy.algos.BCConfig(encoder_factory=enc, batch_size=batch_size, learning_rate=lr,
+                                    policy_type="deterministic")
+    else:
+        raise ValueError(f"no d3rlpy reference for {algo}")
+    return cfg.create(device="cpu:0")
+
+
+class D3rlpyTrainer:
+    """A built d3rlpy learner and its dataset; ``run(steps)`` trains and returns seconds."""
+
+    def __init__(self, algo: str, data: Transitions, hidden: int, batch_size: int, seed: int = 0):
+        import d3rlpy
+
+        d3rlpy.seed(seed)
+        self.dataset = mdp_dataset(data)
+        self.algo = make_algo(algo, hidden, batch_size)
+        self.algo.build_with_dataset(self.dataset)
+        self.batch_size = batch_size
+
+    def run(self, steps: int) -> float:
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            batch = self.dataset.sample_transition_batch(self.batch_size)
+            self.algo.update(batch)
+        return time.perf_counter() - t0

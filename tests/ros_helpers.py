@@ -1,0 +1,163 @@
+"""Shared pieces of the ROS 2 tests: an isolated DDS domain, node processes stopped by pid,
+and an in-test rclpy node.
+
+Import the fixtures into a test module with ``from ros_helpers import ros_env, spawn``.
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+ROS2 = Path(sys.prefix) / "bin" / "ros2"
+PACKAGES = ("sim", "recorder", "trainer", "policy")
+INDEX = Path(sys.prefix) / "share" / "ament_index" / "resource_index" / "packages"
+
+# One DDS domain per test session, localhost only: parallel sessions and other machines
+# on the network never see these nodes.
+_DOMAIN_ID = str(random.SystemRandom().randint(1, 100))
+
+
+def rclpy_available() -> bool:
+    try:
+        import rclpy  # noqa: F401
+    except Exception:  # noqa: BLE001 - any failure to load the middleware means no ROS here
+        return False
+    return True
+
+
+def require_ros() -> None:
+    if not rclpy_available():
+        pytest.skip("rclpy is not importable (pip install -e '.[ros]')")
+    missing = [p for p in PACKAGES if not (INDEX / p).exists()]
+    if missing or not ROS2.exists():
+        pytest.skip(f"ROS packages {missing or ''} / ros2 not installed in {sys.prefix}: run `make setup`")
+
+
+@pytest.fixture(scope="session")
+def ros_env():
+    """Environment for node processes (and this process's rclpy) on the session's domain."""
+    require_ros()
+    overrides = {
+        "ROS_DOMAIN_ID": _DOMAIN_ID,
+        "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+        "ROS_LOCALHOST_ONLY": "",  # deprecated twin of the range; must not contradict it
+        "PYTHONUNBUFFERED": "1",
+        "RCUTILS_COLORIZED_OUTPUT": "0",
+        "RCUTILS_LOGGING_BUFFERED_STREAM": "0",  # node logs reach the log file as they happen
+        "OPENBLAS_NUM_THREADS": "1",
+    }
+    saved = {k: os.environ.get(k) for k in overrides}
+    os.environ.update(overrides)
+    os.environ.pop("ROS_LOCALHOST_ONLY")
+    env = dict(os.environ)
+    yield env
+    for key, value in saved.items():
+        if value is None:
+            os.environ.pop(key, None)
+        else:
+            os.environ[key] = value
+
+
+class NodeProcess:
+    """A process started by a test; output goes to a log file read by ``output()``."""
+
+    def __init__(self, cmd: list[str], env: dict, log_path: Path, cwd: Path = REPO):
+        self.cmd = [str(c) for c in cmd]
+        self.log_path = log_path
+        self._log = open(log_path, "wb")
+        self.proc = subprocess.Popen(self.cmd, env=env, cwd=cwd, stdout=self._log, stderr=subprocess.STDOUT)
+        self.pid = self.proc.pid
+
+    def output(self) -> str:
+        return self.log_path.read_text(errors="replace")
+
+    def wait_for_output(self, text: str, timeout: float = 20.0) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if text in self.output():
+                return True
+            if self.proc.poll() is not None:
+                return text in self.output()
+            time.sleep(0.05)
+        return False
+
+    def wait(self, timeout: float) -> int:
+        return self.proc.wait(timeout=timeout)
+
+    def stop(self, sig: int = signal.SIGINT, timeout: float = 10.0) -> int:
+        """Signal by pid, then kill after ``timeout``; returns the exit status."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(sig)
+            try:
+                self.proc.wait(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(timeout=10)
+        self._log.close()
+        return self.proc.returncode
+
+
+@pytest.fixture
+def spawn(ros_env, tmp_path):
+    """``spawn(cmd, name)`` starts a process on the test domain; all are stopped at teardown."""
+    started: list[NodeProcess] = []
+
+    def start(cmd: list, name: str, env: dict | None = None) -> NodeProcess:
+        proc = NodeProcess(cmd, env or ros_env, tmp_path / f"{name}.log")
+        started.append(proc)
+        return proc
+
+    yield start
+    for proc in reversed(started):
+        proc.stop()
+
+
+def ros2(*args) -> list[str]:
+    return [str(ROS2), *map(str, args)]
+
+
+@contextmanager
+def probe_node(name: str = "pytest_probe"):
+    """An rclpy node in this process on the test domain, with its own context and executor."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
+
+    context = rclpy.Context()
+    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
+    node = rclpy.create_node(name, context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    node.spin_for = lambda seconds: _spin_for(executor, seconds)
+    node.spin_until = lambda predicate, timeout: _spin_until(executor, predicate, timeout)
+    try:
+        yield node
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+
+
+def _spin_for(executor, seconds: float) -> None:
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=0.02)
+
+
+def _spin_until(executor, predicate, timeout: float) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        executor.spin_once(timeout_sec=0.02)
+    return bool(predicate())

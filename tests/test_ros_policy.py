@@ -1,0 +1,155 @@
+"""The policy node (answers, rejects, hot reload), the trainer node, and the closed loop."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+
+import numpy as np
+import pytest
+
+from offline_rl_core.bag import write_transitions
+from offline_rl_core.collect import collect_transitions
+from offline_rl_core.env import observation_from_joints
+from offline_rl_core.policy import load_policy
+
+from ros_helpers import REPO, probe_node, require_ros, ros2, ros_env, spawn  # noqa: F401 - fixtures
+
+pytestmark = pytest.mark.ros
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    """A tiny bag and two tiny checkpoints (different seeds: different actions)."""
+    require_ros()
+    from offline_rl_core.learners import TrainConfig
+    from offline_rl_core.training_run import run_training
+
+    root = tmp_path_factory.mktemp("policy_data")
+    bag = root / "expert.db3"
+    write_transitions(bag, collect_transitions(2, 1.0, 0))
+    cfg = TrainConfig(algo="bc", steps=30, hidden=16, batch_size=32, log_every=10)
+    quiet = dict(eval_episodes=0, progress=None, log=lambda s: None)
+    a = run_training([str(bag)], cfg, 0, root / "a", **quiet) / "policy.pt"
+    b = run_training([str(bag)], cfg, 1, root / "b", **quiet) / "policy.pt"
+    return {"bag": bag, "a": a, "b": b}
+
+
+def replace_atomically(src_bytes: bytes, dest) -> None:
+    tmp = dest.with_name(dest.name + ".incoming")
+    tmp.write_bytes(src_bytes)
+    os.replace(tmp, dest)
+
+
+def test_missing_checkpoint_is_one_line_and_exit_2(spawn, tmp_path):
+    node = spawn(ros2("run", "policy", "node", "--checkpoint", tmp_path / "none.pt"), "policy")
+    assert node.wait(timeout=60) == 2
+    lines = node.output().strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("policy: error:") and "none.pt" in lines[0], lines
+
+
+def test_policy_answers_rejects_and_hot_reloads(spawn, data, tmp_path):
+    from geometry_msgs.msg import PointStamped
+    from sensor_msgs.msg import JointState
+
+    served = tmp_path / "policy.pt"
+    shutil.copy(data["a"], served)
+    policy_a, policy_b = load_policy(data["a"]), load_policy(data["b"])
+    node_proc = spawn(ros2("run", "policy", "node", "--ros-args", "-p", f"checkpoint:={served}"), "policy")
+    actions = []
+    with probe_node() as node:
+        node.create_subscription(JointState, "/policy/action", actions.append, 10)
+        state_pub = node.create_publisher(JointState, "/pusher/state", 10)
+        target_pub = node.create_publisher(PointStamped, "/pusher/target", 10)
+        assert node.spin_until(
+            lambda: state_pub.get_subscription_count() and target_pub.get_subscription_count()
+            and node.count_publishers("/policy/action"), 30
+        ), node_proc.output()
+        stamp = [0]
+
+        def send(position, velocity, target=(0.1, 0.05)):
+            stamp[0] += 1
+            t = PointStamped()
+            t.header.stamp.sec = stamp[0]
+            t.point.x, t.point.y = target
+            s = JointState(name=["shoulder", "elbow"], position=position, velocity=velocity)
+            s.header.stamp.sec = stamp[0]
+            target_pub.publish(t)
+            state_pub.publish(s)
+            return stamp[0]
+
+        def answer_to(sec, timeout=5.0):
+            node.spin_until(lambda: any(a.header.stamp.sec == sec for a in actions), timeout)
+            return next((a for a in actions if a.header.stamp.sec == sec), None)
+
+        q, qd = [0.3, -1.2], [0.5, -0.1]
+        obs = observation_from_joints(q, qd, (0.1, 0.05))
+        reply = answer_to(send(q, qd))
+        assert reply is not None and reply.header.frame_id == "policy"
+        assert np.array_equal(np.array(reply.effort, np.float32), policy_a.act(obs))
+
+        bad = [send([float("nan"), 0.0], qd), send([0.1], [0.2]), send(q, [float("inf"), 0.0])]
+        node.spin_for(0.5)
+        assert not any(a.header.stamp.sec in bad for a in actions)
+        assert "no action for /pusher/state" in node_proc.output()
+
+        replace_atomically(data["b"].read_bytes(), served)
+        want_b = policy_b.act(obs)
+        assert not np.array_equal(want_b, policy_a.act(obs))
+        deadline = time.monotonic() + 15  # the file is polled every 0.5 s
+        while time.monotonic() < deadline:
+            reply = answer_to(send(q, qd), timeout=1.0)
+            if reply is not None and np.array_equal(np.array(reply.effort, np.float32), want_b):
+                break
+            node.spin_for(0.1)
+        else:
+            pytest.fail(f"new checkpoint not picked up (exit {node_proc.proc.poll()}, {len(actions)} actions): " + node_proc.output())
+        assert "reloaded" in node_proc.output()
+
+        replace_atomically(b"not a checkpoint", served)
+        assert node.spin_until(lambda: "cannot reload" in node_proc.output(), 10), node_proc.output()
+        reply = answer_to(send(q, qd))
+        assert reply is not None and np.array_equal(np.array(reply.effort, np.float32), want_b)  # old one serves
+
+
+@pytest.mark.slow
+def test_trainer_node_from_the_card_command_publishes_progress(spawn, data, tmp_path):
+    echo = spawn(ros2("topic", "echo", "/trainer/progress", "--once", "--full-length"), "echo")
+    out = tmp_path / "run"
+    trainer = spawn(
+        ros2("run", "trainer", "--bag", data["bag"], "--algo", "awac", "--steps", 40, "--hidden", 16,
+             "--batch-size", 32, "--log-every", 10, "--eval-episodes", 2, "--out", out),
+        "trainer",
+    )
+    assert trainer.wait(timeout=150) == 0, trainer.output()
+    assert (out / "policy.pt").is_file() and json.loads((out / "metrics.json").read_text())["algorithm"] == "awac"
+    assert f"wrote {out / 'policy.pt'}" in trainer.output()
+    assert echo.wait(timeout=20) == 0, echo.output()
+    report = echo.output().split("data: ", 1)[1].split("\n---", 1)[0].strip().strip("'")
+    assert json.loads(report)["total"] == 40
+
+    bad = spawn(ros2("run", "trainer", "node", "--bag", tmp_path / "none.db3", "--out", tmp_path / "x"), "bad")
+    assert bad.wait(timeout=60) == 2
+    assert bad.output().strip().splitlines()[-1].startswith("trainer: error:")
+
+
+@pytest.mark.slow
+def test_closed_loop_matches_in_process_evaluation(spawn, data, tmp_path):
+    from offline_rl_core.evaluation import evaluate_policy
+
+    episodes, seed = 6, 500000
+    summary = tmp_path / "closed_loop.json"
+    spawn(ros2("run", "policy", "node", "--checkpoint", data["a"]), "policy")
+    sim = spawn(
+        ros2("run", "sim", "node", "--ros-args", "-p", "mode:=lockstep", "-p", f"seed:={seed}",
+             "-p", f"episodes:={episodes}", "-p", f"summary:={summary}", "-r", "/pusher/command:=/policy/action"),
+        "sim",
+    )
+    assert sim.wait(timeout=120) == 0, sim.output()
+    over_ros = json.loads(summary.read_text())
+    in_process = evaluate_policy(load_policy(data["a"]), episodes, seed)
+    assert over_ros["episodes"] == episodes
+    assert abs(over_ros["success_rate"] - in_process["success_rate"]) <= 2 / episodes
+    assert abs(over_ros["mean_final_dist"] - in_process["mean_final_dist"]) < 0.01

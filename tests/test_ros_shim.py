@@ -1,0 +1,106 @@
+"""The project's ``ros2`` command: run, pkg executables, topic list/echo/hz, bag info."""
+
+from __future__ import annotations
+
+import re
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+
+from ros_helpers import PACKAGES, REPO, require_ros, ros2, ros_env, spawn  # noqa: F401 - fixtures
+
+
+def run(*args, env=None, timeout=60) -> subprocess.CompletedProcess:
+    return subprocess.run(ros2(*args), capture_output=True, text=True, timeout=timeout, env=env, cwd=REPO)
+
+
+@pytest.fixture(scope="module")
+def installed():
+    require_ros()
+
+
+def test_pkg_executables_lists_every_node(installed):
+    result = run("pkg", "executables")
+    assert result.returncode == 0, result.stderr
+    lines = result.stdout.splitlines()
+    for name in PACKAGES:
+        assert f"{name} node" in lines
+    assert run("pkg", "executables", "sim").stdout == "sim node\n"
+    full = run("pkg", "executables", "sim", "--full-path").stdout.strip()
+    assert full.endswith("lib/sim/node") and Path(full).is_file()
+
+
+def test_run_finds_the_single_executable_and_reports_unknown_packages(installed):
+    named = run("run", "trainer", "node", "--help")
+    implied = run("run", "trainer", "--help")  # `ros2 run trainer --bag ...` form
+    assert named.returncode == implied.returncode == 0
+    assert "--bag" in implied.stdout and implied.stdout == named.stdout
+    missing = run("run", "no_such_package", "node")
+    assert missing.returncode == 1 and "Package 'no_such_package' not found" in missing.stderr
+    wrong_exe = run("run", "sim", "no_such_exe")
+    assert wrong_exe.returncode == 1 and "No executable found" in wrong_exe.stderr
+
+
+@pytest.mark.ros
+def test_run_execs_so_the_started_pid_is_the_node(spawn, ros_env):
+    sim = spawn(ros2("run", "sim", "node", "--ros-args", "-p", "mode:=lockstep"), "sim")
+    assert sim.wait_for_output("lockstep pusher-reach", timeout=30), sim.output()
+    cmdline = Path(f"/proc/{sim.pid}/cmdline").read_bytes().split(b"\0")
+    assert any(part.endswith(b"lib/sim/node") for part in cmdline), cmdline
+    assert sim.stop(signal.SIGINT) == 0
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_topic_list_echo_hz_against_a_realtime_sim(spawn, ros_env):
+    sim = spawn(ros2("run", "sim", "node", "--ros-args", "-p", "mode:=realtime"), "sim")
+    assert sim.wait_for_output("realtime pusher-reach", timeout=30), sim.output()
+    hz = spawn(ros2("topic", "hz", "/pusher/state"), "hz")
+    assert hz.wait_for_output("average rate", timeout=30), hz.output()
+
+    # No daemon: each call discovers from scratch, which a loaded machine can make slow.
+    listed = run("topic", "list", "-t", "--spin-time", "2", env=ros_env)
+    assert listed.returncode == 0, listed.stderr
+    assert "/pusher/state [sensor_msgs/msg/JointState]" in listed.stdout.splitlines()
+    assert "/pusher/target [geometry_msgs/msg/PointStamped]" in listed.stdout.splitlines()
+    assert "/pusher/transition [std_msgs/msg/Float32MultiArray]" in listed.stdout.splitlines()
+    assert "/pusher/command [sensor_msgs/msg/JointState]" in listed.stdout.splitlines()
+    plain = run("topic", "list", "--spin-time", "2", env=ros_env).stdout.splitlines()
+    assert "/pusher/state" in plain and all(" " not in line for line in plain)
+
+    echo = run("topic", "echo", "/pusher/state", "--once", env=ros_env)
+    assert echo.returncode == 0, echo.stderr
+    text = echo.stdout
+    assert text.startswith("header:\n  stamp:\n    sec: ") and text.endswith("---\n")
+    assert "name:\n- shoulder\n- elbow\n" in text and "position:\n- " in text and "effort:\n- 0.0\n- 0.0\n" in text
+
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline and hz.output().count("average rate") < 3:
+        time.sleep(0.2)
+    hz.stop()
+    rates = [float(r) for r in re.findall(r"average rate: ([0-9.]+)", hz.output())]
+    assert rates, hz.output()
+    assert 45.0 < rates[-1] < 55.0, hz.output()
+    assert re.search(r"\tmin: [0-9.]+s max: [0-9.]+s std dev: [0-9.]+s window: \d+", hz.output())
+
+    assert sim.stop() == 0
+    timing = re.search(r"realtime timing: (\d+) ticks, period mean ([0-9.]+) ms.*missed steps (\d+)", sim.output())
+    assert timing, sim.output()
+    assert abs(float(timing.group(2)) - 20.0) < 1.0
+
+
+def test_bag_info_prints_topics_and_counts(installed, tmp_path):
+    from offline_rl_core.bag import write_transitions
+    from offline_rl_core.collect import collect_transitions
+
+    bag = tmp_path / "tiny.db3"
+    write_transitions(bag, collect_transitions(2, 0.5, 0))
+    result = run("bag", "info", bag)
+    assert result.returncode == 0, result.stderr
+    assert "Storage id:        sqlite3" in result.stdout
+    assert re.search(r"Topic: /pusher/transition \| Type: std_msgs/msg/Float32MultiArray \| Count: 200", result.stdout)
+    missing = run("bag", "info", tmp_path / "none.db3")
+    assert missing.returncode == 2 and "none.db3" in missing.stderr
