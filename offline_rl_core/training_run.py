@@ -58,6 +58,7 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     hp.add_argument("--filter-top-frac", type=float, default=d.filter_top_frac, help="filtered BC: share of best episodes")
     hp.add_argument("--correction-ratio", type=float, default=d.correction_ratio,
                     help="share of each batch drawn from correction runs (policy/human transitions); default: uniform")
+    hp.add_argument("--threads", type=int, default=d.threads, help="torch threads while training (default: %(default)s)")
     hp.add_argument("--log-every", type=int, default=d.log_every, help="steps between progress reports")
     hp.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=d.deterministic,
                     help="fp32, byte-identical results (default); --no-deterministic allows bf16 on CPUs with native bf16")

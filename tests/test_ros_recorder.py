@@ -50,7 +50,8 @@ def test_interrupted_recording_leaves_a_readable_bag(spawn, tmp_path, sig, name)
     )
     assert recorder.wait_for_output("recording 1000 episodes", timeout=30), recorder.output()
     time.sleep(2.0)  # mid-episode somewhere
-    assert recorder.stop(sig, timeout=20) == 0, recorder.output()
+    rc = recorder.stop(sig, timeout=20)
+    assert rc == 0, f"exit {rc}: {recorder.output()}"
     match = re.search(r"interrupted; wrote (\d+) transitions", recorder.output())
     assert match, recorder.output()
     n = int(match.group(1))

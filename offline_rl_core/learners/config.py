@@ -32,6 +32,10 @@ class TrainConfig:
     correction_ratio: float | None = None
     # how often (steps) losses are read back and progress is reported
     log_every: int = 100
+    # torch intra-op threads while training. Chapter-size MLPs gain little from more,
+    # and when other processes share the cores (ROS nodes, tests) OpenMP's spinning
+    # threads can slow a step fifty-fold. Train seeds as an ensemble instead.
+    threads: int = 1
     # True: fp32 everywhere, byte-identical results for a seed on CPU.
     # False: allows bf16 autocast where the CPU has native bf16 (AMX / AVX512-BF16).
     deterministic: bool = True
@@ -39,7 +43,7 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if self.algo not in ALGORITHMS:
             raise ValueError(f"unknown algorithm '{self.algo}'; expected one of {', '.join(ALGORITHMS)}")
-        for name in ("steps", "batch_size", "hidden", "log_every"):
+        for name in ("steps", "batch_size", "hidden", "log_every", "threads"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not 0.0 < self.filter_top_frac <= 1.0:

@@ -8,6 +8,7 @@ result does not depend on which runs train beside it.
 
 from __future__ import annotations
 
+import contextlib
 import time
 from dataclasses import dataclass, field
 from typing import Callable
@@ -44,6 +45,16 @@ class TrainResult:
     checkpoint: dict
     history: dict[str, list[float]] = field(default_factory=dict)
     mean_abs_q: float | None = None
+
+
+@contextlib.contextmanager
+def torch_threads(n: int):
+    previous = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
 
 
 def seed_generators(seed: int) -> tuple[torch.Generator, torch.Generator]:
@@ -96,7 +107,7 @@ def train_seeds(
 
     histories: list[dict[str, list[float]]] = [{"step": []} for _ in seeds]
     start = time.perf_counter()
-    with autocast_context(cfg.deterministic):
+    with torch_threads(cfg.threads), autocast_context(cfg.deterministic):
         for step in range(1, cfg.steps + 1):
             losses = learner.update(data.gather(sampler.next()))
             if step % cfg.log_every == 0 or step == cfg.steps:
@@ -108,7 +119,7 @@ def train_seeds(
                 if progress is not None:
                     scalars = {k: float(np.mean(v)) for k, v in values.items()}
                     progress(Progress(step, cfg.steps, time.perf_counter() - start, scalars))
-    mean_abs_q = learner.mean_abs_q(data)
+        mean_abs_q = learner.mean_abs_q(data)
 
     hashes: dict[int, str] = {}
     results = []

@@ -171,6 +171,9 @@ def main(argv: list[str] | None = None) -> int:
         return exc.exit_code
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except Exception:
+        if rclpy.ok():
+            raise  # a real error; otherwise a signal shut the context down mid-wait
     finally:
         if node is not None:
             node.destroy_node()

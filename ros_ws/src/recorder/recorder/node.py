@@ -232,6 +232,10 @@ def main(argv: list[str] | None = None) -> int:
         executor.spin_until_future_complete(node.finished)
     except (KeyboardInterrupt, ExternalShutdownException):
         interrupted = True
+    except Exception:
+        if rclpy.ok():
+            raise
+        interrupted = True  # a signal shut the context down mid-wait (rclpy may raise RCLError)
     finally:
         bag.close()  # every message received is in the bag, however we got here
         if node is not None:

@@ -285,6 +285,9 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"sim: error: {exc}", file=sys.stderr)
         return 2
+    except Exception:
+        if rclpy.ok():
+            raise  # a real error; otherwise a signal shut the context down mid-wait
     finally:
         if node is not None:
             node.write_summary()

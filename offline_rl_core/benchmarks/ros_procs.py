@@ -1,0 +1,138 @@
+"""ROS 2 processes for the serve and record figures, isolated on a random DDS domain.
+
+The bench process joins the same domain (``isolate()`` sets ``ROS_DOMAIN_ID`` and
+``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` before rclpy starts); every node it spawns
+runs in its own process group and is stopped by that group's id, never by name.
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+
+def ros_missing() -> str | None:
+    """Why the ROS figures cannot run here, or None when they can."""
+    try:
+        import rclpy  # noqa: F401
+        from sensor_msgs.msg import JointState  # noqa: F401
+    except Exception as exc:
+        return f"rclpy not importable ({type(exc).__name__}: {exc}); install the 'ros' extra"
+    if ros2_command() is None:
+        return "no `ros2` command beside the interpreter (make setup installs it)"
+    return None
+
+
+def ros2_command() -> str | None:
+    local = Path(sys.executable).parent / "ros2"
+    if local.exists():
+        return str(local)
+    return shutil.which("ros2")
+
+
+_DOMAIN: list[int] = []
+
+
+def isolate() -> int:
+    """Pick one random domain for this process (once) and its children."""
+    if not _DOMAIN:
+        _DOMAIN.append(random.SystemRandom().randint(30, 200))
+    os.environ["ROS_DOMAIN_ID"] = str(_DOMAIN[0])
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    return _DOMAIN[0]
+
+
+class NodeProcess:
+    """A spawned process (a ROS node), stopped by its own process group on exit."""
+
+    def __init__(self, argv: list[str], log_path: Path):
+        isolate()
+        self.log_path = log_path
+        self._log = open(log_path, "wb")
+        self.proc = subprocess.Popen(argv, stdout=self._log, stderr=subprocess.STDOUT, env=dict(os.environ),
+                                     start_new_session=True)
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    def wait(self, timeout: float) -> int | None:
+        try:
+            return self.proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            return None
+
+    def stop(self, grace_s: float = 5.0) -> int | None:
+        if self.proc.poll() is None:
+            for sig, wait_s in ((signal.SIGINT, grace_s), (signal.SIGTERM, 2.0), (signal.SIGKILL, 2.0)):
+                try:
+                    os.killpg(self.proc.pid, sig)  # the group this process leads: our node and its children only
+                except ProcessLookupError:
+                    break
+                if self.wait(wait_s) is not None:
+                    break
+        self._log.close()
+        return self.proc.returncode
+
+    def log_tail(self, chars: int = 600) -> str:
+        try:
+            return self.log_path.read_text(errors="replace")[-chars:]
+        except OSError:
+            return ""
+
+    def __enter__(self) -> "NodeProcess":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+
+ECHO_NODE = r'''
+"""A bare echo node: answers each /pusher/state with a /policy/action of the same stamp."""
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+
+
+class Echo(Node):
+    def __init__(self):
+        super().__init__("bench_echo")
+        self.pub = self.create_publisher(JointState, "/policy/action", 10)
+        self.create_subscription(JointState, "/pusher/state", self.on_state, 10)
+        self.out = JointState(name=["shoulder", "elbow"])
+
+    def on_state(self, msg):
+        self.out.header.stamp = msg.header.stamp
+        self.out.effort = [0.0, 0.0]
+        self.pub.publish(self.out)
+
+
+rclpy.init()
+node = Echo()
+try:
+    rclpy.spin(node)
+except (KeyboardInterrupt, ExternalShutdownException):
+    pass
+finally:
+    node.destroy_node()
+    rclpy.try_shutdown()
+'''
+
+
+def wait_until(predicate, timeout_s: float, spin=None, step_s: float = 0.05) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        if spin is not None:
+            spin(step_s)
+        else:
+            time.sleep(step_s)
+    return predicate()

@@ -1,0 +1,136 @@
+"""Training figures: gradient steps/s against the chapter's loop and d3rlpy, the
+three-seed ensemble, and the chapter experiment's wall time.
+
+"Ours" is ``train_seeds`` timed from its own progress clock (the loop, without the
+one-off setup that the references do not have either). Two modes are timed:
+``fp32`` (deterministic, byte-identical for a seed) and ``fast`` (deterministic=False:
+bf16 autocast where the CPU has native bf16; fp32 otherwise).
+"""
+
+from __future__ import annotations
+
+import tempfile
+import time
+
+import torch
+
+from ..collect import collect_transitions
+from ..learners import TrainConfig, train_seeds
+from ..learners.precision import native_bf16
+from . import d3rlpy_ref
+from . import reference_chapter as chapter
+from .harness import BenchSettings, figure, interleave, median, pending
+
+
+def ours_rate(data, algo: str, steps: int, s: BenchSettings, deterministic: bool, seeds=(0,)) -> float:
+    """Gradient steps per second of ``train_seeds`` (all members step together)."""
+    last = {}
+
+    def progress(p):
+        last["elapsed"] = p.elapsed_s
+
+    cfg = TrainConfig(algo=algo, steps=steps, batch_size=s.batch_size, hidden=s.hidden, log_every=max(1, steps),
+                      deterministic=deterministic)
+    train_seeds(data, cfg, list(seeds), progress=progress)
+    return steps / last["elapsed"]
+
+
+def chapter_rate(tensors, algo: str, steps: int, s: BenchSettings) -> float:
+    cs = chapter.ChapterSettings(steps=steps, batch_size=s.batch_size, hidden=s.hidden)
+    return chapter.steps_per_second(algo, tensors, cs)
+
+
+def _modes() -> list[tuple[str, bool]]:
+    """(label, deterministic) of the modes worth timing on this CPU."""
+    return [("fp32", True)] + ([("bf16", False)] if native_bf16() else [])
+
+
+def run(s: BenchSettings, log=print) -> list:
+    figs = []
+    data = collect_transitions(s.episodes, 0.3, 0)
+    tensors = chapter.dataset_tensors(data)
+    d3_version = d3rlpy_ref.available()
+    d3_note = "" if d3_version else "d3rlpy not installed (pip install -e '.[bench]'); d3rlpy rows skipped"
+    n = s.train_steps
+    warm = max(2, min(20, n // 10))
+
+    for algo in ("awac", "bc"):
+        steps = n if algo == "awac" else 3 * n  # BC steps are ~5x cheaper: time a similar span
+        contenders = {"chapter": lambda a=algo, k=steps: chapter_rate(tensors, a, k, s)}
+        for label, det in _modes():
+            contenders[f"ours_{label}"] = lambda a=algo, k=steps, d=det: ours_rate(data, a, k, s, d)
+        if d3_version:
+            trainer = d3rlpy_ref.D3rlpyTrainer(algo, data, s.hidden, s.batch_size)
+            trainer.run(warm)
+            contenders["d3rlpy"] = lambda t=trainer, k=steps: k / t.run(k)
+        # warm-up: first calls pay for allocator and oneDNN kernel set-up
+        chapter_rate(tensors, algo, warm, s)
+        for label, det in _modes():
+            ours_rate(data, algo, warm, s, det)
+        rates = {k: median(v) for k, v in interleave(contenders, s.train_repeats).items()}
+        log(f"  {algo} steps/s: " + ", ".join(f"{k} {v:.1f}" for k, v in rates.items()))
+        for label, _ in _modes():
+            ours = rates[f"ours_{label}"]
+            if algo == "awac":
+                figs.append(figure("train", f"awac_steps_per_s_{label}_vs_chapter", "steps/s", ours, rates["chapter"],
+                                   "chapter loop", target=lambda o, r, x: x >= 3.0, target_text=">= 3x"))
+            else:
+                figs.append(figure("train", f"bc_steps_per_s_{label}_vs_chapter", "steps/s", ours, rates["chapter"],
+                                   "chapter loop", target_text="(info)"))
+            want = 4.0 if algo == "awac" else 3.0
+            if d3_version:
+                figs.append(figure("train", f"{algo}_steps_per_s_{label}_vs_d3rlpy", "steps/s", ours, rates["d3rlpy"],
+                                   f"d3rlpy {d3_version} {algo.upper()}", target=lambda o, r, x, w=want: x >= w,
+                                   target_text=f">= {want:g}x"))
+            else:
+                figs.append(pending("train", f"{algo}_steps_per_s_{label}_vs_d3rlpy", "steps/s", "d3rlpy", d3_note,
+                                    f">= {want:g}x", status="skipped"))
+
+    # Three seeds as one stacked ensemble, against three single-seed runs one after another.
+    k = max(2, n // 2)
+    members = len(s.experiment_seeds)
+    got = interleave({
+        "single": lambda: ours_rate(data, "awac", k, s, True),
+        "stacked": lambda: ours_rate(data, "awac", k, s, True, seeds=s.experiment_seeds),
+    }, s.train_repeats)
+    single, stacked = median(got["single"]), median(got["stacked"]) * members
+    figs.append(figure("train", f"awac_{members}seed_ensemble_member_steps_per_s", "member-steps/s", stacked, single,
+                       "one seed at a time (ours, fp32)", target_text="(info)"))
+
+    figs.extend(experiment_figures(s, log))
+    return figs
+
+
+def experiment_figures(s: BenchSettings, log=print) -> list:
+    """`offline-rl experiment --seeds ...` wall time against the chapter's script run per seed."""
+    from ..experiment import ExperimentConfig, run_experiment
+
+    figs = []
+    seeds = list(s.experiment_seeds)
+    cs = chapter.ChapterSettings(steps=s.experiment_steps, batch_size=s.batch_size, hidden=s.hidden)
+
+    def chapter_runs() -> float:
+        t0 = time.perf_counter()
+        for seed in seeds:
+            chapter.run_chapter_experiment(s.episodes, 0.3, seed, cs)
+        return time.perf_counter() - t0
+
+    def ours(deterministic: bool) -> float:
+        cfg = ExperimentConfig(seeds=seeds, steps=s.experiment_steps, episodes=s.episodes, batch_size=s.batch_size,
+                               hidden=s.hidden, deterministic=deterministic)
+        with tempfile.TemporaryDirectory(prefix="bench_experiment_") as out:
+            t0 = time.perf_counter()
+            run_experiment(cfg, out, log=lambda line: None)
+            return time.perf_counter() - t0
+
+    contenders = {"chapter": chapter_runs}
+    for label, det in _modes():
+        contenders[f"ours_{label}"] = lambda d=det: ours(d)
+    times = {k: median(v) for k, v in interleave(contenders, 1).items()}
+    log("  experiment wall s: " + ", ".join(f"{k} {v:.1f}" for k, v in times.items()))
+    for label, _ in _modes():
+        figs.append(figure("train", f"experiment_{len(seeds)}seeds_wall_s_{label}", "s", times[f"ours_{label}"],
+                           times["chapter"], f"{len(seeds)} chapter runs", higher_is_better=False,
+                           target=lambda o, r, x: x >= 4.0, target_text=">= 4x faster",
+                           note=f"{s.experiment_steps} steps, {s.episodes} episodes, 100 eval episodes per arm"))
+    return figs

@@ -1,0 +1,46 @@
+"""`offline-rl bench`: speed figures against the reference implementations."""
+
+from __future__ import annotations
+
+import argparse
+
+from ..errors import UserError
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "bench",
+        help="benchmark training, bag decoding, evaluation, serving and recording against references",
+        description="Measure each figure next to its reference in the same run (the chapter's training loop, "
+        "d3rlpy, rosbags' per-message deserialize, the sequential evaluation loop, a bare rclpy echo node), "
+        "print a table and optionally write JSON. d3rlpy rows need the 'bench' extra; ROS rows need the 'ros' "
+        "extra and the nodes. Timings on a shared machine are noisy: compare the ratios.",
+    )
+    p.add_argument("--quick", action="store_true", help="short runs (under 3 minutes on 2 cores)")
+    p.add_argument("--json", metavar="PATH", help="write the results as JSON")
+    p.add_argument("--only", metavar="GROUPS", help="comma-separated subset of train,decode,eval,serve,record")
+    p.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's choice)")
+    p.add_argument("--markdown", action="store_true", help="print the table as markdown")
+    p.add_argument("--tiny", action="store_true", help=argparse.SUPPRESS)  # tests: every path, tiny sizes
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..benchmarks.harness import GROUPS, BenchSettings, format_table, run_bench, write_json
+
+    only = [g.strip() for g in args.only.split(",") if g.strip()] if args.only else None
+    if only:
+        unknown = [g for g in only if g not in GROUPS]
+        if unknown:
+            raise UserError(f"--only: unknown group(s) {', '.join(unknown)}; expected some of {', '.join(GROUPS)}")
+    if args.threads is not None and args.threads < 1:
+        raise UserError(f"--threads must be >= 1, got {args.threads}")
+    settings = BenchSettings.tiny_settings() if args.tiny else BenchSettings.quick_settings() if args.quick else BenchSettings()
+    settings.threads = args.threads
+    figures, payload = run_bench(settings, only, log=lambda line: print(line, flush=True))
+    print()
+    print(format_table(figures, markdown=args.markdown))
+    if args.json:
+        path = write_json(args.json, payload)
+        print(f"wrote {path}")
+    return 0
