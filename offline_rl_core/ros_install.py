@@ -9,9 +9,11 @@ lay down, without colcon's per-package setuptools runs:
 - ``share/ament_index/resource_index/packages/<pkg>`` (the index marker)
 - ``share/<pkg>/package.xml`` (symlink)
 - ``site-packages/<module>`` -> ``ros_ws/src/<pkg>/<module>`` (symlink: code edits are live)
-- ``lib/<pkg>/<exe>`` for each ``console_scripts`` entry of the package's setup.py, a
-  small script run by the virtualenv's interpreter (never ``bin/``: every package's
-  executable is called ``node``).
+- ``lib/<pkg>/<exe>`` for each ``console_scripts`` entry of the package (a package may
+  declare several, e.g. ``corrections``: ``mux`` and ``corrector``), a small script run
+  by the virtualenv's interpreter (never ``bin/``: most packages' executable is called
+  ``node``). The entries come from setup.py's literal ``entry_points``, or, where
+  setup.py declares none, from setup.cfg's ``[options.entry_points] console_scripts``.
 
 The ``ros2`` command comes from ``ros_ws/tools/ros2_shim``, installed with
 ``pip install -e`` (skipped when that editable install is already in place).
@@ -70,11 +72,16 @@ def read_package(path: Path) -> RosPackage:
     if not setup_py.is_file():
         raise UserError(f"{path}: package '{name}' has no setup.py (only ament_python packages are supported)")
     scripts = []
-    for entry in _console_scripts(setup_py):
+    entries = _console_scripts(setup_py) or _console_scripts_cfg(path / "setup.cfg")
+    seen = set()
+    for entry in entries:
         exe, _, target = (part.strip() for part in entry.partition("="))
         module, _, function = (part.strip() for part in target.partition(":"))
         if not exe or not module or not function:
             raise UserError(f"{setup_py}: console_scripts entry {entry!r} is not 'name = module:function'")
+        if exe in seen:
+            raise UserError(f"{setup_py}: executable {exe!r} is declared twice in console_scripts")
+        seen.add(exe)
         scripts.append((exe, module, function))
     modules = sorted(
         child.name
@@ -99,6 +106,21 @@ def _console_scripts(setup_py: Path) -> list[str]:
                 raise UserError(f"{setup_py}: entry_points must be a literal dict for ros_install") from None
             return list(entry_points.get("console_scripts", []))
     return []
+
+
+def _console_scripts_cfg(setup_cfg: Path) -> list[str]:
+    """``console_scripts`` of setup.cfg's ``[options.entry_points]`` (one entry per line)."""
+    if not setup_cfg.is_file():
+        return []
+    import configparser
+
+    parser = configparser.ConfigParser(interpolation=None)
+    try:
+        parser.read(setup_cfg)
+    except configparser.Error as exc:
+        raise UserError(f"{setup_cfg}: not a valid setup.cfg ({exc})") from None
+    value = parser.get("options.entry_points", "console_scripts", fallback="")
+    return [line.strip() for line in value.splitlines() if line.strip() and not line.strip().startswith("#")]
 
 
 def site_packages(venv: Path) -> Path:

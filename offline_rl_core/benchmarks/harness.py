@@ -34,6 +34,7 @@ class BenchSettings:
     # `offline-rl experiment --seeds 0 1 2` against three chapter runs
     experiment_seeds: tuple[int, ...] = (0, 1, 2)
     experiment_steps: int = 8000
+    experiment_eval: tuple[int, int] = (5, 20)  # suites x episodes per arm and seed (the chapter's)
     # bag decoding
     decode_repeats: int = 5
     large_bag_rows: int = 2_000_000
@@ -48,7 +49,7 @@ class BenchSettings:
     # recording
     record_episodes: int = 200
     realtime_seconds: float = 60.0
-    threads: int | None = None  # torch intra-op threads; None = torch's default
+    threads: int | None = None  # torch intra-op threads; None = auto (see ``choose_threads``)
     deterministic: bool = True  # also time the fast (bf16-where-native) mode when False-able
     tiny: bool = False  # test settings: seconds, not minutes; figures meaningless
 
@@ -56,15 +57,15 @@ class BenchSettings:
     def quick_settings(cls) -> "BenchSettings":
         return cls(quick=True, train_steps=150, train_repeats=2, experiment_steps=300, decode_repeats=3,
                    large_bag_rows=400_000, large_bag_train_steps=50, eval_repeats=2, inference_calls=5000,
-                   dds_messages=2000, record_episodes=20, realtime_seconds=10.0)
+                   dds_messages=1500, record_episodes=20, realtime_seconds=10.0)
 
     @classmethod
     def tiny_settings(cls) -> "BenchSettings":
         """For tests: every code path, tiny sizes."""
         return cls(quick=True, tiny=True, train_steps=3, train_repeats=1, hidden=16, batch_size=16, episodes=4,
-                   experiment_seeds=(0, 1), experiment_steps=3, decode_repeats=1, large_bag_rows=2000,
+                   experiment_seeds=(0, 1), experiment_steps=3, experiment_eval=(1, 2), decode_repeats=1, large_bag_rows=2000,
                    large_bag_train_steps=2, eval_episodes=4, eval_repeats=1, inference_calls=50, dds_messages=20,
-                   record_episodes=1, realtime_seconds=1.0)
+                   dds_rate_hz=200.0, record_episodes=1, realtime_seconds=1.0)
 
 
 @dataclass
@@ -186,6 +187,25 @@ def machine_info() -> dict:
     }
 
 
+def choose_threads(requested: int | None) -> tuple[int, str]:
+    """torch intra-op threads for the run, and why.
+
+    Training here is small matmuls (256 x 256); splitting each over threads costs a
+    barrier per kernel, and when another process holds a core that barrier waits for a
+    descheduled thread: measured 10x slower than one thread on a shared 2-core
+    machine. So: one thread when the machine is busy (1-minute load >= 1), else torch's
+    default. Every contender runs with the same setting.
+    """
+    import torch
+
+    if requested:
+        return requested, f"--threads {requested}"
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else 0.0
+    if load >= 1.0:
+        return 1, f"auto: 1 (machine busy, load {load:.2f})"
+    return torch.get_num_threads(), f"auto: torch default {torch.get_num_threads()} (machine idle, load {load:.2f})"
+
+
 # ----------------------------------------------------------------------------- output
 
 def _fmt(x: float | None, unit: str) -> str:
@@ -244,14 +264,15 @@ def run_bench(settings: BenchSettings, only: list[str] | None = None, log: Calla
 
     import torch
 
-    if settings.threads:
-        torch.set_num_threads(settings.threads)
+    threads, why = choose_threads(settings.threads)
+    torch.set_num_threads(threads)
     groups = list(only) if only else list(GROUPS)
     unknown = [g for g in groups if g not in GROUPS]
     if unknown:
         raise ValueError(f"unknown bench group(s) {', '.join(unknown)}; expected some of {', '.join(GROUPS)}")
     machine = machine_info()
-    log(f"bench on {machine['cpu_model']} ({machine['cpu_count']} cpus, torch threads {machine['torch_threads']}, "
+    machine["threads_choice"] = why
+    log(f"bench on {machine['cpu_model']} ({machine['cpu_count']} cpus, torch threads {why}, "
         f"bf16 flags {machine['bf16_flags'] or 'none'}, load {machine['loadavg_start']})")
     modules = {"train": "train", "decode": "decode", "eval": "eval_rollouts", "serve": "serve", "record": "record"}
     t0 = time.perf_counter()

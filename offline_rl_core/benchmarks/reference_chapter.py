@@ -90,6 +90,11 @@ def train_bc(data: dict[str, torch.Tensor], s: ChapterSettings) -> Policy:
 
 def train_awac(data: dict[str, torch.Tensor], s: ChapterSettings) -> tuple[Policy, float]:
     """AWAC as the chapter writes it; returns the policy and the final mean Q on the batch."""
+    policy, _, _, mean_q = train_awac_with_critics(data, s)
+    return policy, mean_q
+
+
+def train_awac_with_critics(data: dict[str, torch.Tensor], s: ChapterSettings) -> tuple[Policy, Critic, Critic, float]:
     obs_dim, act_dim = data["obs"].shape[1], data["action"].shape[1]
     sample_batch = _sampler(data, s.batch_size)
     policy = Policy(obs_dim, act_dim, s.hidden)
@@ -125,7 +130,7 @@ def train_awac(data: dict[str, torch.Tensor], s: ChapterSettings) -> tuple[Polic
                 for p, tp in zip(online.parameters(), targ.parameters()):
                     tp.mul_(1.0 - s.tau).add_(s.tau * p)
         mean_q = 0.5 * (q1(obs, action) + q2(obs, action)).mean().item()  # a host sync every step
-    return policy, mean_q
+    return policy, q1, q2, mean_q
 
 
 def policy_act_fn(policy: Policy):

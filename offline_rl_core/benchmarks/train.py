@@ -112,12 +112,13 @@ def experiment_figures(s: BenchSettings, log=print) -> list:
     def chapter_runs() -> float:
         t0 = time.perf_counter()
         for seed in seeds:
-            chapter.run_chapter_experiment(s.episodes, 0.3, seed, cs)
+            chapter.run_chapter_experiment(s.episodes, 0.3, seed, cs, *s.experiment_eval)
         return time.perf_counter() - t0
 
     def ours(deterministic: bool) -> float:
         cfg = ExperimentConfig(seeds=seeds, steps=s.experiment_steps, episodes=s.episodes, batch_size=s.batch_size,
-                               hidden=s.hidden, deterministic=deterministic)
+                               hidden=s.hidden, deterministic=deterministic, n_seeds=s.experiment_eval[0],
+                               eval_episodes=s.experiment_eval[1])
         with tempfile.TemporaryDirectory(prefix="bench_experiment_") as out:
             t0 = time.perf_counter()
             run_experiment(cfg, out, log=lambda line: None)
@@ -132,5 +133,6 @@ def experiment_figures(s: BenchSettings, log=print) -> list:
         figs.append(figure("train", f"experiment_{len(seeds)}seeds_wall_s_{label}", "s", times[f"ours_{label}"],
                            times["chapter"], f"{len(seeds)} chapter runs", higher_is_better=False,
                            target=lambda o, r, x: x >= 4.0, target_text=">= 4x faster",
-                           note=f"{s.experiment_steps} steps, {s.episodes} episodes, 100 eval episodes per arm"))
+                           note=f"{s.experiment_steps} steps, {s.episodes} episodes, "
+                                f"{s.experiment_eval[0] * s.experiment_eval[1]} eval episodes per arm and seed"))
     return figs

@@ -1,0 +1,52 @@
+"""`offline-rl hil`: the human-in-the-loop corrections loop over ROS (scripted corrector)."""
+
+from __future__ import annotations
+
+import json
+
+from ..hil import DEFAULT_BAG, EVAL_SEED, HilConfig, run_hil
+
+
+def _run(args) -> int:
+    cfg = HilConfig(
+        out=args.out, rounds=args.rounds, episodes=args.episodes, prior=args.prior, bags=args.bag or [DEFAULT_BAG],
+        seed=args.seed, prior_steps=args.prior_steps, steps=args.steps, correction_ratio=args.correction_ratio,
+        eval_episodes=args.eval_episodes, eval_seed=args.eval_seed, patience=args.patience,
+        hold_steps=args.hold_steps, noise=args.noise, reaction_delay=args.reaction_delay,
+    )
+    summary = run_hil(cfg)
+    print(json.dumps({k: summary[k] for k in ("prior_success", "final_success", "diff_ci_lo", "diff_ci_hi",
+                                              "intervention_rate_first", "intervention_rate_last", "wall_seconds")}))
+    return 0
+
+
+def register(subparsers) -> None:
+    d = HilConfig()
+    p = subparsers.add_parser(
+        "hil",
+        help="HIL-SERL corrections loop over ROS: serve, correct, record, retrain, reload",
+        description="Runs ROUNDS rounds: serve the prior (policy node, hot reload), run EPISODES lockstep episodes with "
+        "the scripted corrector taking over through the mux, record them (recorder --passive), retrain AWAC from the "
+        "served checkpoint on the offline bag plus all corrections (trainer node, --correction-ratio), reload. "
+        "Writes DIR/summary.json and DIR/rounds.png.",
+    )
+    p.add_argument("--out", default=d.out, metavar="DIR", help="output directory (default: %(default)s)")
+    p.add_argument("--rounds", type=int, default=d.rounds, help="correction rounds (default: %(default)s)")
+    p.add_argument("--episodes", type=int, default=d.episodes, help="corrected episodes per round (default: %(default)s)")
+    p.add_argument("--prior", metavar="CKPT", help="checkpoint to start from (default: train AWAC on --bag, or reuse "
+                   "runs/demo/awac/policy.pt when it was trained so)")
+    p.add_argument("--bag", action="append", metavar="PATH", help=f"offline bag(s) of the prior (default: {DEFAULT_BAG})")
+    p.add_argument("--seed", type=int, default=d.seed, help="seed of training and of the corrector (default: %(default)s)")
+    p.add_argument("--prior-steps", type=int, default=d.prior_steps, help="steps of the prior's training (default: %(default)s)")
+    p.add_argument("--steps", type=int, default=d.steps, help="retraining steps per round (default: %(default)s)")
+    p.add_argument("--correction-ratio", type=float, default=d.correction_ratio,
+                   help="share of each batch from correction runs (default: %(default)s)")
+    p.add_argument("--eval-episodes", type=int, default=d.eval_episodes,
+                   help="held-out rollouts per evaluation (default: %(default)s)")
+    p.add_argument("--eval-seed", type=int, default=EVAL_SEED, help="first held-out reset seed (default: %(default)s)")
+    c = p.add_argument_group("scripted corrector")
+    c.add_argument("--patience", type=int, default=d.patience, help="k: steps without progress before a takeover (default: %(default)s)")
+    c.add_argument("--hold-steps", type=int, default=d.hold_steps, help="m: steps before handing back (default: %(default)s)")
+    c.add_argument("--noise", type=float, default=d.noise, help="std of noise on the corrections (default: %(default)s)")
+    c.add_argument("--reaction-delay", type=int, default=d.reaction_delay, help="steps of reaction delay (default: %(default)s)")
+    p.set_defaults(func=_run)

@@ -1,0 +1,160 @@
+"""Start and stop ROS 2 node processes by pid, on an isolated DDS domain.
+
+No ROS import: the nodes are separate processes (``ros2 run PKG EXE ...`` or the
+``lib/<pkg>/<exe>`` scripts of the virtualenv), so ``offline_rl_core`` stays free of rclpy.
+
+    env = isolated_ros_env()                      # private random ROS_DOMAIN_ID, localhost only
+    with RosProcess(ros2_run("sim", "node", "--ros-args", "-p", "mode:=lockstep"), env, "sim.log") as sim:
+        ...
+    # leaving the block stops it: SIGINT, then SIGTERM, then SIGKILL, each by its pid
+
+Every process is started in its own process group (so a terminal's Ctrl-C reaches only
+the parent, which then stops its children in order), and is only ever signalled by its
+own pid.
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+# Environment of an isolated node: DDS discovery on localhost only, on one domain.
+_ISOLATION = {
+    "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+    "PYTHONUNBUFFERED": "1",
+    "RCUTILS_COLORIZED_OUTPUT": "0",
+    "RCUTILS_LOGGING_BUFFERED_STREAM": "0",  # node logs reach the log file as they happen
+    "OPENBLAS_NUM_THREADS": "1",
+    "OMP_NUM_THREADS": "1",
+}
+
+
+def isolated_ros_env(domain_id: int | None = None, base: dict | None = None) -> dict:
+    """A copy of ``base`` (default ``os.environ``) on a private DDS domain.
+
+    ``domain_id`` None draws one at random from 1..100 (0 is everybody's default;
+    localhost-only discovery keeps other machines out whatever the id).
+    """
+    env = dict(os.environ if base is None else base)
+    if domain_id is None:
+        domain_id = random.SystemRandom().randint(1, 100)
+    if not 0 <= int(domain_id) <= 232:
+        raise ValueError(f"ROS_DOMAIN_ID must be in 0..232, got {domain_id}")
+    env.update(_ISOLATION)
+    env["ROS_DOMAIN_ID"] = str(int(domain_id))
+    env.pop("ROS_LOCALHOST_ONLY", None)  # deprecated twin of the range; must not contradict it
+    return env
+
+
+def venv_bin(name: str) -> Path:
+    """``<prefix>/bin/<name>`` of the running interpreter's environment."""
+    return Path(sys.prefix) / "bin" / name
+
+
+def ros2_run(package: str, executable: str, *args) -> list[str]:
+    """The command line of ``ros2 run PACKAGE EXECUTABLE ARGS...``.
+
+    Uses the installed ``lib/<pkg>/<exe>`` script directly when it exists (what
+    ``ros2 run`` would exec: one process, one pid), else the ``ros2`` command.
+    """
+    script = Path(sys.prefix) / "lib" / package / executable
+    if script.is_file() and os.access(script, os.X_OK):
+        return [str(script), *map(str, args)]
+    return [str(venv_bin("ros2")), "run", package, executable, *map(str, args)]
+
+
+class RosProcess:
+    """One node process, its stdout+stderr in ``log_path``, stopped by pid."""
+
+    def __init__(self, cmd: list[str], env: dict, log_path: str | os.PathLike, cwd: str | os.PathLike | None = None,
+                 name: str | None = None):
+        self.cmd = [str(c) for c in cmd]
+        self.env = env
+        self.log_path = Path(log_path)
+        self.cwd = cwd
+        self.name = name or Path(self.cmd[0]).name
+        self.proc: subprocess.Popen | None = None
+        self._log = None
+
+    @property
+    def pid(self) -> int | None:
+        return None if self.proc is None else self.proc.pid
+
+    def start(self) -> "RosProcess":
+        if self.proc is not None:
+            raise RuntimeError(f"{self.name} already started (pid {self.pid})")
+        self.log_path.parent.mkdir(parents=True, exist_ok=True)
+        self._log = open(self.log_path, "wb")
+        self.proc = subprocess.Popen(
+            self.cmd, env=self.env, cwd=self.cwd, stdout=self._log, stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL, start_new_session=True,
+        )
+        return self
+
+    def running(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+    def poll(self) -> int | None:
+        return None if self.proc is None else self.proc.poll()
+
+    def wait(self, timeout: float | None = None) -> int:
+        """Exit status; raises ``subprocess.TimeoutExpired`` after ``timeout``."""
+        if self.proc is None:
+            raise RuntimeError(f"{self.name} was never started")
+        return self.proc.wait(timeout=timeout)
+
+    def output(self) -> str:
+        try:
+            return self.log_path.read_text(errors="replace")
+        except OSError:
+            return ""
+
+    def wait_for_output(self, text: str, timeout: float = 30.0) -> bool:
+        """True once ``text`` is in the log; False on timeout or when the process exits without it."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if text in self.output():
+                return True
+            if not self.running():
+                return text in self.output()
+            time.sleep(0.05)
+        return False
+
+    def stop(self, timeout: float = 5.0) -> int | None:
+        """SIGINT, then SIGTERM after ``timeout`` s, then SIGKILL: always by this pid.
+        Returns the exit status (None if never started)."""
+        if self.proc is None:
+            return None
+        try:
+            for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
+                if self.proc.poll() is not None:
+                    break
+                try:
+                    self.proc.send_signal(sig)
+                except ProcessLookupError:
+                    break
+                try:
+                    self.proc.wait(timeout=timeout if sig != signal.SIGKILL else 10.0)
+                except subprocess.TimeoutExpired:
+                    continue
+            return self.proc.poll()
+        finally:
+            if self._log is not None:
+                self._log.close()
+                self._log = None
+
+    def __enter__(self) -> "RosProcess":
+        if self.proc is None:
+            self.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def __repr__(self) -> str:
+        return f"RosProcess({self.name!r}, pid={self.pid})"

@@ -1,0 +1,26 @@
+from setuptools import setup
+
+package_name = "corrections"
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=[package_name],
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+    ],
+    install_requires=["setuptools"],
+    zip_safe=True,
+    maintainer="pusher-rl maintainers",
+    maintainer_email="maintainers@pusher-rl.invalid",
+    description="HIL-SERL corrections: the policy/human command mux and the (scripted or keyboard) corrector.",
+    license="Apache-2.0",
+    # Kept a literal list: offline_rl_core.ros_install reads it to generate lib/corrections/<exe>.
+    entry_points={
+        "console_scripts": [
+            "mux = corrections.mux:main",
+            "corrector = corrections.corrector:main",
+        ]
+    },
+)
