@@ -16,22 +16,22 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
+import subprocess
 import sys
 import time
 from pathlib import Path
 
 from .errors import UserError
 from .evaluation import write_json_atomic
-from .rosproc import RosProcess, isolated_ros_env
+from .rosproc import RosProcess, isolated_ros_env, ros2_run, venv_bin
 from .stats import newcombe_diff_ci
 
 EVAL_SEED = 500000  # the chapter's held-out reset seeds: 500000 .. 500099 for seed 0
 EVAL_EPISODES = 100
 
 
-def ros2_command() -> str:
-    ros2 = Path(sys.prefix) / "bin" / "ros2"
+def check_ros_installed() -> str:
+    ros2 = venv_bin("ros2")
     if not ros2.exists():
         raise UserError(f"{ros2}: the ros2 command is not installed; run `make setup`")
     return str(ros2)
@@ -41,10 +41,26 @@ def say(msg: str) -> None:
     print(msg, flush=True)
 
 
+def wait_for(proc: RosProcess, timeout: float, what: str) -> int:
+    """Exit status of ``proc``; a clear error (and the log to read) when it fails or hangs."""
+    try:
+        status = proc.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        raise UserError(f"{what} did not finish within {timeout:.0f} s; see {proc.log_path}") from None
+    if status != 0:
+        raise UserError(f"{what} failed (exit {status}); see {proc.log_path}")
+    return status
+
+
+def last_progress(proc: RosProcess) -> str:
+    lines = [ln.strip() for ln in proc.output().splitlines() if ln.strip().startswith("step")]
+    return lines[-1] if lines else "starting"
+
+
 def run_demo(out: Path, bag: Path, steps: int, record_episodes: int, seed: int) -> int:
     if not bag.exists():
         raise UserError(f"{bag}: no such bag; regenerate it with `make bag`")
-    ros2 = ros2_command()
+    ros2 = check_ros_installed()
     out.mkdir(parents=True, exist_ok=True)
     logs = out / "logs"
     logs.mkdir(exist_ok=True)
@@ -57,15 +73,14 @@ def run_demo(out: Path, bag: Path, steps: int, record_episodes: int, seed: int) 
     if recorded.exists():
         recorded.unlink()
     say(f"\n[1/4] recording {record_episodes} episodes over ROS: sim (lockstep) + recorder -> {recorded}")
-    sim = RosProcess([ros2, "run", "sim", "node", "--ros-args", "-p", "mode:=lockstep", "-p", f"seed:={seed}"],
+    sim = RosProcess(ros2_run("sim", "node", "--ros-args", "-p", "mode:=lockstep", "-p", f"seed:={seed}"),
                      env, logs / "record_sim.log")
-    recorder = RosProcess([ros2, "run", "recorder", "node", "--out", str(recorded), "--episodes", str(record_episodes),
-                           "--expert-frac", "0.3", "--seed", str(seed)], env, logs / "recorder.log")
+    recorder = RosProcess(ros2_run("recorder", "node", "--out", recorded, "--episodes", record_episodes,
+                                   "--expert-frac", "0.3", "--seed", seed), env, logs / "recorder.log")
     with sim, recorder:
-        recorder.wait(timeout=300)
-    if recorder.returncode != 0:
-        raise UserError(f"recorder node failed (exit {recorder.returncode}); see {logs / 'recorder.log'}")
-    say(RosProcess.run_text([ros2, "bag", "info", str(recorded)], env))
+        wait_for(recorder, 300, "the recorder node")
+    info = subprocess.run([ros2, "bag", "info", str(recorded)], env=env, capture_output=True, text=True, timeout=60)
+    say(info.stdout.rstrip() or info.stderr.rstrip())
 
     # 2. train BC and AWAC with the trainer node, side by side (one core each)
     say(f"[2/4] training BC and AWAC on {bag} with the trainer node ({steps} steps each, in parallel)")
@@ -73,35 +88,34 @@ def run_demo(out: Path, bag: Path, steps: int, record_episodes: int, seed: int) 
     for algo in ("bc", "awac"):
         run_dir = out / algo
         trainers[algo] = RosProcess(
-            [ros2, "run", "trainer", "node", "--bag", str(bag), "--algo", algo, "--steps", str(steps),
-             "--seed", str(seed), "--out", str(run_dir), "--eval-episodes", str(EVAL_EPISODES),
-             "--eval-seed", str(EVAL_SEED + seed)],
+            ros2_run("trainer", "node", "--bag", bag, "--algo", algo, "--steps", steps, "--seed", seed,
+                     "--out", run_dir, "--eval-episodes", EVAL_EPISODES, "--eval-seed", EVAL_SEED + seed),
             env, logs / f"trainer_{algo}.log")
     with trainers["bc"], trainers["awac"]:
-        last = 0.0
+        last = time.perf_counter()
         while any(t.running() for t in trainers.values()):
-            time.sleep(1.0)
-            if time.perf_counter() - last > 10:
+            time.sleep(0.5)
+            if time.perf_counter() - last > 15:
                 last = time.perf_counter()
-                say("      " + "   ".join(f"{algo}: {t.last_line(prefix='  step')}" for algo, t in trainers.items()))
+                say("      " + " | ".join(f"{algo}: {last_progress(t)}" for algo, t in trainers.items()))
         for algo, t in trainers.items():
-            if t.returncode != 0:
-                raise UserError(f"trainer node ({algo}) failed (exit {t.returncode}); see {t.log_path}")
+            wait_for(t, 10, f"the trainer node ({algo})")
     metrics = {algo: json.loads((out / algo / "metrics.json").read_text()) for algo in trainers}
 
     # 3. serve AWAC and close the loop over DDS
     closed_loop = out / "closed_loop_awac.json"
     say(f"[3/4] serving AWAC with the policy node; sim closed loop on {EVAL_EPISODES} held-out seeds "
         f"({EVAL_SEED + seed}..{EVAL_SEED + seed + EVAL_EPISODES - 1})")
-    policy = RosProcess([ros2, "run", "policy", "node", "--checkpoint", str(out / "awac" / "policy.pt")],
-                        env, logs / "policy.log")
-    sim = RosProcess([ros2, "run", "sim", "node", "--ros-args", "-p", "mode:=lockstep", "-p", f"seed:={EVAL_SEED + seed}",
-                      "-p", f"episodes:={EVAL_EPISODES}", "-p", f"summary:={closed_loop}",
-                      "-r", "/pusher/command:=/policy/action"], env, logs / "closed_loop_sim.log")
+    if closed_loop.exists():
+        closed_loop.unlink()
+    policy = RosProcess(ros2_run("policy", "node", "--checkpoint", out / "awac" / "policy.pt"), env, logs / "policy.log")
+    sim = RosProcess(ros2_run("sim", "node", "--ros-args", "-p", "mode:=lockstep", "-p", f"seed:={EVAL_SEED + seed}",
+                              "-p", f"episodes:={EVAL_EPISODES}", "-p", f"summary:={closed_loop}",
+                              "-r", "/pusher/command:=/policy/action"), env, logs / "closed_loop_sim.log")
     with policy, sim:
-        sim.wait(timeout=600)
-    if sim.returncode != 0 or not closed_loop.exists():
-        raise UserError(f"closed-loop sim failed (exit {sim.returncode}); see {sim.log_path}")
+        wait_for(sim, 600, "the closed-loop sim")
+    if not closed_loop.exists():
+        raise UserError(f"the closed-loop sim wrote no summary {closed_loop}; see {sim.log_path}")
     ros_summary = json.loads(closed_loop.read_text())
 
     # 4. the table

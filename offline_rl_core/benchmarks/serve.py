@@ -50,18 +50,17 @@ def inference_figures(s: BenchSettings, checkpoint: dict, log=print) -> list:
     try:
         import onnxruntime as ort
 
-        from ..onnx_export import export_onnx  # noqa: F401  (the project's exporter, when present)
+        from ..onnx_export import export_onnx
     except Exception:
         ort = None
     if ort is not None:
         with tempfile.TemporaryDirectory() as tmp:
-            path = Path(tmp) / "p.onnx"
-            torch.onnx.export(policy.torch_module(), torch.zeros(1, policy.obs_dim), str(path), input_names=["obs"],
-                              output_names=["action"], dynamo=False)
+            path = export_onnx(policy, Path(tmp) / "p.onnx")
             opts = ort.SessionOptions()
             opts.intra_op_num_threads = 1
             sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
-        contenders["onnxruntime"] = lambda x: sess.run(None, {"obs": x[None, :]})[0][0]
+        name = sess.get_inputs()[0].name
+        contenders["onnxruntime"] = lambda x: sess.run(None, {name: x[None, :]})[0][0]
     rng = np.random.default_rng(0)
     obs = rng.standard_normal((256, policy.obs_dim)).astype(np.float32)
     for fn in contenders.values():  # warm-up

@@ -36,6 +36,7 @@ import rclpy
 from geometry_msgs.msg import PointStamped
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
+from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.task import Future
 from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import JointState
@@ -105,8 +106,9 @@ class Corrector(Node):
         super().__init__("corrector")
         p = CorrectorParams()
         values = {
-            name: type(getattr(p, name))(self.declare_parameter(name, getattr(args, name) if getattr(args, name) is not None
-                                                                else getattr(p, name)).value)
+            name: type(getattr(p, name))(self.declare_parameter(
+                name, getattr(args, name) if getattr(args, name) is not None else getattr(p, name),
+                ParameterDescriptor(dynamic_typing=True)).value)
             for name in ("patience", "hold_steps", "min_progress", "noise", "reaction_delay", "seed")
         }
         self.mode = args.mode

@@ -28,6 +28,7 @@ import numpy as np
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
+from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.qos import DurabilityPolicy, QoSProfile
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool
@@ -48,7 +49,7 @@ class Mux(Node):
     def __init__(self):
         super().__init__("mux")
         self.mode = self.declare_parameter("mode", "realtime").value
-        self.hold_s = float(self.declare_parameter("hold_ms", 100.0).value) / 1000.0
+        self.hold_s = float(self.declare_parameter("hold_ms", 100.0, ParameterDescriptor(dynamic_typing=True)).value) / 1000.0
         self.require_teleop = bool(self.declare_parameter("require_teleop", False).value)
         if self.mode not in ("realtime", "lockstep"):
             raise ValueError(f"parameter mode must be 'realtime' or 'lockstep', got {self.mode!r}")
