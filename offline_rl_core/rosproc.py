@@ -68,6 +68,12 @@ def ros2_run(package: str, executable: str, *args) -> list[str]:
     return [str(venv_bin("ros2")), "run", package, executable, *map(str, args)]
 
 
+def _default_sigint() -> None:
+    """In the child: SIGINT back to its default, so a graceful stop works even when the
+    parent was started with SIGINT ignored (a background job of a non-interactive shell)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 class RosProcess:
     """One node process, its stdout+stderr in ``log_path``, stopped by pid."""
 
@@ -92,7 +98,7 @@ class RosProcess:
         self._log = open(self.log_path, "wb")
         self.proc = subprocess.Popen(
             self.cmd, env=self.env, cwd=self.cwd, stdout=self._log, stderr=subprocess.STDOUT,
-            stdin=subprocess.DEVNULL, start_new_session=True,
+            stdin=subprocess.DEVNULL, start_new_session=True, preexec_fn=_default_sigint,
         )
         return self
 

@@ -112,7 +112,7 @@ def still_arm(corrector: ScriptedCorrector, steps: int, qpos=(0.0, 0.0), target=
 
 
 def test_corrector_takes_over_after_patience_and_hands_back_after_hold():
-    c = ScriptedCorrector(CorrectorParams(patience=4, hold_steps=3))
+    c = ScriptedCorrector(CorrectorParams(patience=4, hold_steps=3, grace_steps=0))
     answers = still_arm(c, 12)
     acted = [a is not None for a in answers]
     # state 0 sets the best distance; the 4th state without progress is taken over;
@@ -123,7 +123,7 @@ def test_corrector_takes_over_after_patience_and_hands_back_after_hold():
 
 def test_corrector_reaction_delay_and_noise_are_seeded():
     def run(seed):
-        c = ScriptedCorrector(CorrectorParams(patience=2, hold_steps=5, reaction_delay=2, noise=0.3, seed=seed))
+        c = ScriptedCorrector(CorrectorParams(patience=2, hold_steps=5, reaction_delay=2, noise=0.3, seed=seed, grace_steps=0))
         return still_arm(c, 10)
 
     a, b, other = run(1), run(1), run(2)
@@ -136,7 +136,7 @@ def test_corrector_reaction_delay_and_noise_are_seeded():
 def test_corrector_hands_back_on_success_and_resets_per_episode():
     env = PusherReachEnv()
     env.reset(3)
-    c = ScriptedCorrector(CorrectorParams(patience=1, hold_steps=100))
+    c = ScriptedCorrector(CorrectorParams(patience=1, hold_steps=100, grace_steps=0))
     sources = []
     for _ in range(100):
         action = c.decide(env.qpos.copy(), env.qvel.copy(), env.target[:2].copy())
@@ -292,6 +292,7 @@ def test_hil_loop_records_sources_hot_reloads_and_improves(ros_env, weak_prior, 
                     bags=[str(REPO / "bags" / "mix.db3")])
     lines: list[str] = []
     summary = run_hil(cfg, log=lines.append)
+    print(lines[-1])
     assert json.loads((out / "summary.json").read_text())["final_success"] == summary["final_success"]
     assert (out / "rounds.png").stat().st_size > 0
     rows = summary["rounds"]
@@ -306,7 +307,8 @@ def test_hil_loop_records_sources_hot_reloads_and_improves(ros_env, weak_prior, 
             runs = np.diff(np.flatnonzero(np.diff(np.r_[0, src == SOURCE_HUMAN, 0])))[::2]
             assert np.all(runs <= cfg.hold_steps)  # every takeover hands back within hold_steps
             first = np.flatnonzero(src == SOURCE_HUMAN)
-            assert len(first) == 0 or first[0] >= cfg.patience  # never before k steps without progress
+            # never before the grace period plus k states without progress
+            assert len(first) == 0 or first[0] >= cfg.grace_steps + cfg.patience - 1
     # hot reload during the run: the policy node (one process) served round 2 with round 1's checkpoint
     assert (out / "policy_node.log").read_text().count("reloaded ") == 2
     round2 = read_transitions(rows[1]["bag"])
@@ -317,3 +319,30 @@ def test_hil_loop_records_sources_hot_reloads_and_improves(ros_env, weak_prior, 
     # the loop improves on its prior
     assert summary["final_success"] > summary["prior_success"]
     assert any("reloaded" in line for line in lines)
+
+
+@pytest.mark.ros
+def test_keyboard_mode_needs_a_terminal(ros_env, tmp_path):
+    require_corrections()
+    from offline_rl_core.rosproc import RosProcess, ros2_run
+
+    # RosProcess gives the node /dev/null as stdin (never the terminal pytest runs in)
+    with RosProcess(ros2_run("corrections", "corrector", "--mode", "keyboard"), ros_env, tmp_path / "kb.log") as node:
+        assert node.wait(timeout=60) == 2
+        assert "corrector: error: --mode keyboard needs an interactive terminal" in node.output()
+
+
+def test_rosproc_stops_by_pid_with_escalation(tmp_path):
+    import signal as _signal
+
+    from offline_rl_core.rosproc import RosProcess, isolated_ros_env
+
+    env = isolated_ros_env(domain_id=42)
+    assert env["ROS_DOMAIN_ID"] == "42" and env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
+    assert "ROS_LOCALHOST_ONLY" not in env and 1 <= int(isolated_ros_env()["ROS_DOMAIN_ID"]) <= 100
+    stubborn = "import signal, time; signal.signal(signal.SIGINT, signal.SIG_IGN); print('up', flush=True); time.sleep(60)"
+    proc = RosProcess([sys.executable, "-c", stubborn], env, tmp_path / "stubborn.log").start()
+    assert proc.wait_for_output("up", 30)
+    started = time.monotonic()
+    assert proc.stop(timeout=1.0) == -_signal.SIGTERM  # SIGINT ignored, SIGTERM after 1 s
+    assert time.monotonic() - started < 10 and not proc.running()

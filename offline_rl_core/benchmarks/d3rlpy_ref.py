@@ -20,15 +20,33 @@ D3RLPY_VERSION = "2.8.1"
 def available() -> str | None:
     """d3rlpy's version when importable, else None."""
     try:
-        import d3rlpy
+        d3rlpy = _import_quietly()
     except Exception:
         return None
     return str(d3rlpy.__version__)
 
 
+def _import_quietly():
+    """Import d3rlpy without its banner noise: gym's deprecation notice on stderr and
+    structlog info lines for every dataset it builds."""
+    import contextlib
+    import io
+    import logging
+
+    with contextlib.redirect_stderr(io.StringIO()):
+        import d3rlpy
+    try:
+        import structlog
+
+        structlog.configure(wrapper_class=structlog.make_filtering_bound_logger(logging.WARNING))
+    except Exception:
+        pass
+    return d3rlpy
+
+
 def mdp_dataset(data: Transitions):
     """The transitions as a d3rlpy MDPDataset; episodes end at termination or truncation."""
-    import d3rlpy
+    d3rlpy = _import_quietly()
 
     return d3rlpy.dataset.MDPDataset(
         observations=data.obs.astype(np.float32),
@@ -43,7 +61,7 @@ def mdp_dataset(data: Transitions):
 def make_algo(algo: str, hidden: int, batch_size: int, lr: float = 3e-4, beta: float = 0.3):
     """d3rlpy's AWAC (twin critics, lam = the chapter's beta) or deterministic BC, with
     ``hidden x hidden`` ReLU encoders like ours."""
-    import d3rlpy
+    d3rlpy = _import_quietly()
 
     enc = d3rlpy.models.VectorEncoderFactory(hidden_units=[hidden, hidden])
     if algo == "awac":
@@ -63,7 +81,7 @@ class D3rlpyTrainer:
     """A built d3rlpy learner and its dataset; ``run(steps)`` trains and returns seconds."""
 
     def __init__(self, algo: str, data: Transitions, hidden: int, batch_size: int, seed: int = 0):
-        import d3rlpy
+        d3rlpy = _import_quietly()
 
         d3rlpy.seed(seed)
         self.dataset = mdp_dataset(data)

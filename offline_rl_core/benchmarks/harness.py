@@ -289,3 +289,21 @@ def run_bench(settings: BenchSettings, only: list[str] | None = None, log: Calla
         log(f"[{g}] {time.perf_counter() - t1:.1f}s")
     payload = results_json(figures, settings, machine, time.perf_counter() - t0)
     return figures, payload
+
+
+def figures_from_json(payload: dict) -> list[Figure]:
+    """The figures of a results JSON, e.g. to re-render its table (``python -m
+    offline_rl_core.benchmarks.harness results.json``)."""
+    figs = []
+    for g in GROUPS:
+        for name, d in payload.get(g, {}).items():
+            figs.append(Figure(g, name, d["unit"], d["ours"], d["reference"], d["reference_name"], d["higher_is_better"],
+                               d["target_text"], d["met"], d["status"], d["note"], d.get("extra", {})))
+    return figs
+
+
+if __name__ == "__main__":
+    import sys
+
+    for arg in sys.argv[1:]:
+        print(format_table(figures_from_json(json.loads(Path(arg).read_text())), markdown=True))

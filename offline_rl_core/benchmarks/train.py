@@ -29,8 +29,9 @@ def ours_rate(data, algo: str, steps: int, s: BenchSettings, deterministic: bool
     def progress(p):
         last["elapsed"] = p.elapsed_s
 
+    # the same torch threads as the references in this run
     cfg = TrainConfig(algo=algo, steps=steps, batch_size=s.batch_size, hidden=s.hidden, log_every=max(1, steps),
-                      deterministic=deterministic)
+                      deterministic=deterministic, threads=torch.get_num_threads())
     train_seeds(data, cfg, list(seeds), progress=progress)
     return steps / last["elapsed"]
 

@@ -12,7 +12,7 @@ def _run(args) -> int:
         out=args.out, rounds=args.rounds, episodes=args.episodes, prior=args.prior, bags=args.bag or [DEFAULT_BAG],
         seed=args.seed, prior_steps=args.prior_steps, steps=args.steps, correction_ratio=args.correction_ratio,
         eval_episodes=args.eval_episodes, eval_seed=args.eval_seed, patience=args.patience,
-        hold_steps=args.hold_steps, noise=args.noise, reaction_delay=args.reaction_delay,
+        hold_steps=args.hold_steps, grace_steps=args.grace_steps, beta=args.beta, noise=args.noise, reaction_delay=args.reaction_delay,
     )
     summary = run_hil(cfg)
     print(json.dumps({k: summary[k] for k in ("prior_success", "final_success", "diff_ci_lo", "diff_ci_hi",
@@ -41,12 +41,15 @@ def register(subparsers) -> None:
     p.add_argument("--steps", type=int, default=d.steps, help="retraining steps per round (default: %(default)s)")
     p.add_argument("--correction-ratio", type=float, default=d.correction_ratio,
                    help="share of each batch from correction runs (default: %(default)s)")
+    p.add_argument("--beta", type=float, default=d.beta, help="AWAC temperature of the retraining (default: %(default)s)")
     p.add_argument("--eval-episodes", type=int, default=d.eval_episodes,
                    help="held-out rollouts per evaluation (default: %(default)s)")
     p.add_argument("--eval-seed", type=int, default=EVAL_SEED, help="first held-out reset seed (default: %(default)s)")
     c = p.add_argument_group("scripted corrector")
     c.add_argument("--patience", type=int, default=d.patience, help="k: steps without progress before a takeover (default: %(default)s)")
     c.add_argument("--hold-steps", type=int, default=d.hold_steps, help="m: steps before handing back (default: %(default)s)")
+    c.add_argument("--grace-steps", type=int, default=d.grace_steps,
+                   help="states at an episode's start before progress is judged (default: %(default)s)")
     c.add_argument("--noise", type=float, default=d.noise, help="std of noise on the corrections (default: %(default)s)")
     c.add_argument("--reaction-delay", type=int, default=d.reaction_delay, help="steps of reaction delay (default: %(default)s)")
     p.set_defaults(func=_run)

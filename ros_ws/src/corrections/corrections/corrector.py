@@ -9,7 +9,8 @@ answer again; each state is decided once.
 ``--mode scripted`` (default): takes over with the scripted expert when the fingertip
 has not got closer to the target for ``patience`` steps, hands back after
 ``hold_steps`` steps or on success (see ``corrections.scripted``). Parameters
-(``-p name:=value`` or the flags): ``patience`` (10), ``hold_steps`` (25),
+(``-p name:=value`` or the flags): ``patience`` (8), ``hold_steps`` (25),
+``grace_steps`` (20: states at an episode's start before progress is judged),
 ``min_progress`` (0.002 m), ``noise`` (0.0, std of torque noise), ``reaction_delay``
 (0 steps), ``seed`` (0).
 
@@ -109,7 +110,7 @@ class Corrector(Node):
             name: type(getattr(p, name))(self.declare_parameter(
                 name, getattr(args, name) if getattr(args, name) is not None else getattr(p, name),
                 ParameterDescriptor(dynamic_typing=True)).value)
-            for name in ("patience", "hold_steps", "min_progress", "noise", "reaction_delay", "seed")
+            for name in ("patience", "hold_steps", "grace_steps", "min_progress", "noise", "reaction_delay", "seed")
         }
         self.mode = args.mode
         self.finished = finished
@@ -183,7 +184,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="ros2 run corrections corrector",
                                      description="Take over from the policy on /teleop/action: scripted expert or keyboard.")
     parser.add_argument("--mode", choices=("scripted", "keyboard"), default="scripted")
-    parser.add_argument("--patience", type=int, help="k: steps without progress before taking over (default 10)")
+    parser.add_argument("--patience", type=int, help="k: steps without progress before taking over (default 8)")
+    parser.add_argument("--grace-steps", type=int, help="states at an episode's start before progress is judged (default 20)")
     parser.add_argument("--hold-steps", type=int, help="m: steps before handing back (default 25)")
     parser.add_argument("--min-progress", type=float, help="metres the distance must shrink to count as progress (0.002)")
     parser.add_argument("--noise", type=float, help="std of Gaussian noise on the corrections (0)")

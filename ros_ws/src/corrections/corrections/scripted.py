@@ -2,7 +2,10 @@
 
 A stand-in for a person watching the arm: it takes over with the scripted expert when
 the fingertip has not got closer to the target for ``patience`` steps, and hands back
-after ``hold_steps`` steps or on success. Optional Gaussian action noise (a shaky hand)
+after ``hold_steps`` steps or on success. Progress is judged only after the first
+``grace_steps`` states of an episode: setting off from rest, even the expert's joint-space
+swing first takes the fingertip away from the target in a third of the resets, and a
+person would not grab the arm for that. Optional Gaussian action noise (a shaky hand)
 and a reaction delay (steps between deciding to take over and acting) make it less
 perfect. Everything random comes from one numpy Generator seeded by ``seed``.
 
@@ -22,7 +25,8 @@ from offline_rl_core.expert import expert_action
 
 @dataclass
 class CorrectorParams:
-    patience: int = 10  # k: steps without getting closer before taking over
+    patience: int = 8  # k: steps without getting closer before taking over
+    grace_steps: int = 20  # states at an episode's start before progress is judged (the arm sets off)
     hold_steps: int = 25  # m: steps of a takeover before handing back (success ends it early)
     min_progress: float = 0.002  # m: "closer" means the best distance shrank by this much
     noise: float = 0.0  # std of Gaussian noise added to the expert's torque (then clipped)
@@ -30,6 +34,8 @@ class CorrectorParams:
     seed: int = 0
 
     def __post_init__(self) -> None:
+        if self.grace_steps < 0:
+            raise ValueError(f"grace_steps must be >= 0, got {self.grace_steps}")
         if self.patience < 1 or self.hold_steps < 1:
             raise ValueError(f"patience and hold_steps must be >= 1, got {self.patience}, {self.hold_steps}")
         if self.reaction_delay < 0 or self.noise < 0 or self.min_progress < 0:
@@ -53,6 +59,7 @@ class ScriptedCorrector:
         self.held = 0  # steps of the current takeover so far
         self.intervening = False
         self.succeeded = False
+        self.step = -1  # index of the current state in the episode
 
     def is_new_episode(self, target_xy) -> bool:
         return self.target is None or not np.allclose(self.target, np.asarray(target_xy, np.float64)[:2], atol=1e-9)
@@ -61,6 +68,7 @@ class ScriptedCorrector:
         """The correction for this state, or None. Call once per state, in order."""
         if self.is_new_episode(target_xy):
             self.new_episode(target_xy)
+        self.step += 1
         dist = float(np.linalg.norm(self.target - fingertip_from_joints(qpos)))
         if dist < SUCCESS_TOL:
             self.succeeded = True  # latched for the episode, as the env's success is
@@ -70,6 +78,9 @@ class ScriptedCorrector:
                 return None
             return self.act(qpos, qvel)
         if self.succeeded:
+            return None
+        if self.step < self.p.grace_steps:
+            self.best = dist  # judged from the end of the grace period
             return None
         if self.delay_left < 0:
             if dist < self.best - self.p.min_progress:

@@ -84,6 +84,9 @@ class PusherSim(Node):
         self.summary_path = str(self.declare_parameter("summary", "").value)
         terminate = bool(self.declare_parameter("terminate_on_success", False).value)
         self.republish_period = float(self.declare_parameter("republish_period", 0.1).value)
+        # lockstep: hold the first state until this many /pusher/transition readers are
+        # matched (a passive recorder then gets every transition from the first one on)
+        self.wait_for_subscribers = int(self.declare_parameter("wait_for_subscribers", 0).value)
         if self.mode not in ("realtime", "lockstep"):
             raise ValueError(f"parameter mode must be 'realtime' or 'lockstep', got {self.mode!r}")
         if self.max_episodes < 0:
@@ -134,6 +137,10 @@ class PusherSim(Node):
             self.stamp_ns = self.get_clock().now().nanoseconds
 
     def publish_state(self) -> None:
+        if self.wait_for_subscribers > 0 and self.mode == "lockstep":
+            if self.transition_pub.get_subscription_count() < self.wait_for_subscribers:
+                return  # the republish timer tries again
+            self.wait_for_subscribers = 0  # matched once: never hold again
         stamp = ns_to_stamp(self.stamp_ns)
         target = self.env.target
         self.target_msg.header.stamp = stamp
