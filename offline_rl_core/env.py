@@ -120,11 +120,12 @@ def clip_actions(actions, n: int) -> np.ndarray:
 def apply_action(model: mujoco.MjModel, data: mujoco.MjData, action: np.ndarray) -> None:
     """Hold ``action`` (already clipped) on the motors for one control step."""
     data.ctrl[:ACT_DIM] = action
+    # As in the chapter, the fingertip is read from ``site_xpos`` as mj_step leaves it:
+    # the kinematics computed at the start of its last physics substep, 0.01 s behind
+    # qpos. Refreshing it would change the dataset and, measurably, the critics (the
+    # chapter's Break-It |Q| ratio). The sim node publishes this fingertip on
+    # /pusher/fingertip so a ROS policy sees exactly the training observation.
     mujoco.mj_step(model, data, FRAME_SKIP)
-    # mj_step leaves site_xpos at the state *before* its last integration; refresh the
-    # kinematics so the fingertip (observation and reward) belongs to the new joint
-    # state -- the same state /pusher/state publishes and a ROS policy sees.
-    mujoco.mj_kinematics(model, data)
 
 
 def planar_distances(target_xy, fingertip_xy) -> np.ndarray:

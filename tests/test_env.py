@@ -91,16 +91,39 @@ def test_observation_from_joints_equals_env_observation_at_reset():
         np.testing.assert_array_equal(observation_from_joints(env.qpos, env.qvel, env.target[:2]), obs)
 
 
-def test_observation_from_joints_equals_env_observation_after_steps():
-    # The ROS policy node builds its observation from /pusher/state + /pusher/target
-    # alone; it must see exactly what the policy saw in training, mid-episode too.
+def test_observation_from_joints_with_the_published_fingertip_is_the_env_observation():
+    # The ROS policy node builds its observation from /pusher/state, /pusher/target and
+    # /pusher/fingertip: it must see exactly what the policy saw in training.
     env = PusherReachEnv()
     rng = np.random.default_rng(0)
     for seed in range(30):
         env.reset(seed)
         for _ in range(30):
             obs, *_ = env.step(rng.uniform(-1, 1, 2))
-            np.testing.assert_array_equal(observation_from_joints(env.qpos, env.qvel, env.target[:2]), obs)
+            np.testing.assert_array_equal(observation_from_joints(env.qpos, env.qvel, env.target[:2], env.fingertip[:2]), obs)
+
+
+def test_env_fingertip_is_the_kinematics_of_the_last_physics_substep():
+    # MuJoCo computes site_xpos at the start of mj_step, so after a control step the
+    # env's fingertip (as in the chapter) is the forward kinematics of qpos one 0.01 s
+    # physics substep earlier; planar FK of that qpos reproduces the observation.
+    import mujoco
+
+    env = PusherReachEnv()
+    rng = np.random.default_rng(0)
+    worst = 0.0
+    for seed in range(30):
+        env.reset(seed)
+        for _ in range(10):
+            env.data.ctrl[:] = np.float32(rng.uniform(-1, 1, 2))
+            mujoco.mj_step(env.model, env.data)
+            q_before = env.qpos.copy()
+            mujoco.mj_step(env.model, env.data)
+            lagged = observation_from_joints(env.qpos, env.qvel, env.target[:2], fingertip_from_joints(q_before))
+            np.testing.assert_array_equal(lagged, env.observation())
+            worst = max(worst, float(np.abs(observation_from_joints(env.qpos, env.qvel, env.target[:2])[6:] - lagged[6:]).max()))
+    # an arm that publishes no fingertip gets planar FK of its joints: close, not equal
+    assert 0.0 < worst < 0.02
 
 
 def test_batch_forms_are_the_single_env_maths():

@@ -151,5 +151,7 @@ def test_closed_loop_matches_in_process_evaluation(spawn, data, tmp_path):
     over_ros = json.loads(summary.read_text())
     in_process = evaluate_policy(load_policy(data["a"]), episodes, seed)
     assert over_ros["episodes"] == episodes
-    assert abs(over_ros["success_rate"] - in_process["success_rate"]) <= 2 / episodes
-    assert abs(over_ros["mean_final_dist"] - in_process["mean_final_dist"]) < 0.01
+    # Same observation bit for bit (the sim publishes its fingertip); only numpy's
+    # 1-row vs N-row float32 rounding of the policy output separates the two.
+    assert over_ros["success_rate"] == in_process["success_rate"]
+    assert abs(over_ros["mean_final_dist"] - in_process["mean_final_dist"]) < 1e-4

@@ -23,7 +23,7 @@ class IQL(Learner):
         super().__init__(cfg, members, generators, obs_dim, act_dim)
         self.critic = TwinCritic(cfg, members, generators, obs_dim, act_dim)
         self.value = EnsembleMLP(members, obs_dim, cfg.hidden, 1, generators)
-        self.value_opt = make_adam(self.value.parameters(), cfg.lr)
+        self.value_opt = make_adam(self.value.parameters(), cfg.lr, fused=not cfg.deterministic)
 
     def update(self, batch):
         cfg = self.cfg

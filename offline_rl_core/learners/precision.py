@@ -31,7 +31,13 @@ def native_bf16() -> bool:
 
 
 def autocast_context(deterministic: bool):
-    """bf16 autocast when allowed (not deterministic) and native; else a no-op."""
+    """bf16 autocast when allowed (not deterministic) and native; else a no-op.
+
+    The weight-cast cache is off: the loop runs every optimiser step inside one context,
+    and autocast's cache would keep serving the first bf16 copy of each weight after the
+    optimiser has updated its fp32 master in place (training then stalls). Re-casting
+    costs nothing measurable at these sizes.
+    """
     if deterministic or not native_bf16():
         return contextlib.nullcontext()
-    return torch.autocast("cpu", dtype=torch.bfloat16)
+    return torch.autocast("cpu", dtype=torch.bfloat16, cache_enabled=False)

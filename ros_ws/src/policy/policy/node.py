@@ -11,7 +11,9 @@ broken checkpoint at start is one error line and exit status 2.
 Target pairing: when the source stamps each target with the state it belongs to (the
 sim does), a state waits for the target with its stamp, so the first state of an
 episode is never answered with the previous episode's target. Otherwise the latest
-target is used.
+target is used. Fingertip: once ``/pusher/fingertip`` has been heard (the sim publishes
+the fingertip its observation uses), a state also waits for the fingertip with its
+stamp; an arm that publishes none gets planar forward kinematics of its joints.
 """
 
 from __future__ import annotations
@@ -67,11 +69,14 @@ class PolicyServer(Node):
         self.target_stamp: int | None = None
         self.target_xy: np.ndarray | None = None
         self.co_stamped = False  # the source stamps targets with their state's stamp
+        self.fingertip_stamp: int | None = None
+        self.fingertip_xy: np.ndarray | None = None
         self.pending: JointState | None = None
         self.answered = 0
 
         # Target subscription first: when both are ready the executor takes it first.
         self.create_subscription(PointStamped, "/pusher/target", self.on_target, 10)
+        self.create_subscription(PointStamped, "/pusher/fingertip", self.on_fingertip, 10)
         self.create_subscription(JointState, "/pusher/state", self.on_state, 10)
         self.action_pub = self.create_publisher(JointState, "/policy/action", 10)
         self.create_timer(self.poll_period, self.check_checkpoint)
@@ -102,19 +107,35 @@ class PolicyServer(Node):
             return
         self.target_stamp = stamp_key(msg.header.stamp)
         self.target_xy = np.array([x, y])
-        pending = self.pending
-        if pending is not None and stamp_key(pending.header.stamp) == self.target_stamp:
+        if self.pending is not None and stamp_key(self.pending.header.stamp) == self.target_stamp:
             self.co_stamped = True
-            self.pending = None
-            self.answer(pending)
+        self.answer_pending()
+
+    def on_fingertip(self, msg: PointStamped) -> None:
+        x, y = msg.point.x, msg.point.y
+        if not (math.isfinite(x) and math.isfinite(y)):
+            self.get_logger().warn("ignoring /pusher/fingertip: not finite", throttle_duration_sec=WARN_THROTTLE_S)
+            return
+        self.fingertip_stamp = stamp_key(msg.header.stamp)
+        self.fingertip_xy = np.array([x, y])
+        self.answer_pending()
 
     def on_state(self, msg: JointState) -> None:
-        stamp = stamp_key(msg.header.stamp)
-        if self.target_xy is not None and self.target_stamp == stamp:
+        if self.target_xy is not None and self.target_stamp == stamp_key(msg.header.stamp):
             self.co_stamped = True
-        elif self.target_xy is None or self.co_stamped:
-            self.pending = msg  # answered when its target arrives
+        self.pending = msg
+        self.answer_pending()
+
+    def answer_pending(self) -> None:
+        """Answer the waiting state once what it pairs with has arrived."""
+        msg = self.pending
+        if msg is None or self.target_xy is None:
             return
+        stamp = stamp_key(msg.header.stamp)
+        if self.co_stamped and self.target_stamp != stamp:
+            return  # its target is still on the way
+        if self.fingertip_xy is not None and self.fingertip_stamp != stamp:
+            return  # the source publishes fingertips: wait for this state's
         self.pending = None
         self.answer(msg)
 
@@ -142,7 +163,8 @@ class PolicyServer(Node):
         joints = self.joints(msg)
         if joints is None:
             return
-        obs = observation_from_joints(joints[0], joints[1], self.target_xy)
+        fingertip = self.fingertip_xy if self.fingertip_stamp == stamp_key(msg.header.stamp) else None
+        obs = observation_from_joints(joints[0], joints[1], self.target_xy, fingertip)
         action = self.policy.act(obs)
         if not np.all(np.isfinite(action)):
             self.get_logger().warn("the policy produced a non-finite action; none sent", throttle_duration_sec=WARN_THROTTLE_S)

@@ -1,6 +1,7 @@
 """``ros2 run sim node``: the MuJoCo pusher-reach arm behind ROS 2 topics.
 
-Publishes ``/pusher/state`` (JointState), ``/pusher/target`` (PointStamped) and
+Publishes ``/pusher/state`` (JointState), ``/pusher/target`` and ``/pusher/fingertip``
+(PointStamped) and
 ``/pusher/transition`` (Float32MultiArray, the 25-float layout of
 offline_rl_core.transitions), obeys ``/pusher/command`` (JointState, effort = action),
 and serves ``/pusher/reset`` (std_srvs/Trigger: abandon the episode, start the next).
@@ -106,12 +107,17 @@ class PusherSim(Node):
 
         self.state_pub = self.create_publisher(JointState, "/pusher/state", 10)
         self.target_pub = self.create_publisher(PointStamped, "/pusher/target", 10)
+        # The fingertip the env's observation uses (MuJoCo's site, see env.apply_action):
+        # lets a ROS policy rebuild the training observation exactly.
+        self.fingertip_pub = self.create_publisher(PointStamped, "/pusher/fingertip", 10)
         self.transition_pub = self.create_publisher(Float32MultiArray, "/pusher/transition", TRANSITION_QOS)
         self.create_subscription(JointState, "/pusher/command", self.on_command, 10)
         self.create_service(Trigger, "/pusher/reset", self.on_reset)
         self.state_msg = JointState(name=list(JOINT_NAMES))
         self.target_msg = PointStamped()
         self.target_msg.header.frame_id = "world"
+        self.fingertip_msg = PointStamped()
+        self.fingertip_msg.header.frame_id = "world"
 
         self.start_episode()
         if self.mode == "realtime":
@@ -145,13 +151,17 @@ class PusherSim(Node):
         target = self.env.target
         self.target_msg.header.stamp = stamp
         self.target_msg.point.x, self.target_msg.point.y, self.target_msg.point.z = (float(v) for v in target)
+        self.fingertip_msg.header.stamp = stamp
+        self.fingertip_msg.point.x, self.fingertip_msg.point.y, self.fingertip_msg.point.z = (float(v) for v in self.env.fingertip)
         msg = self.state_msg
         msg.header.stamp = stamp
         msg.position = array.array("d", self.env.qpos.tobytes())
         msg.velocity = array.array("d", self.env.qvel.tobytes())
         msg.effort = array.array("d", np.ascontiguousarray(self.env.data.actuator_force[:ACT_DIM]).tobytes())
-        # Target first: a subscriber pairing by stamp then usually has it when the state lands.
+        # Target and fingertip first: a subscriber pairing by stamp then usually has them
+        # when the state lands.
         self.target_pub.publish(self.target_msg)
+        self.fingertip_pub.publish(self.fingertip_msg)
         self.state_pub.publish(msg)
         self.last_publish = time.monotonic()
 
