@@ -58,30 +58,44 @@ class Transitions:
     def __len__(self) -> int:
         return int(self.obs.shape[0])
 
-    def to_rows(self) -> np.ndarray:
-        """The (N, 25) float32 matrix, one bag message per row."""
-        rows = np.empty((len(self), TRANSITION_WIDTH), dtype=np.float32)
+    def to_rows(self, start: int = 0, stop: int | None = None) -> np.ndarray:
+        """The (N, 25) float32 matrix (or rows start..stop of it), one bag message per row."""
+        stop = len(self) if stop is None else min(stop, len(self))
+        rows = np.empty((max(stop - start, 0), TRANSITION_WIDTH), dtype=np.float32)
         for label, _ in TRANSITION_LAYOUT:
-            rows[:, LAYOUT_SLICES[label]] = getattr(self, label).reshape(len(self), -1)
+            rows[:, LAYOUT_SLICES[label]] = getattr(self, label)[start:stop].reshape(len(rows), -1)
         return rows
+
+    @classmethod
+    def empty(cls, n: int) -> "Transitions":
+        """N uninitialised rows with the right dtypes (filled with ``fill_rows``)."""
+        def column(label: str, size: int) -> np.ndarray:
+            if label in ("terminated", "truncated", "success"):
+                return np.empty(n, dtype=bool)
+            if label in ("episode", "step", "source"):
+                return np.empty(n, dtype=np.int64)
+            return np.empty((n, size) if label in ("obs", "action", "next_obs") else n, dtype=np.float32)
+        return cls(**{label: column(label, size) for label, size in TRANSITION_LAYOUT})
+
+    def fill_rows(self, start: int, rows: np.ndarray) -> None:
+        """Write an (k, 25) float32 block of rows into rows start..start+k."""
+        stop = start + len(rows)
+        for label, _ in TRANSITION_LAYOUT:
+            block = rows[:, LAYOUT_SLICES[label]]
+            target = getattr(self, label)
+            if target.ndim == 1:
+                block = block[:, 0]
+                target[start:stop] = (block != 0) if target.dtype == bool else block
+            else:
+                target[start:stop] = block
 
     @classmethod
     def from_rows(cls, rows: np.ndarray) -> "Transitions":
         """Split an (N, 25) float32 matrix into typed columns (copies, contiguous)."""
         rows = np.asarray(rows, dtype=np.float32)
-        col = {label: rows[:, LAYOUT_SLICES[label]] for label, _ in TRANSITION_LAYOUT}
-        return cls(
-            obs=np.ascontiguousarray(col["obs"]),
-            action=np.ascontiguousarray(col["action"]),
-            reward=col["reward"][:, 0].copy(),
-            next_obs=np.ascontiguousarray(col["next_obs"]),
-            terminated=col["terminated"][:, 0] != 0,
-            truncated=col["truncated"][:, 0] != 0,
-            success=col["success"][:, 0] != 0,
-            episode=col["episode"][:, 0].astype(np.int64),
-            step=col["step"][:, 0].astype(np.int64),
-            source=col["source"][:, 0].astype(np.int64),
-        )
+        out = cls.empty(len(rows))
+        out.fill_rows(0, rows)
+        return out
 
     @classmethod
     def concatenate(cls, parts: list["Transitions"]) -> "Transitions":
@@ -103,6 +117,10 @@ class Transitions:
         source[inverse] = self.source
         return ids, returns, source
 
-    def content_hash(self) -> str:
-        """sha256 of the rows: identifies the dataset a checkpoint was trained on."""
-        return hashlib.sha256(np.ascontiguousarray(self.to_rows()).tobytes()).hexdigest()
+    def content_hash(self, chunk: int = 65536) -> str:
+        """sha256 of the rows: identifies the dataset a checkpoint was trained on.
+        Hashed a block of rows at a time, so a large dataset is never copied whole."""
+        digest = hashlib.sha256()
+        for start in range(0, len(self), chunk):
+            digest.update(self.to_rows(start, start + chunk).data)
+        return digest.hexdigest()

@@ -7,6 +7,7 @@ CDR payloads are fetched without deserializing (for sqlite3 storage, one SQL que
 
 from __future__ import annotations
 
+import itertools
 import os
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -102,38 +103,44 @@ def _sqlite_storages(reader: Reader) -> list[Sqlite3Reader] | None:
     return None
 
 
-def topic_payloads(reader: Reader, topic: str) -> list[bytes]:
-    """Raw CDR payloads of a topic in timestamp order, without deserializing any."""
+PAYLOAD_CHUNK = 65536
+
+
+def topic_payload_chunks(reader: Reader, topic: str, chunk: int = PAYLOAD_CHUNK) -> Iterator[list[bytes]]:
+    """Raw CDR payloads of a topic in timestamp order, ``chunk`` at a time, without
+    deserializing any: a large bag is decoded block by block, never held as one list."""
     connections = [c for c in reader.connections if c.topic == topic]
     if not connections:
-        return []
+        return
     sqlite_files = _sqlite_storages(reader)
     if sqlite_files is None:  # MCAP or compressed: rosbags yields raw bytes
-        return [data for _, _, data in reader.messages(connections)]
-    payloads: list[bytes] = []
-    for storage in sqlite_files:
-        ids = [c.id for c in storage.connections if c.topic == topic]
-        if not ids:
-            continue
-        query = f"SELECT data FROM messages WHERE topic_id IN ({','.join('?' * len(ids))}) ORDER BY timestamp, id"
-        payloads.extend(row[0] for row in storage.dbconn.execute(query, ids))
-    return payloads
+        sources = [(data for _, _, data in reader.messages(connections))]
+    else:
+        sources = []
+        for storage in sqlite_files:
+            ids = [c.id for c in storage.connections if c.topic == topic]
+            if ids:
+                query = f"SELECT data FROM messages WHERE topic_id IN ({','.join('?' * len(ids))}) ORDER BY timestamp, id"
+                sources.append(row[0] for row in storage.dbconn.execute(query, ids))
+    for source in sources:
+        while block := list(itertools.islice(source, chunk)):
+            yield block
 
 
-def _check_finite(path: Path, rows: np.ndarray) -> None:
-    bad = ~np.isfinite(rows)
-    if not bad.any():
-        return
-    columns = np.flatnonzero(bad.any(axis=0))
-    fields = list(dict.fromkeys(field_of_column(int(c)) for c in columns))
-    raise UserError(
-        f"{path}: {int(bad.any(axis=1).sum())} of {len(rows)} {TRANSITION_TOPIC} rows hold NaN or inf "
+def topic_payloads(reader: Reader, topic: str) -> list[bytes]:
+    """Raw CDR payloads of a topic in timestamp order, without deserializing any."""
+    return [p for block in topic_payload_chunks(reader, topic) for p in block]
+
+
+def _finite_problem(path: Path, bad_rows: int, total: int, bad_columns: set[int]) -> UserError:
+    fields = list(dict.fromkeys(field_of_column(int(c)) for c in sorted(bad_columns)))
+    return UserError(
+        f"{path}: {bad_rows} of {total} {TRANSITION_TOPIC} rows hold NaN or inf "
         f"(in field{'s' if len(fields) > 1 else ''} {', '.join(fields)})"
     )
 
 
-def transition_rows_from_reader(reader: Reader, path: Path) -> np.ndarray:
-    """The (N, 25) float32 transition rows of an open bag, checked; UserError otherwise."""
+def _transition_connections(reader: Reader, path: Path) -> list:
     if reader.message_count == 0:
         raise UserError(f"{path} is an empty bag (no messages); {RECORD_HINT}")
     connections = [c for c in reader.connections if c.topic == TRANSITION_TOPIC]
@@ -143,15 +150,37 @@ def transition_rows_from_reader(reader: Reader, path: Path) -> np.ndarray:
     types = sorted({c.msgtype for c in connections})
     if types != [TRANSITION_MSGTYPE]:
         raise UserError(f"{path}: {TRANSITION_TOPIC} has type {', '.join(types)}; expected {TRANSITION_MSGTYPE}")
-    payloads = topic_payloads(reader, TRANSITION_TOPIC)
-    if not payloads:
+    return connections
+
+
+def _decode_into(reader: Reader, path: Path, put) -> int:
+    """Decode /pusher/transition block by block, handing each (k, 25) block to
+    ``put(start, rows)``; checks layout and finiteness; returns the row count."""
+    _transition_connections(reader, path)
+    total, bad_rows, bad_columns = 0, 0, set()
+    for payloads in topic_payload_chunks(reader, TRANSITION_TOPIC):
+        try:
+            rows = decode_transition_payloads(payloads)
+        except TransitionDecodeError as exc:
+            raise UserError(f"{path}: {TRANSITION_TOPIC}: {exc}") from exc
+        bad = ~np.isfinite(rows)
+        if bad.any():
+            bad_rows += int(bad.any(axis=1).sum())
+            bad_columns.update(np.flatnonzero(bad.any(axis=0)).tolist())
+        put(total, rows)
+        total += len(rows)
+    if total == 0:
         raise UserError(f"{path}: {TRANSITION_TOPIC} has no messages; {RECORD_HINT}")
-    try:
-        rows = decode_transition_payloads(payloads)
-    except TransitionDecodeError as exc:
-        raise UserError(f"{path}: {TRANSITION_TOPIC}: {exc}") from exc
-    _check_finite(path, rows)
-    return rows
+    if bad_rows:
+        raise _finite_problem(path, bad_rows, total, bad_columns)
+    return total
+
+
+def transition_rows_from_reader(reader: Reader, path: Path) -> np.ndarray:
+    """The (N, 25) float32 transition rows of an open bag, checked; UserError otherwise."""
+    blocks: list[np.ndarray] = []
+    _decode_into(reader, path, lambda start, rows: blocks.append(rows))
+    return np.concatenate(blocks)
 
 
 def read_transition_rows(path: str | os.PathLike) -> np.ndarray:
@@ -165,6 +194,23 @@ def read_transitions(path: str | os.PathLike) -> Transitions:
 
     Raises UserError, one line naming the file, for a missing path, something that is not a
     bag, a corrupt or empty bag, one without ``/pusher/transition``, an unknown layout, or
-    rows holding NaN/inf.
+    rows holding NaN/inf. Rows are decoded a block at a time straight into the columns,
+    so reading needs little more memory than the arrays it returns.
     """
-    return Transitions.from_rows(read_transition_rows(path))
+    path = Path(path)
+    with open_bag(path) as reader:
+        expected = sum(c.msgcount for c in _transition_connections(reader, path))
+        out = Transitions.empty(expected)
+        blocks: list[np.ndarray] = []  # only if the index under-counted
+
+        def put(start: int, rows: np.ndarray) -> None:
+            fit = max(0, min(len(rows), expected - start))
+            if fit:
+                out.fill_rows(start, rows[:fit])
+            if fit < len(rows):
+                blocks.append(rows[fit:])
+
+        total = _decode_into(reader, path, put)
+    if blocks:  # more messages than the metadata said: append the extra rows
+        return Transitions.concatenate([out, Transitions.from_rows(np.concatenate(blocks))])
+    return out if total == expected else out.select(slice(0, total))

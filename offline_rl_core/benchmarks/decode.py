@@ -47,24 +47,26 @@ def tiled_transitions(base: Transitions, rows: int) -> Transitions:
 
 
 _MEMORY_PROBE = r"""
-import json, resource, sys, time
+import json, sys, time
 import numpy as np, torch
 from offline_rl_core.bag import read_transitions
 from offline_rl_core.learners import TrainConfig, train_seeds
 path, steps, hidden, batch = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
 import offline_rl_core.learners.loop  # everything imported before the baseline
-def rss_kib():
+def status_kib(key):
     with open("/proc/self/status") as f:
         for line in f:
-            if line.startswith("VmRSS:"):
+            if line.startswith(key + ":"):
                 return int(line.split()[1])
-base = rss_kib()
+base = status_kib("VmRSS")
 t0 = time.perf_counter()
 data = read_transitions(path)
 decode_s = time.perf_counter() - t0
 arrays = sum(getattr(data, k).nbytes for k in ("obs", "action", "reward", "next_obs", "terminated", "truncated", "success", "episode", "step", "source"))
 train_seeds(data, TrainConfig(algo="awac", steps=steps, hidden=hidden, batch_size=batch, log_every=steps), [0])
-peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+# VmHWM, not ru_maxrss: after fork + exec, ru_maxrss still counts the parent's memory
+# at the fork (Linux keeps the old mm's high-water mark), VmHWM is this process's own.
+peak = status_kib("VmHWM")
 print(json.dumps({"decode_s": decode_s, "arrays_bytes": arrays, "peak_delta_bytes": (peak - base) * 1024, "rows": len(data)}))
 """
 
