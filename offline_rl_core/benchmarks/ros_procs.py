@@ -10,11 +10,12 @@ from __future__ import annotations
 import os
 import random
 import shutil
-import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+from ..rosproc import RosProcess, isolated_ros_env
 
 
 def ros_missing() -> str | None:
@@ -48,49 +49,22 @@ def isolate() -> int:
     return _DOMAIN[0]
 
 
-class NodeProcess:
-    """A spawned process (a ROS node), stopped by its own process group on exit."""
+class NodeProcess(RosProcess):
+    """A node process on the bench's domain, started at once and stopped by its pid on exit."""
 
     def __init__(self, argv: list[str], log_path: Path):
-        isolate()
-        self.log_path = log_path
-        self._log = open(log_path, "wb")
-        self.proc = subprocess.Popen(argv, stdout=self._log, stderr=subprocess.STDOUT, env=dict(os.environ),
-                                     start_new_session=True)
-
-    @property
-    def pid(self) -> int:
-        return self.proc.pid
+        super().__init__(argv, isolated_ros_env(isolate()), log_path)
+        self.start()
 
     def wait(self, timeout: float) -> int | None:
+        """Exit status, or None while it still runs after ``timeout`` s."""
         try:
-            return self.proc.wait(timeout=timeout)
+            return super().wait(timeout)
         except subprocess.TimeoutExpired:
             return None
 
-    def stop(self, grace_s: float = 5.0) -> int | None:
-        if self.proc.poll() is None:
-            for sig, wait_s in ((signal.SIGINT, grace_s), (signal.SIGTERM, 2.0), (signal.SIGKILL, 2.0)):
-                try:
-                    os.killpg(self.proc.pid, sig)  # the group this process leads: our node and its children only
-                except ProcessLookupError:
-                    break
-                if self.wait(wait_s) is not None:
-                    break
-        self._log.close()
-        return self.proc.returncode
-
     def log_tail(self, chars: int = 600) -> str:
-        try:
-            return self.log_path.read_text(errors="replace")[-chars:]
-        except OSError:
-            return ""
-
-    def __enter__(self) -> "NodeProcess":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.stop()
+        return self.output()[-chars:]
 
 
 ECHO_NODE = r'''
