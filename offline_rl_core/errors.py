@@ -9,3 +9,16 @@ class UserError(Exception):
     """
 
     exit_code = 2
+
+
+def caused_by_interrupt(exc: BaseException) -> bool:
+    """True when ``exc`` comes from Ctrl-C: a KeyboardInterrupt raised inside a C
+    extension (e.g. rclpy deserialising a message) can surface as another exception
+    whose cause is the interrupt. Nodes treat that as the user's Ctrl-C, not a crash."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False

@@ -42,6 +42,7 @@ from rclpy.task import Future
 from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import JointState
 
+from offline_rl_core.errors import caused_by_interrupt
 from offline_rl_core.env import ACT_DIM, JOINT_NAMES
 
 from .scripted import CorrectorParams, ScriptedCorrector
@@ -210,8 +211,8 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"corrector: error: {exc}", file=sys.stderr)
         return 2
-    except Exception:
-        if rclpy.ok():
+    except Exception as exc:
+        if rclpy.ok() and not caused_by_interrupt(exc):
             raise
     finally:
         if node is not None:

@@ -33,6 +33,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool
 
+from offline_rl_core.errors import caused_by_interrupt
 from offline_rl_core.env import ACT_DIM, JOINT_NAMES
 
 from .arbiter import HUMAN, LockstepArbiter, RealtimeArbiter
@@ -141,8 +142,8 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"mux: error: {exc}", file=sys.stderr)
         return 2
-    except Exception:
-        if rclpy.ok():
+    except Exception as exc:
+        if rclpy.ok() and not caused_by_interrupt(exc):
             raise
     finally:
         if node is not None:

@@ -35,7 +35,7 @@ from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import JointState
 
 from offline_rl_core.env import ACT_DIM, JOINT_NAMES, observation_from_joints
-from offline_rl_core.errors import UserError
+from offline_rl_core.errors import UserError, caused_by_interrupt
 from offline_rl_core.policy import load_policy
 
 WARN_THROTTLE_S = 2.0
@@ -193,8 +193,8 @@ def main(argv: list[str] | None = None) -> int:
         return exc.exit_code
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except Exception:
-        if rclpy.ok():
+    except Exception as exc:
+        if rclpy.ok() and not caused_by_interrupt(exc):
             raise  # a real error; otherwise a signal shut the context down mid-wait
     finally:
         if node is not None:

@@ -38,7 +38,7 @@ from std_msgs.msg import Float32MultiArray
 from offline_rl_core.bag import BagWriter, decode_transition_payloads
 from offline_rl_core.collect import expert_episode_count
 from offline_rl_core.env import ACT_DIM, JOINT_NAMES
-from offline_rl_core.errors import UserError
+from offline_rl_core.errors import UserError, caused_by_interrupt
 from offline_rl_core.expert import expert_action
 from offline_rl_core.transitions import LAYOUT_SLICES, SOURCE_NAMES, SOURCE_EXPERT, SOURCE_RANDOM
 
@@ -232,8 +232,8 @@ def main(argv: list[str] | None = None) -> int:
         executor.spin_until_future_complete(node.finished)
     except (KeyboardInterrupt, ExternalShutdownException):
         interrupted = True
-    except Exception:
-        if rclpy.ok():
+    except Exception as exc:
+        if rclpy.ok() and not caused_by_interrupt(exc):
             raise
         interrupted = True  # a signal shut the context down mid-wait (rclpy may raise RCLError)
     finally:

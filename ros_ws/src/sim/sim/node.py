@@ -46,6 +46,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float32MultiArray
 from std_srvs.srv import Trigger
 
+from offline_rl_core.errors import caused_by_interrupt
 from offline_rl_core.bag import encode_transition_rows
 from offline_rl_core.env import ACT_DIM, CONTROL_HZ, JOINT_NAMES, MAX_STEPS, PusherReachEnv
 from offline_rl_core.transitions import LAYOUT_SLICES, SOURCE_NAMES, SOURCE_POLICY, TRANSITION_WIDTH
@@ -302,8 +303,8 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"sim: error: {exc}", file=sys.stderr)
         return 2
-    except Exception:
-        if rclpy.ok():
+    except Exception as exc:
+        if rclpy.ok() and not caused_by_interrupt(exc):
             raise  # a real error; otherwise a signal shut the context down mid-wait
     finally:
         if node is not None:
