@@ -16,7 +16,7 @@ import numpy as np
 
 from ..env import CONTROL_HZ, MAX_STEPS
 from .harness import BenchSettings, figure, pending
-from .ros_procs import NodeProcess, isolate, ros2_command, ros_missing, wait_until
+from .ros_procs import NodeProcess, isolate, ros2_command, ros_missing, run_probe
 
 
 def lockstep_figures(s: BenchSettings, tmp: Path, log=print) -> list:
@@ -72,40 +72,15 @@ def _steady_rate(bag: Path) -> float | None:
 
 def realtime_figures(s: BenchSettings, tmp: Path, log=print) -> list:
     """Subscribe to /pusher/state of a realtime sim and read its tick stamps."""
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-    from sensor_msgs.msg import JointState
-
     ros2 = ros2_command()
     seconds = s.realtime_seconds
     period_ms = 1000.0 / CONTROL_HZ
-    stamps: list[int] = []
-    arrivals: list[float] = []
     with NodeProcess([ros2, "run", "sim", "node", "--ros-args", "-p", "mode:=realtime", "-p", "seed:=0"],
                      tmp / "sim_realtime.log") as sim:
-        ctx = rclpy.Context()
-        rclpy.init(context=ctx)
-        node = rclpy.create_node("bench_realtime_probe", context=ctx)
-        executor = SingleThreadedExecutor(context=ctx)
-        executor.add_node(node)
-
-        def on_state(msg):
-            stamps.append(msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec)
-            arrivals.append(time.perf_counter())
-
-        node.create_subscription(JointState, "/pusher/state", on_state, 100)
         try:
-            if not wait_until(lambda: len(stamps) > 10, 30.0, lambda t: executor.spin_once(timeout_sec=t)):
-                raise RuntimeError(f"no /pusher/state from the realtime sim; log: {sim.log_tail()}")
-            stamps.clear()
-            arrivals.clear()
-            end = time.perf_counter() + seconds
-            while time.perf_counter() < end:
-                executor.spin_once(timeout_sec=0.05)
-        finally:
-            executor.shutdown()
-            node.destroy_node()
-            rclpy.try_shutdown(context=ctx)
+            stamps = run_probe(["realtime-stamps", seconds], timeout=seconds + 90)
+        except RuntimeError as exc:
+            raise RuntimeError(f"{exc}; sim log: {sim.log_tail()}") from exc
     st = np.array(stamps, dtype=np.int64)
     if st.size < 3:
         raise RuntimeError("too few states received from the realtime sim")

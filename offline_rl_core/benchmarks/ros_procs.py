@@ -7,6 +7,8 @@ runs in its own process group and is stopped by that group's id, never by name.
 
 from __future__ import annotations
 
+import importlib.util
+import json
 import os
 import random
 import shutil
@@ -17,14 +19,26 @@ from pathlib import Path
 
 from ..rosproc import RosProcess, isolated_ros_env
 
+# The rclpy side of the DDS figures runs in its own process from the source tree:
+# offline_rl_core itself never imports ROS.
+PROBES = Path(__file__).resolve().parents[2] / "ros_ws" / "tools" / "bench_probes" / "dds_probes.py"
+
+
+def run_probe(args: list, timeout: float):
+    """Run a DDS probe on this process's (isolated) domain; its last stdout line is JSON."""
+    proc = subprocess.run([sys.executable, str(PROBES), *map(str, args)], capture_output=True, text=True,
+                          timeout=timeout, env=dict(os.environ))
+    if proc.returncode != 0:
+        raise RuntimeError(f"DDS probe {args[0]} failed (exit {proc.returncode}): {proc.stderr.strip()[-400:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
 
 def ros_missing() -> str | None:
     """Why the ROS figures cannot run here, or None when they can."""
-    try:
-        import rclpy  # noqa: F401
-        from sensor_msgs.msg import JointState  # noqa: F401
-    except Exception as exc:
-        return f"rclpy not importable ({type(exc).__name__}: {exc}); install the 'ros' extra"
+    if importlib.util.find_spec("rclpy") is None or importlib.util.find_spec("sensor_msgs") is None:
+        return "rclpy / sensor_msgs not installed; install the 'ros' extra"
+    if not PROBES.exists():
+        return f"{PROBES} not found: the DDS probes run from a source checkout"
     if ros2_command() is None:
         return "no `ros2` command beside the interpreter (make setup installs it)"
     return None
@@ -65,39 +79,6 @@ class NodeProcess(RosProcess):
 
     def log_tail(self, chars: int = 600) -> str:
         return self.output()[-chars:]
-
-
-ECHO_NODE = r'''
-"""A bare echo node: answers each /pusher/state with a /policy/action of the same stamp."""
-import rclpy
-from rclpy.executors import ExternalShutdownException
-from rclpy.node import Node
-from sensor_msgs.msg import JointState
-
-
-class Echo(Node):
-    def __init__(self):
-        super().__init__("bench_echo")
-        self.pub = self.create_publisher(JointState, "/policy/action", 10)
-        self.create_subscription(JointState, "/pusher/state", self.on_state, 10)
-        self.out = JointState(name=["shoulder", "elbow"])
-
-    def on_state(self, msg):
-        self.out.header.stamp = msg.header.stamp
-        self.out.effort = [0.0, 0.0]
-        self.pub.publish(self.out)
-
-
-rclpy.init()
-node = Echo()
-try:
-    rclpy.spin(node)
-except (KeyboardInterrupt, ExternalShutdownException):
-    pass
-finally:
-    node.destroy_node()
-    rclpy.try_shutdown()
-'''
 
 
 def wait_until(predicate, timeout_s: float, spin=None, step_s: float = 0.05) -> bool:

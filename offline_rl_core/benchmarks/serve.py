@@ -14,7 +14,7 @@ from ..learners import TrainConfig, train_seeds
 from ..policy import LoadedPolicy, save_checkpoint
 from . import reference_chapter as chapter
 from .harness import BenchSettings, figure, pending, percentile
-from .ros_procs import ECHO_NODE, NodeProcess, isolate, ros2_command, ros_missing, wait_until
+from .ros_procs import PROBES, NodeProcess, isolate, ros2_command, ros_missing, run_probe
 
 
 def trained_checkpoint(s: BenchSettings) -> dict:
@@ -87,79 +87,8 @@ def inference_figures(s: BenchSettings, checkpoint: dict, log=print) -> list:
 # ----------------------------------------------------------------------------- DDS round trip
 
 def _round_trip(n: int, rate_hz: float, log=print) -> dict:
-    """Publish target + state at ``rate_hz``; time each /policy/action answering a stamp."""
-    import rclpy
-    from geometry_msgs.msg import PointStamped
-    from rclpy.executors import SingleThreadedExecutor
-    from sensor_msgs.msg import JointState
-
-    from ..env import JOINT_NAMES
-
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx)
-    node = rclpy.create_node("bench_driver", context=ctx)
-    executor = SingleThreadedExecutor(context=ctx)
-    executor.add_node(node)
-    sent: dict[int, float] = {}
-    received: dict[int, float] = {}
-
-    def on_action(msg):
-        key = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-        if key in sent and key not in received:
-            received[key] = time.perf_counter()
-
-    state_pub = node.create_publisher(JointState, "/pusher/state", 10)
-    target_pub = node.create_publisher(PointStamped, "/pusher/target", 10)
-    node.create_subscription(JointState, "/policy/action", on_action, 10)
-    spin = lambda t: executor.spin_once(timeout_sec=t)  # noqa: E731
-    state = JointState(name=list(JOINT_NAMES), position=[0.3, -0.4], velocity=[0.0, 0.1], effort=[0.0, 0.0])
-    target = PointStamped()
-    target.header.frame_id = "world"
-    target.point.x, target.point.y = 0.1, 0.05
-    base_ns = 1_000_000_000
-
-    def send(k: int) -> int:
-        key = base_ns + k * 10_000_000
-        stamp = state.header.stamp
-        stamp.sec, stamp.nanosec = divmod(key, 1_000_000_000)
-        target.header.stamp = stamp
-        target_pub.publish(target)
-        sent[key] = time.perf_counter()
-        state_pub.publish(state)
-        return key
-
-    try:
-        ok = wait_until(lambda: state_pub.get_subscription_count() > 0 and node.count_publishers("/policy/action") > 0,
-                        30.0, spin)
-        if not ok:
-            raise RuntimeError("the node under test never matched /pusher/state and /policy/action")
-        # warm-up until answers flow (discovery of the reverse path may lag)
-        k = 0
-        wait_until(lambda: len(received) > 0, 15.0, lambda t: (send(-1000 - k), spin(t)))
-        for _ in range(50):
-            key = send(-500 + _)
-            wait_until(lambda: key in received, 0.5, spin, 0.001)
-        sent.clear()
-        received.clear()
-        period = 1.0 / rate_hz
-        t_next = time.perf_counter()
-        for k in range(n):
-            send(k)
-            t_next += period
-            while True:
-                left = t_next - time.perf_counter()
-                if left <= 0:
-                    break
-                spin(left)
-        wait_until(lambda: len(received) >= n, 2.0, spin, 0.01)
-    finally:
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown(context=ctx)
-    lat = np.array([received[k] - sent[k] for k in sent if k in received]) * 1e3
-    return {"sent": len(sent), "received": int(lat.size), "lost": len(sent) - int(lat.size),
-            "p50_ms": percentile(lat, 50) if lat.size else None, "p99_ms": percentile(lat, 99) if lat.size else None,
-            "max_ms": float(lat.max()) if lat.size else None}
+    """Time ``n`` states at ``rate_hz`` answered on /policy/action (in the DDS probe process)."""
+    return run_probe(["round-trip", n, rate_hz], timeout=120 + 2 * n / rate_hz)
 
 
 def dds_figures(s: BenchSettings, checkpoint: dict, log=print) -> list:
@@ -172,12 +101,10 @@ def dds_figures(s: BenchSettings, checkpoint: dict, log=print) -> list:
         tmp = Path(tmp)
         ckpt = tmp / "policy.pt"
         save_checkpoint(ckpt, checkpoint)
-        echo_py = tmp / "echo_node.py"
-        echo_py.write_text(ECHO_NODE)
         import sys
 
         results = {}
-        for label, argv in (("echo", [sys.executable, str(echo_py)]),
+        for label, argv in (("echo", [sys.executable, str(PROBES), "echo"]),
                             ("policy", [ros2_command(), "run", "policy", "node", "--checkpoint", str(ckpt)])):
             with NodeProcess(argv, tmp / f"{label}.log") as proc:
                 try:
