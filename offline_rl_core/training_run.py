@@ -38,7 +38,8 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--algo", choices=ALGORITHMS, default=d.algo, help="learner (default: %(default)s)")
     parser.add_argument("--steps", type=int, default=d.steps, help="gradient steps (default: %(default)s)")
     parser.add_argument("--seed", type=int, default=0, help="seed of init and batch sampling (default: %(default)s)")
-    parser.add_argument("--out", required=True, metavar="DIR", help="output directory (policy.pt, metrics.json, training_curve.png)")
+    parser.add_argument("--out", metavar="DIR",
+                        help="output directory for policy.pt, metrics.json, training_curve.png (default: runs/ALGO-seedS)")
     parser.add_argument("--eval-episodes", type=int, default=100,
                         help="held-out rollouts after training, 0 to skip (default: %(default)s)")
     parser.add_argument("--eval-seed", type=int, default=DEFAULT_EVAL_SEED,
@@ -145,9 +146,14 @@ def run_training(
     return out
 
 
+def default_out_dir(algo: str, seed: int) -> str:
+    return f"runs/{algo}-seed{seed}"
+
+
 def run_training_from_args(args: argparse.Namespace, progress: Callable[[Progress], None] | None = None) -> Path:
     cfg = config_from_args(args)
-    return run_training(args.bag, cfg, args.seed, args.out, args.eval_episodes, args.eval_seed, args.init,
+    out = args.out or default_out_dir(args.algo, args.seed)
+    return run_training(args.bag, cfg, args.seed, out, args.eval_episodes, args.eval_seed, args.init,
                         progress=progress or console_progress())
 
 
