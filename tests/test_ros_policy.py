@@ -116,11 +116,13 @@ def test_policy_answers_rejects_and_hot_reloads(spawn, data, tmp_path):
 
 @pytest.mark.slow
 def test_trainer_node_from_the_card_command_publishes_progress(spawn, data, tmp_path):
-    echo = spawn(ros2("topic", "echo", "/trainer/progress", "--once", "--full-length"), "echo")
+    # The type is given so the listener subscribes at once, and the run is long enough
+    # (a few seconds of reports) that discovery has matched before it ends.
+    echo = spawn(ros2("topic", "echo", "/trainer/progress", "std_msgs/msg/String", "--once", "--full-length"), "echo")
     out = tmp_path / "run"
     trainer = spawn(
-        ros2("run", "trainer", "--bag", data["bag"], "--algo", "awac", "--steps", 40, "--hidden", 16,
-             "--batch-size", 32, "--log-every", 10, "--eval-episodes", 2, "--out", out),
+        ros2("run", "trainer", "--bag", data["bag"], "--algo", "awac", "--steps", 1500, "--hidden", 16,
+             "--batch-size", 32, "--log-every", 25, "--eval-episodes", 2, "--out", out),
         "trainer",
     )
     assert trainer.wait(timeout=150) == 0, trainer.output()
@@ -128,7 +130,7 @@ def test_trainer_node_from_the_card_command_publishes_progress(spawn, data, tmp_
     assert f"wrote {out / 'policy.pt'}" in trainer.output()
     assert echo.wait(timeout=20) == 0, echo.output()
     report = echo.output().split("data: ", 1)[1].split("\n---", 1)[0].strip().strip("'")
-    assert json.loads(report)["total"] == 40
+    assert json.loads(report)["total"] == 1500
 
     bad = spawn(ros2("run", "trainer", "node", "--bag", tmp_path / "none.db3", "--out", tmp_path / "x"), "bad")
     assert bad.wait(timeout=60) == 2
