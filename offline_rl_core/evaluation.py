@@ -13,13 +13,13 @@ import contextlib
 import ctypes
 import glob
 import os
-import tempfile
 from dataclasses import dataclass
 from typing import Callable, Sequence
 
 import mujoco
 import numpy as np
 
+from .atomic import atomic_path
 from .env import (  # batch_observations is re-exported: part of this module's API
     ACT_DIM,
     PusherReachEnv,
@@ -292,18 +292,10 @@ def write_json_atomic(path, payload) -> "os.PathLike":
     import json
     from pathlib import Path
 
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     text = json.dumps(payload, indent=2, sort_keys=True) + "\n"
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    with atomic_path(path) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+    return Path(path)
 
 
 def format_rate(successes: int, episodes: int) -> str:

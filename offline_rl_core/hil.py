@@ -23,7 +23,6 @@ summarise the rounds. No ROS import here: nodes are subprocesses, stopped by pid
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 import signal
@@ -35,6 +34,7 @@ from typing import Callable
 
 import numpy as np
 
+from .atomic import atomic_path
 from .bag import read_transitions
 from .errors import UserError
 from .evaluation import evaluate_policy, write_json_atomic
@@ -238,9 +238,8 @@ class Loop:
 
     def publish(self, policy_node: RosProcess, checkpoint: Path, served: Path, reloads: int) -> None:
         """Replace the served checkpoint atomically; wait for the policy node's reload."""
-        tmp = served.with_name(f".{served.name}.{os.getpid()}.tmp")
-        shutil.copyfile(checkpoint, tmp)
-        os.replace(tmp, served)
+        with atomic_path(served) as tmp:
+            shutil.copyfile(checkpoint, tmp)
         deadline = time.monotonic() + 30.0
         while time.monotonic() < deadline:
             if policy_node.output().count("reloaded ") >= reloads:
@@ -317,9 +316,8 @@ def run_hil(cfg: HilConfig, log: Callable[[str], None] = lambda s: print(s, file
             prior_path = loop.train("prior", cfg.bags, cfg.prior_steps, cfg.seed, out / "prior")
             prior_from = "trained"
         served = out / "policy.pt"
-        tmp = served.with_name(f".{served.name}.{os.getpid()}.tmp")
-        shutil.copyfile(prior_path, tmp)
-        os.replace(tmp, served)
+        with atomic_path(served) as tmp:
+            shutil.copyfile(prior_path, tmp)
 
         policy_node = loop.start("policy", ros2_run("policy", "node", "--checkpoint", served, "--ros-args",
                                                     "-p", "poll_period:=0.2"),

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 
 import matplotlib
@@ -11,22 +10,17 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402  (after choosing the backend)
 
+from .atomic import atomic_path  # noqa: E402
+
 
 def _save_atomic(fig, path: str | os.PathLike) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix or ".png", dir=path.parent)
-    os.close(fd)
     try:
-        # A fixed Software tag and no date keep the PNG bytes stable across runs.
-        fig.savefig(tmp, dpi=110, metadata={"Software": "pusher-rl"})
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+        with atomic_path(path, suffix=Path(path).suffix or ".png") as tmp:
+            # A fixed Software tag and no date keep the PNG bytes stable across runs.
+            fig.savefig(tmp, dpi=110, metadata={"Software": "pusher-rl"})
     finally:
         plt.close(fig)
-    return path
+    return Path(path)
 
 
 def plot_training_curve(history: dict[str, list[float]], path: str | os.PathLike, title: str | None = None) -> Path:

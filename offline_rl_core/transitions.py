@@ -104,10 +104,6 @@ class Transitions:
     def select(self, mask_or_index) -> "Transitions":
         return Transitions(**{f.name: getattr(self, f.name)[mask_or_index] for f in fields(self)})
 
-    def episode_keys(self) -> np.ndarray:
-        """An id per row that is unique per episode even across merged bags."""
-        return self.episode
-
     def episode_returns(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(episode ids, undiscounted returns, source of each episode), sorted by id."""
         ids, inverse = np.unique(self.episode, return_inverse=True)

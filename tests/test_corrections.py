@@ -14,7 +14,7 @@ import pytest
 from offline_rl_core import ros_install
 from offline_rl_core.bag import read_transitions, write_transitions
 from offline_rl_core.collect import collect_transitions
-from offline_rl_core.env import PusherReachEnv, fingertip_from_joints
+from offline_rl_core.env import PusherReachEnv
 from offline_rl_core.transitions import SOURCE_HUMAN, SOURCE_POLICY, Transitions
 
 from ros_helpers import INDEX, REPO, probe_node, require_ros, ros_env, spawn  # noqa: F401 - fixtures

@@ -11,7 +11,6 @@ from __future__ import annotations
 import time
 
 import numpy as np
-import torch
 
 from ..evaluation import rollout
 from ..learners import TrainConfig, train_seeds
