@@ -17,7 +17,8 @@ from typing import Callable
 
 from .collect import collect_transitions
 from .evaluation import RolloutResult, format_rate, round6, rollout, write_json_atomic
-from .learners import Progress, TrainConfig, train_seeds
+from .learners import Progress, TrainConfig
+from .learners.parallel import TrainJob, available_cores, run_jobs
 from .policy import save_checkpoint
 from .stats import excludes_zero, newcombe_diff_ci, wilson_ci
 
@@ -45,7 +46,8 @@ class ExperimentConfig:
     n_seeds: int = 5  # evaluation suites
     eval_episodes: int = 20  # episodes per suite
     smoke: bool = False
-    deterministic: bool = True
+    deterministic: bool = False  # True: fp32 everywhere (see TrainConfig); smoke always
+    workers: int | None = None  # training processes; None: one per core (smoke: 1)
 
     @classmethod
     def smoke_settings(cls, **overrides) -> "ExperimentConfig":
@@ -64,6 +66,11 @@ class ExperimentConfig:
     @property
     def n_pooled(self) -> int:
         return self.n_seeds * self.eval_episodes
+
+    def worker_count(self) -> int:
+        if self.workers is not None:
+            return max(1, self.workers)
+        return 1 if self.smoke else available_cores()
 
     def train_config(self, algo: str) -> TrainConfig:
         return TrainConfig(
@@ -146,13 +153,7 @@ def run_experiment(cfg: ExperimentConfig, out_dir: str | Path, log: Callable[[st
         log(f"seed {s}: collected {cfg.episodes} episodes ({len(data)} transitions, expert_frac {cfg.expert_frac})")
     log(f"collection took {time.perf_counter() - t0:.1f}s")
 
-    trained = {}
-    for role, algo in (("bc", "bc"), ("offline", cfg.algo)):
-        t1 = time.perf_counter()
-        log(f"training {algo} ({cfg.steps} steps, {len(seeds)} seed(s) together)")
-        trained[role] = train_seeds(datasets, cfg.train_config(algo), seeds, progress=_progress_printer(algo, log))
-        log(f"  {algo} took {time.perf_counter() - t1:.1f}s")
-
+    trained = train_all(cfg, seeds, datasets, log)
     outcomes = []
     for m, s in enumerate(seeds):
         reset_seeds = eval_reset_seeds(s, cfg.n_seeds, cfg.eval_episodes)
@@ -173,6 +174,29 @@ def run_experiment(cfg: ExperimentConfig, out_dir: str | Path, log: Callable[[st
         write_summary(cfg, outcomes, out_dir)
     log(f"total {time.perf_counter() - t0:.1f}s")
     return outcomes
+
+
+def train_all(cfg: ExperimentConfig, seeds: list[int], datasets: list, log: Callable[[str], None]) -> dict:
+    """{"bc": [TrainResult per seed], "offline": [...]}: BC and the offline learner for
+    every seed, one process per core."""
+    roles = (("offline", cfg.algo), ("bc", "bc"))  # the heavier learner first: it starts first
+    workers = cfg.worker_count()
+    if workers == 1:
+        jobs = [TrainJob(algo, datasets, cfg.train_config(algo), seeds) for _, algo in roles]
+    else:
+        jobs = [TrainJob(f"{algo} s{s}", [datasets[m]], cfg.train_config(algo), [s])
+                for _, algo in roles for m, s in enumerate(seeds)]
+    workers = min(workers, len(jobs))
+    where = "together in this process" if workers == 1 else f"in {workers} worker processes"
+    log(f"training {cfg.algo} and bc ({cfg.steps} steps each, {len(seeds)} seed(s)) {where}")
+    t1 = time.perf_counter()
+    results = run_jobs(jobs, workers, progress_for=lambda job: _progress_printer(job.label, log))
+    log(f"  training took {time.perf_counter() - t1:.1f}s")
+    trained = {}
+    per_role = len(jobs) // len(roles)
+    for r, (role, _) in enumerate(roles):
+        trained[role] = [res for job_results in results[r * per_role:(r + 1) * per_role] for res in job_results]
+    return trained
 
 
 def _pooled_row(cfg: ExperimentConfig, outcomes: list[SeedOutcome]) -> dict:

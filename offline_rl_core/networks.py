@@ -15,6 +15,8 @@ import math
 import torch
 from torch import nn
 
+from .mlp_kernels import HiddenLayer, ensemble_mlp
+
 
 class EnsembleMLP(nn.Module):
     def __init__(
@@ -25,10 +27,13 @@ class EnsembleMLP(nn.Module):
         out_dim: int,
         generators: list[torch.Generator] | None = None,
         tanh_output: bool = False,
+        compute_dtype: torch.dtype = torch.float32,
     ):
         super().__init__()
         self.members, self.in_dim, self.hidden, self.out_dim = members, in_dim, hidden, out_dim
         self.tanh_output = tanh_output
+        # the matmuls' dtype: fp32, or bf16 in fast mode (parameters stay fp32)
+        self.hidden_layer = HiddenLayer(compute_dtype)
         dims = [in_dim, hidden, hidden, out_dim]
         self.weights = nn.ParameterList()
         self.biases = nn.ParameterList()
@@ -51,12 +56,7 @@ class EnsembleMLP(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """x: (E, B, in) -> (E, B, out)."""
-        last = len(self.weights) - 1
-        for i, (w, b) in enumerate(zip(self.weights, self.biases)):
-            x = torch.baddbmm(b, x, w)
-            if i < last:
-                x = torch.relu(x)
-        return torch.tanh(x) if self.tanh_output else x
+        return ensemble_mlp(x, list(self.weights), list(self.biases), self.tanh_output, self.hidden_layer)
 
     def member_state(self, m: int) -> dict[str, torch.Tensor]:
         """Member m as plain Linear weights ``{'0.weight' (out,in), '0.bias', ...}``:

@@ -65,3 +65,14 @@ def test_smoke_cli_twice_gives_byte_identical_metrics(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "AWAC" in out and "Wilson" in out
     assert (tmp_path / "a" / "metrics.json").read_bytes() == (tmp_path / "b" / "metrics.json").read_bytes()
+
+
+def test_worker_processes_give_the_same_metrics_as_one_process(tmp_path):
+    """Each (learner, seed) run in its own worker process: same numbers as all seeds
+    trained together in this process, and progress still reaches the log."""
+    lines = []
+    together = run_experiment(tiny(seeds=[0, 1], workers=1), tmp_path / "one", log=lambda line: None)
+    spread = run_experiment(tiny(seeds=[0, 1], workers=2), tmp_path / "two", log=lines.append)
+    assert [o.metrics for o in spread] == [o.metrics for o in together]
+    assert any("in 2 worker processes" in line for line in lines)
+    assert any("awac s1 step" in line for line in lines)

@@ -50,7 +50,6 @@ class BenchSettings:
     record_episodes: int = 200
     realtime_seconds: float = 60.0
     threads: int | None = None  # torch intra-op threads; None = auto (see ``choose_threads``)
-    deterministic: bool = True  # also time the fast (bf16-where-native) mode when False-able
     tiny: bool = False  # test settings: seconds, not minutes; figures meaningless
 
     @classmethod

@@ -20,7 +20,7 @@ def register(subparsers) -> None:
     )
     seeds = p.add_mutually_exclusive_group()
     seeds.add_argument("--seed", type=int, default=None, help="one experiment seed (default 0)")
-    seeds.add_argument("--seeds", type=int, nargs="+", help="several seeds, trained together")
+    seeds.add_argument("--seeds", type=int, nargs="+", help="several seeds")
     p.add_argument("--algo", choices=OFFLINE_ALGOS, default=None, help="offline learner compared with BC (default awac)")
     p.add_argument("--naive", action="store_true", help="Break-It: naive max-Q instead of AWAC (same as --algo naive)")
     p.add_argument("--expert-frac", type=float, default=0.3, help="share of expert episodes in the dataset (default 0.3)")
@@ -28,8 +28,12 @@ def register(subparsers) -> None:
     p.add_argument("--steps", type=int, default=None, help="gradient steps per learner (default 8000; smoke 400)")
     p.add_argument("--smoke", action="store_true", help="the chapter's smoke settings: 20 episodes, 400 steps, "
                    "batch 64, hidden 64, 2 suites x 4 eval episodes")
-    p.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=True,
-                   help="fp32 everywhere, byte-identical results for a seed on CPU (default on; smoke always on)")
+    p.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=False,
+                   help="fp32 everywhere (smoke always); the default runs the hidden layer in bf16 where the CPU "
+                        "has native bf16. Both are byte-identical run to run for a seed")
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="training processes, one (learner, seed) run each; results do not depend on it "
+                        "(default: one per CPU core; smoke: 1)")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
     p.set_defaults(func=run)
 
@@ -44,6 +48,10 @@ def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
     if not 0.0 <= args.expert_frac <= 1.0:
         raise UserError(f"--expert-frac must be in [0, 1], got {args.expert_frac}")
     overrides = {"seeds": seeds, "algo": algo, "expert_frac": args.expert_frac, "deterministic": args.deterministic}
+    if args.workers is not None:
+        if args.workers < 1:
+            raise UserError(f"--workers must be >= 1, got {args.workers}")
+        overrides["workers"] = args.workers
     for name in ("episodes", "steps"):
         value = getattr(args, name)
         if value is not None:

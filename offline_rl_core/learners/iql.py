@@ -13,6 +13,7 @@ import torch
 
 from ..networks import EnsembleMLP
 from .base import Learner, TwinCritic, make_adam, per_member_mean, regression_error
+from .precision import compute_dtype
 
 
 class IQL(Learner):
@@ -22,8 +23,8 @@ class IQL(Learner):
     def __init__(self, cfg, members, generators, obs_dim, act_dim):
         super().__init__(cfg, members, generators, obs_dim, act_dim)
         self.critic = TwinCritic(cfg, members, generators, obs_dim, act_dim)
-        self.value = EnsembleMLP(members, obs_dim, cfg.hidden, 1, generators)
-        self.value_opt = make_adam(self.value.parameters(), cfg.lr, fused=not cfg.deterministic)
+        self.value = EnsembleMLP(members, obs_dim, cfg.hidden, 1, generators, compute_dtype=compute_dtype(cfg.deterministic))
+        self.value_opt = make_adam(self.value.parameters(), cfg.lr)
 
     def update(self, batch):
         cfg = self.cfg

@@ -25,7 +25,6 @@ from .data import IndexSampler, MemberData, correction_pools, top_episode_rows
 from .filtered_bc import FilteredBC
 from .iql import IQL
 from .naive import NaiveMaxQ
-from .precision import autocast_context
 
 LEARNERS = {"bc": BC, "filtered_bc": FilteredBC, "awac": AWAC, "iql": IQL, "naive": NaiveMaxQ}
 
@@ -107,7 +106,7 @@ def train_seeds(
 
     histories: list[dict[str, list[float]]] = [{"step": []} for _ in seeds]
     start = time.perf_counter()
-    with torch_threads(cfg.threads), autocast_context(cfg.deterministic):
+    with torch_threads(cfg.threads):
         for step in range(1, cfg.steps + 1):
             losses = learner.update(data.gather(sampler.next()))
             if step % cfg.log_every == 0 or step == cfg.steps:

@@ -1,13 +1,14 @@
-"""Float precision for training: fp32 by default, bf16 autocast where the CPU has it.
+"""Float precision for training: fp32 by default, bf16 hidden-layer matmuls where the
+CPU has native bf16.
 
 bf16 matmuls pay off only with native support (AMX tiles, or AVX512-BF16); without
 it oneDNN emulates them and they are slower than fp32. We detect, never assume.
-Master weights and the optimiser stay fp32 either way.
+Master weights, optimiser state and the thin input and output layers stay fp32
+either way (see ``offline_rl_core.mlp_kernels``).
 """
 
 from __future__ import annotations
 
-import contextlib
 from functools import lru_cache
 
 import torch
@@ -30,14 +31,6 @@ def native_bf16() -> bool:
     return bool(cpu_bf16_flags() & {"amx_bf16", "avx512_bf16"})
 
 
-def autocast_context(deterministic: bool):
-    """bf16 autocast when allowed (not deterministic) and native; else a no-op.
-
-    The weight-cast cache is off: the loop runs every optimiser step inside one context,
-    and autocast's cache would keep serving the first bf16 copy of each weight after the
-    optimiser has updated its fp32 master in place (training then stalls). Re-casting
-    costs nothing measurable at these sizes.
-    """
-    if deterministic or not native_bf16():
-        return contextlib.nullcontext()
-    return torch.autocast("cpu", dtype=torch.bfloat16, cache_enabled=False)
+def compute_dtype(deterministic: bool) -> torch.dtype:
+    """The hidden layer's matmul dtype: bf16 when allowed (not deterministic) and native."""
+    return torch.bfloat16 if not deterministic and native_bf16() else torch.float32
