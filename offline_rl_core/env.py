@@ -8,7 +8,8 @@ The task's maths lives here once, in batch form over N arms: the observation
 (:func:`batch_observations`), the action (:func:`clip_actions`, :func:`apply_action`)
 and the reward / success latch / episode end (:func:`score_steps`).
 ``PusherReachEnv`` calls them with N = 1, ``evaluation.BatchedPusherEnv`` with N
-episodes at once, so the two agree bit for bit. The ROS nodes build observations
+episodes at once (its physics: :func:`apply_action`'s, stepped in one
+``mujoco.batch``), so the two agree bit for bit. The ROS nodes build observations
 from ``/pusher/state`` + ``/pusher/target`` with :func:`observation_from_joints`,
 so a policy trained here drives any arm that publishes those topics.
 """

@@ -1,32 +1,43 @@
 """Roll policies out in pusher-reach on held-out reset seeds and score them.
 
-``rollout`` runs N episodes either batched (N MuJoCo ``MjData`` on one shared
-``MjModel``, one policy call per control step for all of them) or sequentially
-(the plain one-env loop, kept as the reference). For a policy that treats rows
-independently both modes give the same per-episode numbers, bit for bit: they share
-the reset, the physics and the observation/reward code of ``offline_rl_core.env``.
+``rollout`` runs N episodes either batched (one ``mujoco.batch.Batch`` of N
+simulations, one policy call per control step for all of them) or sequentially
+(the plain one-env loop, kept as the reference). Both reset from ``sample_reset``
+and share the observation and reward code of ``offline_rl_core.env``, and their
+physics is bit-identical: given the same actions, every per-episode number agrees
+bit for bit (tests/test_evaluation.py). What can differ is the policy's output:
+asked for N rows at once instead of one, a BLAS matmul picks other kernels and
+rounds the float32 actions differently in the last bits. For ``LoadedPolicy`` that
+leaves ``final_dist`` within a few 1e-8 m and ``returns`` within ~1e-6 of the
+sequential loop; ``success`` and ``lengths`` agree unless an episode ends within
+that of the 0.02 m threshold (none does in the tests or the benchmark). A policy
+whose rows are independent (e.g. the expert) gives identical results in both modes.
 """
 
 from __future__ import annotations
 
 import contextlib
+import copy
 import ctypes
+import functools
 import glob
 import os
 from dataclasses import dataclass
 from typing import Callable, Sequence
 
 import mujoco
+import mujoco.batch
 import numpy as np
 
 from .atomic import atomic_path
 from .env import (  # batch_observations is re-exported: part of this module's API
     ACT_DIM,
+    FRAME_SKIP,
     PusherReachEnv,
-    apply_action,
     batch_observations,
     build_model,
     clip_actions,
+    sample_reset,
     score_steps,
 )
 from .stats import wilson_ci
@@ -65,81 +76,85 @@ class RolloutResult:
         return cls(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("seeds", "success", "final_dist", "returns", "lengths")))
 
 
-_POOL: dict[int, list[PusherReachEnv]] = {}
-_MODEL: list[mujoco.MjModel] = []
-
-
+@functools.cache
 def _shared_model() -> mujoco.MjModel:
-    if not _MODEL:
-        _MODEL.append(build_model())
-    return _MODEL[0]
+    """The model of every batched rollout: compiling one costs ~1.5 ms."""
+    return build_model()
 
 
-def _pooled_envs(model: mujoco.MjModel, n: int) -> list[PusherReachEnv]:
-    """n envs on ``model``, reused across calls: an ``MjData`` costs ~0.4 ms to
-    allocate, as much as the physics of a short evaluation. Every episode starts
-    with ``mj_resetData``, so nothing carries over from the previous user."""
-    pool = _POOL.setdefault(id(model), [])
-    while len(pool) < n:
-        pool.append(PusherReachEnv(model=model))
-    return pool[:n]
+def _unconstrained(model: mujoco.MjModel) -> mujoco.MjModel:
+    """``model`` without MuJoCo's collision and constraint stages, where it can have
+    no constraint at all (no geom that collides, no pair, equality, flex, limit or
+    friction loss): the stages find nothing there but cost ~15 % of an ``mj_step``
+    (the collision broadphase diagonalises a 3x3 every substep). Same physics bit for
+    bit (tests/test_evaluation.py). Any other model is returned as it is."""
+    if (
+        (model.geom_contype | model.geom_conaffinity).any() or model.npair or model.neq or model.nflex
+        or model.jnt_limited.any() or model.tendon_limited.any()
+        or model.dof_frictionloss.any() or model.tendon_frictionloss.any()
+    ):
+        return model
+    model = copy.copy(model)
+    model.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_CONSTRAINT
+    return model
 
 
 class BatchedPusherEnv:
-    """N pusher-reach episodes stepped together, one ``MjData`` each on one model.
+    """N pusher-reach episodes stepped together in one ``mujoco.batch.Batch``.
 
-    Resets go through ``PusherReachEnv.reset`` (the one place randomness is drawn);
-    actions, physics, observation, reward, success latch and truncation are the
-    batch functions of ``offline_rl_core.env`` that ``PusherReachEnv.step`` calls
-    with N = 1.
+    Each episode is a row of the batch's state; a step sets the rows' controls and
+    runs ``FRAME_SKIP`` ``mj_step`` substeps per row in C, with no Python per
+    episode (on the model less its empty constraint stages, see ``_unconstrained``).
+    ``mujoco.batch`` guarantees the result bit-identical to ``mj_step`` on one
+    ``MjData`` per episode (``PusherReachEnv.step``), and its ``site_xpos`` is, as
+    there, from the start of the last substep. A reset does per row what
+    ``PusherReachEnv.reset`` does: ``mj_resetData``, ``sample_reset``'s joints and
+    target, ``mj_forward``. Observation, reward, success latch and truncation are the
+    batch functions of ``offline_rl_core.env``. tests/test_evaluation.py checks
+    states and fingertips against ``PusherReachEnv`` bit for bit.
     """
 
     def __init__(self, n: int, terminate_on_success: bool = False, model: mujoco.MjModel | None = None):
         self.model = model if model is not None else _shared_model()
-        self.envs = _pooled_envs(self.model, n)
+        # nthread=1: the caller's thread only; a thread pool loses on a busy 2-core machine.
+        self.batch = mujoco.batch.Batch(_unconstrained(self.model), n, nthread=1)
         self.terminate_on_success = terminate_on_success
         self.n = n
-        for env in self.envs:
-            env.terminate_on_success = terminate_on_success
-        fid = self.envs[0]._fingertip
-        mocap = self.envs[0]._mocap
-        # Views into each MjData, taken once: reading them costs no attribute lookups per step.
-        self._qpos = [e.data.qpos for e in self.envs]
-        self._qvel = [e.data.qvel for e in self.envs]
-        self._tip = [e.data.site_xpos[fid] for e in self.envs]
-        self._target = [e.data.mocap_pos[mocap] for e in self.envs]
+        mocap = self.model.body_mocapid[self.model.body("target").id]
+        # Live (n, ...) views of the batch's state rows, and of the fingertip it
+        # refreshes after every call.
+        self._qpos = self.batch.bind("qpos")[:, :2]
+        self._qvel = self.batch.bind("qvel")[:, :2]
+        self._ctrl = self.batch.bind("ctrl")[:, :ACT_DIM]
+        self._target = self.batch.bind("mocap_pos")[:, mocap]
+        self._tip = self.batch.bind("site_xpos")[:, self.model.site("fingertip").id, :2]
         self.steps = np.zeros(n, np.int64)
         self.success = np.zeros(n, bool)
-
-    def _gather(self, idx) -> np.ndarray:
-        qpos = np.array([self._qpos[i][:2] for i in idx])
-        qvel = np.array([self._qvel[i][:2] for i in idx])
-        tip = np.array([self._tip[i][:2] for i in idx])
-        target = np.array([self._target[i][:2] for i in idx])
-        return qpos, qvel, tip, target
 
     def reset(self, seeds: Sequence[int]) -> np.ndarray:
         if len(seeds) != self.n:
             raise ValueError(f"{len(seeds)} seeds for {self.n} envs")
-        for env, seed in zip(self.envs, seeds):
-            env.reset(int(seed))
+        self.batch.reset(stage=mujoco.mjtStage.mjSTAGE_NONE)
+        for row, seed in enumerate(seeds):
+            self._qpos[row], self._target[row] = sample_reset(int(seed))
+        self.batch.forward()
         self.steps[:] = 0
         self.success[:] = False
-        qpos, qvel, tip, target = self._gather(range(self.n))
-        return batch_observations(qpos, qvel, target, tip)
+        return batch_observations(self._qpos, self._qvel, self._target[:, :2], self._tip)
 
     def step(self, actions: np.ndarray, idx: np.ndarray):
-        """Step the envs ``idx`` (an int array) with ``actions`` (len(idx), 2).
+        """Step the envs ``idx`` (a sorted int array) with ``actions`` (len(idx), 2).
 
         Returns ``(obs, reward, done, success, dist)`` arrays for those envs.
         """
-        actions = clip_actions(actions, len(idx))
-        for row, i in enumerate(idx):
-            apply_action(self.model, self.envs[i].data, actions[row])
-        self.steps[idx] += 1
-        qpos, qvel, tip, target = self._gather(idx)
-        score = score_steps(target, tip, self.steps[idx], self.success[idx], self.terminate_on_success)
-        self.success[idx] = score.success
+        every = len(idx) == self.n  # the usual case: views instead of copies, no ids for the batch
+        sel = slice(None) if every else idx
+        self._ctrl[sel] = clip_actions(actions, len(idx))
+        self.batch.step(None if every else idx, nstep=FRAME_SKIP)
+        self.steps[sel] += 1
+        qpos, qvel, tip, target = self._qpos[sel], self._qvel[sel], self._tip[sel], self._target[sel, :2]
+        score = score_steps(target, tip, self.steps[sel], self.success[sel], self.terminate_on_success)
+        self.success[sel] = score.success
         done = score.terminated | score.truncated
         return batch_observations(qpos, qvel, target, tip), score.reward, done, score.success.copy(), score.dist
 
@@ -158,6 +173,40 @@ def _openblas_thread_controls():
             if get is not None and put is not None:
                 return get, put
     return None
+
+
+@functools.cache
+def _mujoco_timer_slot() -> ctypes.c_void_p | None:
+    """libmujoco's global ``mjcb_time`` pointer, or None where the library is not found."""
+    here = os.path.dirname(mujoco.__file__)
+    for pattern in ("libmujoco.so.*", "libmujoco*.dylib", "mujoco.dll"):
+        for path in glob.glob(os.path.join(here, pattern)):
+            try:
+                return ctypes.c_void_p.in_dll(ctypes.CDLL(path), "mjcb_time")
+            except (OSError, ValueError):
+                continue
+    return None
+
+
+@contextlib.contextmanager
+def mujoco_timers_off():
+    """Step MuJoCo without its profiling timer inside the block.
+
+    ``import mujoco`` installs a clock_gettime ``mjcb_time`` so that ``MjData.timer``
+    profiles every pipeline stage; for this 2-DoF arm the clock reads are ~40 % of an
+    ``mj_step``. Only ``MjData.timer`` reads the callback, never the physics. Where
+    libmujoco cannot be reached this does nothing.
+    """
+    slot = _mujoco_timer_slot()
+    if slot is None:
+        yield
+        return
+    before = slot.value
+    slot.value = None
+    try:
+        yield
+    finally:
+        slot.value = before
 
 
 @contextlib.contextmanager
@@ -210,12 +259,11 @@ def _rollout_batched(act_fn: ActFn, seeds: np.ndarray, terminate_on_success: boo
     active = np.arange(n)
     while len(active):
         actions = np.asarray(act_fn(obs))
-        next_obs, reward, done, _, dist = venv.step(actions, active)
+        obs, reward, done, _, dist = venv.step(actions, active)
         returns[active] += reward
         final_dist[active] = dist
-        keep = ~done
-        active = active[keep]
-        obs = next_obs[keep]
+        if done.any():
+            active, obs = active[~done], obs[~done]
     return RolloutResult(seeds.copy(), venv.success.copy(), final_dist, returns, venv.steps.copy())
 
 
@@ -233,9 +281,11 @@ def rollout(
     seeds = np.asarray(list(reset_seeds), dtype=np.int64)
     if seeds.size == 0:
         raise ValueError("rollout needs at least one reset seed")
-    run = _rollout_batched if batched else _rollout_sequential
-    with single_threaded_blas():
-        return run(act_fn, seeds, terminate_on_success)
+    if not batched:  # the reference: MuJoCo as a plain loop runs it, profiling timers included
+        with single_threaded_blas():
+            return _rollout_sequential(act_fn, seeds, terminate_on_success)
+    with single_threaded_blas(), mujoco_timers_off():
+        return _rollout_batched(act_fn, seeds, terminate_on_success)
 
 
 def expert_act_fn() -> ActFn:

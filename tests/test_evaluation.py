@@ -1,11 +1,21 @@
 """Rollouts: batched == sequential, the expert reaches, observations match the env."""
 
+import mujoco
 import numpy as np
 import pytest
 import torch
 
-from offline_rl_core.env import PusherReachEnv
-from offline_rl_core.evaluation import batch_observations, evaluate_policy, expert_act_fn, rollout
+from offline_rl_core.env import PusherReachEnv, build_model
+from offline_rl_core.evaluation import (
+    BatchedPusherEnv,
+    _mujoco_timer_slot,
+    _unconstrained,
+    batch_observations,
+    evaluate_policy,
+    expert_act_fn,
+    mujoco_timers_off,
+    rollout,
+)
 from offline_rl_core.networks import policy_sequential
 from offline_rl_core.policy import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, LoadedPolicy
 
@@ -48,6 +58,58 @@ def test_loaded_policy_batched_equals_sequential_exactly_when_rows_are_independe
     s = rollout(act, seeds, batched=False)
     for f in FIELDS:
         np.testing.assert_array_equal(getattr(b, f), getattr(s, f), err_msg=f)
+
+
+def test_batched_env_steps_bit_for_bit_like_pusher_env():
+    # Same seeds, same actions (some outside [-1, 1]), envs dropping out; the batch
+    # without MuJoCo's timers as in rollout(), the envs with them: every output, the
+    # full integration state and the fingertip agree bit for bit.
+    seeds = list(range(40, 46))
+    venv = BatchedPusherEnv(len(seeds))
+    envs = [PusherReachEnv(model=venv.model) for _ in seeds]
+    spec = mujoco.mjtState.mjSTATE_INTEGRATION
+    rng = np.random.default_rng(0)
+
+    def check_states(idx):
+        for i in idx:
+            want = np.empty(mujoco.mj_stateSize(venv.model, spec))
+            mujoco.mj_getState(venv.model, envs[i].data, want, spec)
+            np.testing.assert_array_equal(venv.batch.state[i], want)
+            np.testing.assert_array_equal(venv._tip[i], envs[i].fingertip[:2])
+
+    with mujoco_timers_off():
+        obs = venv.reset(seeds)
+    np.testing.assert_array_equal(obs, np.stack([e.reset(s) for e, s in zip(envs, seeds)]))
+    check_states(range(len(seeds)))
+    idx = np.arange(len(seeds))
+    for t in range(60):
+        if t in (20, 45):
+            idx = idx[1::2] if t == 20 else idx[1:]
+        actions = rng.uniform(-1.5, 1.5, (len(idx), 2)).astype(np.float32)
+        with mujoco_timers_off():
+            obs, reward, done, success, dist = venv.step(actions, idx)
+        for row, i in enumerate(idx):
+            o, r, d, info = envs[i].step(actions[row])
+            np.testing.assert_array_equal(obs[row], o)
+            assert (reward[row], done[row], success[row], dist[row]) == (r, d, info["success"], info["dist"])
+        check_states(idx)
+
+
+def test_constraint_stages_skipped_only_where_nothing_can_constrain():
+    off = mujoco.mjtDisableBit.mjDSBL_CONSTRAINT
+    model = build_model()
+    assert _unconstrained(model).opt.disableflags & off and not model.opt.disableflags & off
+    model.geom_contype[0] = model.geom_conaffinity[0] = 1  # the floor could now touch something
+    assert _unconstrained(model) is model
+
+
+def test_mujoco_timers_off_nulls_and_restores_the_callback():
+    slot = _mujoco_timer_slot()
+    assert slot is not None, "libmujoco's mjcb_time not found: batched rollouts pay MuJoCo's profiling timers"
+    before = slot.value
+    with mujoco_timers_off():
+        assert slot.value is None
+    assert slot.value == before
 
 
 def test_loaded_policy_batched_matches_sequential_with_batched_matmuls():
