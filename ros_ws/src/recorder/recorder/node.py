@@ -3,8 +3,9 @@
 Active (default): drives the sim with the scripted expert for the first
 ``round(expert_frac * episodes)`` episodes and uniform random actions after, exactly as
 ``offline-rl collect`` does in process, and records ``/pusher/transition`` plus
-``/pusher/state``, ``/pusher/target`` and ``/pusher/command``. Against a lockstep sim
-started with the same seed the bag's transitions equal ``offline-rl collect``'s bit for bit.
+``/pusher/state``, ``/pusher/target`` and the ``/pusher/command`` messages it sends.
+Against a lockstep sim started with the same seed the bag's transitions equal
+``offline-rl collect``'s bit for bit.
 
   ros2 run recorder node --out bags/mix.db3 --episodes 200 --expert-frac 0.3 --seed 0
 
@@ -20,6 +21,7 @@ episode boundaries are known before the next action is chosen.
 from __future__ import annotations
 
 import argparse
+import struct
 import sys
 import time
 
@@ -28,19 +30,20 @@ import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from rclpy.serialization import deserialize_message
+from rclpy.serialization import deserialize_message, serialize_message
 from rclpy.task import Future
 from rclpy.utilities import remove_ros_args
 from geometry_msgs.msg import PointStamped
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float32MultiArray
 
-from offline_rl_core.bag import BagWriter, decode_transition_payloads
+from offline_rl_core.bag import TRANSITION_CDR_HEADER, BagWriter, decode_transition_payloads
 from offline_rl_core.collect import expert_episode_count
 from offline_rl_core.env import ACT_DIM, JOINT_NAMES
 from offline_rl_core.errors import UserError, caused_by_interrupt
 from offline_rl_core.expert import expert_action
 from offline_rl_core.transitions import LAYOUT_SLICES, SOURCE_NAMES, SOURCE_EXPERT, SOURCE_RANDOM
+from sim.spin import spin_until_future_complete
 
 TOPICS = {
     "/pusher/transition": ("std_msgs/msg/Float32MultiArray", Float32MultiArray),
@@ -50,10 +53,20 @@ TOPICS = {
 }
 TRANSITION_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 DONE = (LAYOUT_SLICES["terminated"].start, LAYOUT_SLICES["truncated"].start)
+# Byte offsets of those two float32 flags in a transition carrying the sim's header.
+DONE_AT = tuple(len(TRANSITION_CDR_HEADER) + 4 * column for column in DONE)
 
 
 def stamp_key(stamp) -> int:
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def ends_episode(raw: bytes) -> bool:
+    """Whether a raw /pusher/transition is its episode's last (terminated or truncated)."""
+    if raw.startswith(TRANSITION_CDR_HEADER):  # the sim's own bytes: read the flags in place
+        return any(struct.unpack_from("<f", raw, at)[0] for at in DONE_AT)
+    row = decode_transition_payloads([raw])[0]  # another writer's header
+    return bool(row[DONE[0]] or row[DONE[1]])
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -96,6 +109,8 @@ class Recorder(Node):
 
         for topic, (type_name, msg_type) in TOPICS.items():
             bag.add_topic(topic, type_name)
+            if self.active and topic == "/pusher/command":
+                continue  # written as sent (see send): no loop back over DDS
             qos = TRANSITION_QOS if topic == "/pusher/transition" else 10
             self.create_subscription(msg_type, topic, self.make_callback(topic), qos, raw=True)
         self.subs = {s.topic_name: s for s in self.subscriptions}
@@ -129,10 +144,10 @@ class Recorder(Node):
     def on_transition(self, raw: bytes) -> None:
         if self.finished.done():
             return
-        row = decode_transition_payloads([raw])[0]
+        ended = ends_episode(raw)
         self.transitions += 1
         self.awaiting_transition = False
-        if row[DONE[0]] or row[DONE[1]]:
+        if ended:
             self.episodes_done += 1
             self.show_progress()
             if self.episodes and self.episodes_done >= self.episodes:
@@ -164,7 +179,7 @@ class Recorder(Node):
             if self.awaiting_transition:
                 # The sim republished the state we answered: our command was lost (e.g.
                 # before discovery matched). Send the same one again; never redraw.
-                self.command_pub.publish(self.last_command)
+                self.send(self.last_command)
             return
         self.state = msg
         self.try_act()
@@ -205,7 +220,11 @@ class Recorder(Node):
         self.state = None
         self.awaiting_transition = True
         self.last_command = command
+        self.send(command)
+
+    def send(self, command: JointState) -> None:
         self.command_pub.publish(command)
+        self.write("/pusher/command", serialize_message(command))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -229,7 +248,7 @@ def main(argv: list[str] | None = None) -> int:
         node = Recorder(bag, args)
         executor = SingleThreadedExecutor()
         executor.add_node(node)
-        executor.spin_until_future_complete(node.finished)
+        spin_until_future_complete(executor, node.finished)
     except (KeyboardInterrupt, ExternalShutdownException):
         interrupted = True
     except Exception as exc:

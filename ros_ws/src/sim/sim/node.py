@@ -50,6 +50,8 @@ from offline_rl_core.bag import encode_transition_rows
 from offline_rl_core.env import ACT_DIM, CONTROL_HZ, JOINT_NAMES, MAX_STEPS, PusherReachEnv
 from offline_rl_core.transitions import LAYOUT_SLICES, SOURCE_NAMES, SOURCE_POLICY, TRANSITION_WIDTH
 
+from .spin import spin_until_future_complete
+
 TICK_NS = 1_000_000_000 // CONTROL_HZ  # 20 ms
 TICKS_PER_EPISODE = MAX_STEPS  # lockstep: one tick per published state
 SOURCE_BY_NAME = {name: code for code, name in SOURCE_NAMES.items()}
@@ -296,7 +298,7 @@ def main(argv: list[str] | None = None) -> int:
         node = PusherSim()
         executor = SingleThreadedExecutor()
         executor.add_node(node)
-        executor.spin_until_future_complete(node.finished)
+        spin_until_future_complete(executor, node.finished)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except ValueError as exc:
