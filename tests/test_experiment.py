@@ -76,3 +76,18 @@ def test_worker_processes_give_the_same_metrics_as_one_process(tmp_path):
     assert [o.metrics for o in spread] == [o.metrics for o in together]
     assert any("in 2 worker processes" in line for line in lines)
     assert any("awac s1 step" in line for line in lines)
+
+
+def test_a_failing_run_stops_the_other_workers_and_reaches_the_caller():
+    import multiprocessing
+
+    from offline_rl_core.collect import collect_transitions
+    from offline_rl_core.learners import TrainConfig
+    from offline_rl_core.learners.parallel import TrainJob, run_jobs
+
+    data = collect_transitions(2, 0.5, 0)
+    long_run = TrainJob("bc s0", [data], TrainConfig(algo="bc", steps=200_000, batch_size=8, hidden=8), [0])
+    bad_run = TrainJob("bc s1", [data.select(slice(0, 0))], TrainConfig(algo="bc", steps=10), [1])
+    with pytest.raises(ValueError, match="empty dataset"):
+        run_jobs([long_run, bad_run], workers=2)
+    assert multiprocessing.active_children() == []  # the long run was stopped, not awaited

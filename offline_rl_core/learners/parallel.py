@@ -13,7 +13,9 @@ from __future__ import annotations
 import multiprocessing
 import os
 import queue as queue_module
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+import signal
+import threading
+import time
 from dataclasses import dataclass
 from typing import Callable
 
@@ -40,9 +42,18 @@ def available_cores() -> int:
 _progress_queue = None  # set in each worker process
 
 
-def _init_worker(progress_queue) -> None:
+def _init_worker(progress_queue, parent_pid: int) -> None:
     global _progress_queue
     _progress_queue = progress_queue
+    threading.Thread(target=_exit_with_parent, args=(parent_pid,), daemon=True).start()
+
+
+def _exit_with_parent(parent_pid: int) -> None:
+    """A worker outlives a killed parent (SIGTERM, SIGKILL) and would train on for
+    minutes with nobody to report to: leave as soon as the parent is gone."""
+    while os.getppid() == parent_pid:
+        time.sleep(0.5)
+    os._exit(1)
 
 
 def _run_job(index: int, job: TrainJob) -> list[TrainResult]:
@@ -50,6 +61,10 @@ def _run_job(index: int, job: TrainJob) -> list[TrainResult]:
         _progress_queue.put((index, p))
 
     return train_seeds(job.datasets, job.cfg, job.seeds, progress=report)
+
+
+def _raise_interrupt(signum, frame):
+    raise KeyboardInterrupt
 
 
 def run_jobs(jobs: list[TrainJob], workers: int,
@@ -64,7 +79,6 @@ def run_jobs(jobs: list[TrainJob], workers: int,
     # spawn, not fork: the parent has torch (and its OpenMP pool) initialised
     ctx = multiprocessing.get_context("spawn")
     progress_queue = ctx.Queue()
-    results: list[list[TrainResult] | None] = [None] * len(jobs)
 
     def drain(timeout: float) -> None:
         try:
@@ -76,16 +90,26 @@ def run_jobs(jobs: list[TrainJob], workers: int,
         except queue_module.Empty:
             pass
 
-    with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker, initargs=(progress_queue,)) as pool:
-        pending = {pool.submit(_run_job, i, job): i for i, job in enumerate(jobs)}
-        try:
-            while pending:
-                drain(0.2)
-                done, _ = wait(pending, timeout=0, return_when=FIRST_COMPLETED)
-                for future in done:
-                    results[pending.pop(future)] = future.result()
-        except BaseException:
-            pool.shutdown(wait=False, cancel_futures=True)
-            raise
-        drain(0.1)  # the last progress lines may trail the results
-    return results  # type: ignore[return-value]
+    pool = ctx.Pool(workers, initializer=_init_worker, initargs=(progress_queue, os.getpid()))
+    # SIGTERM stops the workers too, as Ctrl-C does (a SIGKILL leaves it to _exit_with_parent)
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _raise_interrupt) if main_thread else None
+    try:
+        # handed out in this order, so the heaviest jobs start first
+        pending = [pool.apply_async(_run_job, (i, job)) for i, job in enumerate(jobs)]
+        while not all(p.ready() for p in pending):
+            drain(0.2)
+            for p in pending:
+                if p.ready() and not p.successful():
+                    p.get()  # re-raises the worker's exception now, not after the others finish
+        results = [p.get() for p in pending]
+        pool.close()
+    except BaseException:
+        pool.terminate()  # stop the other runs now, not when they finish
+        raise
+    finally:
+        pool.join()
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
+    drain(0.1)  # the last progress lines may trail the results
+    return results
