@@ -4,8 +4,10 @@ Per seed: collect the dataset (``collect_transitions(episodes, expert_frac, seed
 train BC and the offline learner, roll both out on the same 100 pooled held-out
 episodes (``n_seeds`` suites x ``eval_episodes``, reset seed
 ``500000 + seed + s * eval_episodes + e``), and score the gap with Newcombe's
-interval. All seeds train together: one ``train_seeds`` call for BC and one for the
-offline learner, each seed on its own dataset.
+interval. Training uses one worker process per core, each (learner, seed) run in
+one (``learners/parallel.py``); with one worker all seeds train together in this
+process (one ``train_seeds`` call for BC and one for the offline learner). Either way
+each seed trains on its own dataset and gets the same numbers.
 """
 
 from __future__ import annotations

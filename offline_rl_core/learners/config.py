@@ -34,7 +34,8 @@ class TrainConfig:
     log_every: int = 100
     # torch intra-op threads while training. Chapter-size MLPs gain little from more,
     # and when other processes share the cores (ROS nodes, tests) OpenMP's spinning
-    # threads can slow a step fifty-fold. Train seeds as an ensemble instead.
+    # threads can slow a step fifty-fold. Use the cores with whole runs instead
+    # (``learners/parallel.py``, ``offline-rl experiment --workers``).
     threads: int = 1
     # False (default): the 256x256 hidden layer's matmuls in bf16 where the CPU has native
     # bf16 (AMX / AVX512-BF16), about 1.4x faster for AWAC here; fp32 elsewhere.
