@@ -8,10 +8,20 @@ from .bag import bag_info, read_transitions, write_transitions
 from .env import ACT_DIM, MAX_STEPS, OBS_DIM, PusherReachEnv, observation_from_joints
 from .expert import expert_action, reach_action
 from .gym_env import register_gym_envs
-from .policy import load_policy
 from .transitions import Transitions
 
 __version__ = "0.1.0"
+
+
+def __getattr__(name: str):
+    # load_policy needs torch (~0.9 s to import): loaded when first asked for, not by
+    # every node and command that only needs the env or the bag code
+    if name == "load_policy":
+        from .policy import load_policy
+
+        return load_policy
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 # `gymnasium.make("offline_rl_core/PusherReach-v0")` works once this package is imported.
 register_gym_envs()

@@ -8,16 +8,16 @@ arithmetic is the 256x256 hidden layer, so that is the layer this module is abou
   230 against 110 GFLOP/s. oneDNN has no batched-weight linear, so members are
   multiplied one by one (which also keeps each member's numbers independent of how
   many members train beside it).
-* bf16 (fast mode, CPUs with native bf16 only): the hidden layer's matmuls run in
-  bf16 -- torch already sends bf16 ``bmm`` to oneDNN. The input and output layers stay
-  fp32: they cost almost nothing, and bf16 Q values (8 mantissa bits) would quantise
-  AWAC's advantage weights.
+* bf16 (the default on CPUs with native bf16): the hidden layer's matmuls run in bf16
+  on oneDNN too (its weight gradient through ``mm``, which is faster there). The
+  input and output layers stay fp32: they cost almost nothing, and bf16 Q values
+  (8 mantissa bits) would quantise AWAC's advantage weights.
 
 One ``autograd.Function`` per network call instead of autograd's node per op: the
 step is short enough (a few ms) that per-op overhead is a third of it.
 
-The oneDNN op is detected, never assumed: without it the fp32 hidden layer uses
-``baddbmm`` (MKL), the same maths.
+The oneDNN op is detected, never assumed: without it the hidden layer uses ``addmm``
+and ``mm``, the same maths in the default BLAS's order.
 """
 
 from __future__ import annotations
@@ -47,12 +47,12 @@ def _onednn(x: torch.Tensor, weight_out_in: torch.Tensor, bias: torch.Tensor | N
 
 
 class HiddenLayer:
-    """The 256x256 layer's three products for one member (2-D tensors), in one dtype.
-    Inputs and outputs are fp32; bf16 mode casts on the way in and out."""
+    """The 256x256 layer's three products for one member (2-D tensors), all in ``dtype``
+    (fp32 or bf16); ``cast`` brings an fp32 tensor to it."""
 
     def __init__(self, dtype: torch.dtype):
         self.dtype = dtype
-        self.onednn = onednn_linear_available() and dtype in (torch.float32, torch.bfloat16)
+        self.onednn = onednn_linear_available()
 
     def cast(self, t: torch.Tensor) -> torch.Tensor:
         return t.to(self.dtype)
