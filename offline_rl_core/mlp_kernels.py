@@ -16,8 +16,8 @@ arithmetic is the 256x256 hidden layer, so that is the layer this module is abou
 One ``autograd.Function`` per network call instead of autograd's node per op: the
 step is short enough (a few ms) that per-op overhead is a third of it.
 
-The oneDNN op is detected, never assumed: without it the hidden layer uses ``addmm``
-and ``mm``, the same maths in the default BLAS's order.
+The oneDNN op is detected, never assumed: without it, and for tensors on a GPU, the
+hidden layer uses ``addmm`` and ``mm``, the same maths in the default BLAS's order.
 """
 
 from __future__ import annotations
@@ -50,9 +50,10 @@ class HiddenLayer:
     """The 256x256 layer's three products for one member (2-D tensors), all in ``dtype``
     (fp32 or bf16); ``cast`` brings an fp32 tensor to it."""
 
-    def __init__(self, dtype: torch.dtype):
+    def __init__(self, dtype: torch.dtype, onednn: bool | None = None):
         self.dtype = dtype
-        self.onednn = onednn_linear_available()
+        # oneDNN is a CPU library: tensors on a GPU take addmm / mm (cuBLAS)
+        self.onednn = onednn_linear_available() if onednn is None else onednn
 
     def cast(self, t: torch.Tensor) -> torch.Tensor:
         return t.to(self.dtype)

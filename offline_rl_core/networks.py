@@ -34,6 +34,7 @@ class EnsembleMLP(nn.Module):
         self.tanh_output = tanh_output
         # the matmuls' dtype: fp32, or bf16 in fast mode (parameters stay fp32)
         self.hidden_layer = HiddenLayer(compute_dtype)
+        self.hidden_layer_gpu = HiddenLayer(compute_dtype, onednn=False)
         dims = [in_dim, hidden, hidden, out_dim]
         self.weights = nn.ParameterList()
         self.biases = nn.ParameterList()
@@ -56,15 +57,16 @@ class EnsembleMLP(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """x: (E, B, in) -> (E, B, out)."""
-        return ensemble_mlp(x, list(self.weights), list(self.biases), self.tanh_output, self.hidden_layer)
+        hidden = self.hidden_layer if x.is_cpu else self.hidden_layer_gpu
+        return ensemble_mlp(x, list(self.weights), list(self.biases), self.tanh_output, hidden)
 
     def member_state(self, m: int) -> dict[str, torch.Tensor]:
         """Member m as plain Linear weights ``{'0.weight' (out,in), '0.bias', ...}``:
         the checkpoint form, loadable into ``policy_sequential`` or numpy."""
         state = {}
         for i, (w, b) in enumerate(zip(self.weights, self.biases)):
-            state[f"{2 * i}.weight"] = w[m].detach().t().contiguous().clone()
-            state[f"{2 * i}.bias"] = b[m, 0].detach().clone()
+            state[f"{2 * i}.weight"] = w[m].detach().t().contiguous().clone().cpu()
+            state[f"{2 * i}.bias"] = b[m, 0].detach().clone().cpu()
         return state
 
     @torch.no_grad()

@@ -64,6 +64,10 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     hp.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=d.deterministic,
                     help="fp32 everywhere; the default runs the hidden layer in bf16 where the CPU has native bf16 "
                          "(AMX / AVX512-BF16). Both are byte-identical run to run for a seed")
+    hp.add_argument("--device", default=d.device,
+                    help="cpu (default), or cuda / cuda:N to train on an NVIDIA GPU; evaluation stays on the CPU")
+    hp.add_argument("--cuda-graph", action=argparse.BooleanOptionalAction, default=d.cuda_graph,
+                    help="on CUDA, replay each step as one recorded CUDA graph (default: on)")
 
 
 def config_from_args(args: argparse.Namespace) -> TrainConfig:

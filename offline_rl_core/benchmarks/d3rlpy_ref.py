@@ -11,6 +11,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+import torch
 
 from ..transitions import Transitions
 
@@ -58,7 +59,7 @@ def mdp_dataset(data: Transitions):
     )
 
 
-def make_algo(algo: str, hidden: int, batch_size: int, lr: float = 3e-4, beta: float = 0.3):
+def make_algo(algo: str, hidden: int, batch_size: int, lr: float = 3e-4, beta: float = 0.3, device: str = "cpu"):
     """d3rlpy's AWAC (twin critics, lam = the chapter's beta) or deterministic BC, with
     ``hidden x hidden`` ReLU encoders like ours."""
     d3rlpy = _import_quietly()
@@ -74,18 +75,19 @@ def make_algo(algo: str, hidden: int, batch_size: int, lr: float = 3e-4, beta: f
                                     policy_type="deterministic")
     else:
         raise ValueError(f"no d3rlpy reference for {algo}")
-    return cfg.create(device="cpu:0")
+    dev = torch.device(device)
+    return cfg.create(device=f"{dev.type}:{dev.index or 0}")
 
 
 class D3rlpyTrainer:
     """A built d3rlpy learner and its dataset; ``run(steps)`` trains and returns seconds."""
 
-    def __init__(self, algo: str, data: Transitions, hidden: int, batch_size: int, seed: int = 0):
+    def __init__(self, algo: str, data: Transitions, hidden: int, batch_size: int, seed: int = 0, device: str = "cpu"):
         d3rlpy = _import_quietly()
 
         d3rlpy.seed(seed)
         self.dataset = mdp_dataset(data)
-        self.algo = make_algo(algo, hidden, batch_size)
+        self.algo = make_algo(algo, hidden, batch_size, device=device)
         self.algo.build_with_dataset(self.dataset)
         self.batch_size = batch_size
 
@@ -94,4 +96,6 @@ class D3rlpyTrainer:
         for _ in range(steps):
             batch = self.dataset.sample_transition_batch(self.batch_size)
             self.algo.update(batch)
+        if torch.cuda.is_available():
+            torch.cuda.synchronize()
         return time.perf_counter() - t0

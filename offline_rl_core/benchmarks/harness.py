@@ -50,6 +50,7 @@ class BenchSettings:
     record_episodes: int = 200
     realtime_seconds: float = 60.0
     threads: int | None = None  # torch intra-op threads; None = auto (see ``choose_threads``)
+    device: str = "cpu"  # where the training figures train: cpu, or cuda / cuda:N
     tiny: bool = False  # test settings: seconds, not minutes; figures meaningless
 
     @classmethod

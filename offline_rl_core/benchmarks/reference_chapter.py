@@ -53,22 +53,25 @@ class ChapterSettings:
     weight_clip: float = 20.0
 
 
-def dataset_tensors(data: Transitions) -> dict[str, torch.Tensor]:
-    """The chapter's dataset dict: obs, action, reward (N, 1), next_obs, terminated (N, 1)."""
-    return {
+def dataset_tensors(data: Transitions, device: str = "cpu") -> dict[str, torch.Tensor]:
+    """The chapter's dataset dict: obs, action, reward (N, 1), next_obs, terminated (N, 1),
+    on ``device`` (the networks follow the data there)."""
+    tensors = {
         "obs": torch.tensor(data.obs, dtype=torch.float32),
         "action": torch.tensor(data.action, dtype=torch.float32),
         "reward": torch.tensor(data.reward, dtype=torch.float32).unsqueeze(1),
         "next_obs": torch.tensor(data.next_obs, dtype=torch.float32),
         "terminated": torch.tensor(data.terminated.astype(np.float32)).unsqueeze(1),
     }
+    return {k: v.to(device) for k, v in tensors.items()}
 
 
 def _sampler(data: dict[str, torch.Tensor], batch_size: int):
     n = len(data["obs"])
+    device = data["obs"].device
 
     def sample_batch():
-        idx = torch.randint(0, n, (batch_size,))  # the global torch RNG, as the chapter does
+        idx = torch.randint(0, n, (batch_size,), device=device)  # the global torch RNG, as the chapter does
         return data["obs"][idx], data["action"][idx], data["reward"][idx], data["next_obs"][idx], data["terminated"][idx]
 
     return sample_batch
@@ -77,7 +80,7 @@ def _sampler(data: dict[str, torch.Tensor], batch_size: int):
 def train_bc(data: dict[str, torch.Tensor], s: ChapterSettings) -> Policy:
     obs_dim, act_dim = data["obs"].shape[1], data["action"].shape[1]
     sample_batch = _sampler(data, s.batch_size)
-    policy = Policy(obs_dim, act_dim, s.hidden)
+    policy = Policy(obs_dim, act_dim, s.hidden).to(data["obs"].device)
     opt = torch.optim.Adam(policy.parameters(), lr=s.lr)
     for _ in range(s.steps):
         obs, action, *_ = sample_batch()
@@ -97,8 +100,9 @@ def train_awac(data: dict[str, torch.Tensor], s: ChapterSettings) -> tuple[Polic
 def train_awac_with_critics(data: dict[str, torch.Tensor], s: ChapterSettings) -> tuple[Policy, Critic, Critic, float]:
     obs_dim, act_dim = data["obs"].shape[1], data["action"].shape[1]
     sample_batch = _sampler(data, s.batch_size)
-    policy = Policy(obs_dim, act_dim, s.hidden)
-    q1, q2 = Critic(obs_dim, act_dim, s.hidden), Critic(obs_dim, act_dim, s.hidden)
+    device = data["obs"].device
+    policy = Policy(obs_dim, act_dim, s.hidden).to(device)
+    q1, q2 = Critic(obs_dim, act_dim, s.hidden).to(device), Critic(obs_dim, act_dim, s.hidden).to(device)
     q1_targ = copy.deepcopy(q1).requires_grad_(False)
     q2_targ = copy.deepcopy(q2).requires_grad_(False)
     policy_opt = torch.optim.Adam(policy.parameters(), lr=s.lr)
@@ -147,6 +151,8 @@ def steps_per_second(algo: str, data: dict[str, torch.Tensor], s: ChapterSetting
     torch.manual_seed(seed)
     t0 = time.perf_counter()
     (train_awac if algo == "awac" else train_bc)(data, s)
+    if data["obs"].is_cuda:  # BC never syncs: wait for the queued kernels
+        torch.cuda.synchronize(data["obs"].device)
     return s.steps / (time.perf_counter() - t0)
 
 

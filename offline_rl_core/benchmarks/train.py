@@ -2,9 +2,11 @@
 three-seed ensemble, and the chapter experiment's wall time.
 
 "Ours" is ``train_seeds`` timed from its own progress clock (the loop, without the
-one-off setup that the references do not have either). Two modes are timed:
-``fp32`` (deterministic, byte-identical for a seed) and ``fast`` (deterministic=False:
-bf16 hidden-layer matmuls where the CPU has native bf16; fp32 otherwise).
+one-off setup that the references do not have either). On the CPU two modes are
+timed: ``fp32`` (``--deterministic``) and ``bf16`` (the default where the CPU has
+native bf16). With ``--device cuda`` every contender trains on the GPU, and ours is
+timed as plain eager steps (``cuda``) and as a replayed CUDA graph (``cuda_graph``,
+the default there); the experiment figure, whose evaluation is CPU MuJoCo, is CPU-only.
 """
 
 from __future__ import annotations
@@ -22,7 +24,8 @@ from . import reference_chapter as chapter
 from .harness import BenchSettings, figure, interleave, median, pending
 
 
-def ours_rate(data, algo: str, steps: int, s: BenchSettings, deterministic: bool, seeds=(0,)) -> float:
+def ours_rate(data, algo: str, steps: int, s: BenchSettings, deterministic: bool, seeds=(0,),
+              cuda_graph: bool = True) -> float:
     """Gradient steps per second of ``train_seeds`` (all members step together)."""
     last = {}
 
@@ -31,7 +34,8 @@ def ours_rate(data, algo: str, steps: int, s: BenchSettings, deterministic: bool
 
     # the same torch threads as the references in this run
     cfg = TrainConfig(algo=algo, steps=steps, batch_size=s.batch_size, hidden=s.hidden, log_every=max(1, steps),
-                      deterministic=deterministic, threads=torch.get_num_threads())
+                      deterministic=deterministic, threads=torch.get_num_threads(), device=s.device,
+                      cuda_graph=cuda_graph)
     train_seeds(data, cfg, list(seeds), progress=progress)
     return steps / last["elapsed"]
 
@@ -41,47 +45,56 @@ def chapter_rate(tensors, algo: str, steps: int, s: BenchSettings) -> float:
     return chapter.steps_per_second(algo, tensors, cs)
 
 
-def _modes() -> list[tuple[str, bool]]:
-    """(label, deterministic) of the modes worth timing on this CPU."""
-    return [("fp32", True)] + ([("bf16", False)] if native_bf16() else [])
+def _modes(s: BenchSettings) -> list[tuple[str, dict]]:
+    """(label, ``ours_rate`` options) of the modes worth timing on this device."""
+    if on_gpu(s):
+        return [("cuda", {"deterministic": True, "cuda_graph": False}),
+                ("cuda_graph", {"deterministic": True, "cuda_graph": True})]
+    return [("fp32", {"deterministic": True})] + ([("bf16", {"deterministic": False})] if native_bf16() else [])
+
+
+def on_gpu(s: BenchSettings) -> bool:
+    return torch.device(s.device).type == "cuda"
 
 
 def run(s: BenchSettings, log=print) -> list:
     figs = []
     data = collect_transitions(s.episodes, 0.3, 0)
-    tensors = chapter.dataset_tensors(data)
+    tensors = chapter.dataset_tensors(data, s.device)
     d3_version = d3rlpy_ref.available()
     d3_note = "" if d3_version else "d3rlpy not installed (pip install -e '.[bench]'); d3rlpy rows skipped"
-    n = s.train_steps
+    # a GPU step is ~10x shorter: time more of them, so set-up and capture stay small
+    n = s.train_steps * (2 if on_gpu(s) else 1)
+    where = f" on {torch.cuda.get_device_name(torch.device(s.device))}" if on_gpu(s) else ""
     warm = max(2, min(20, n // 10))
 
     for algo in ("awac", "bc"):
         steps = n if algo == "awac" else 3 * n  # BC steps are ~5x cheaper: time a similar span
         contenders = {"chapter": lambda a=algo, k=steps: chapter_rate(tensors, a, k, s)}
-        for label, det in _modes():
-            contenders[f"ours_{label}"] = lambda a=algo, k=steps, d=det: ours_rate(data, a, k, s, d)
+        for label, opts in _modes(s):
+            contenders[f"ours_{label}"] = lambda a=algo, k=steps, o=opts: ours_rate(data, a, k, s, **o)
         if d3_version:
-            trainer = d3rlpy_ref.D3rlpyTrainer(algo, data, s.hidden, s.batch_size)
+            trainer = d3rlpy_ref.D3rlpyTrainer(algo, data, s.hidden, s.batch_size, device=s.device)
             trainer.run(warm)
             contenders["d3rlpy"] = lambda t=trainer, k=steps: k / t.run(k)
         # warm-up: first calls pay for allocator and oneDNN kernel set-up
         chapter_rate(tensors, algo, warm, s)
-        for label, det in _modes():
-            ours_rate(data, algo, warm, s, det)
+        for label, opts in _modes(s):
+            ours_rate(data, algo, warm, s, **opts)
         rates = {k: median(v) for k, v in interleave(contenders, s.train_repeats).items()}
         log(f"  {algo} steps/s: " + ", ".join(f"{k} {v:.1f}" for k, v in rates.items()))
-        for label, _ in _modes():
+        for label, _ in _modes(s):
             ours = rates[f"ours_{label}"]
             if algo == "awac":
                 figs.append(figure("train", f"awac_steps_per_s_{label}_vs_chapter", "steps/s", ours, rates["chapter"],
-                                   "chapter loop", target=lambda o, r, x: x >= 3.0, target_text=">= 3x"))
+                                   f"chapter loop{where}", target=lambda o, r, x: x >= 3.0, target_text=">= 3x"))
             else:
                 figs.append(figure("train", f"bc_steps_per_s_{label}_vs_chapter", "steps/s", ours, rates["chapter"],
-                                   "chapter loop", target_text="(info)"))
+                                   f"chapter loop{where}", target_text="(info)"))
             want = 4.0 if algo == "awac" else 3.0
             if d3_version:
                 figs.append(figure("train", f"{algo}_steps_per_s_{label}_vs_d3rlpy", "steps/s", ours, rates["d3rlpy"],
-                                   f"d3rlpy {d3_version} {algo.upper()}", target=lambda o, r, x, w=want: x >= w,
+                                   f"d3rlpy {d3_version} {algo.upper()}{where}", target=lambda o, r, x, w=want: x >= w,
                                    target_text=f">= {want:g}x"))
             else:
                 figs.append(pending("train", f"{algo}_steps_per_s_{label}_vs_d3rlpy", "steps/s", "d3rlpy", d3_note,
@@ -90,15 +103,17 @@ def run(s: BenchSettings, log=print) -> list:
     # Three seeds as one stacked ensemble, against three single-seed runs one after another.
     k = max(2, n // 2)
     members = len(s.experiment_seeds)
+    label, opts = _modes(s)[-1] if on_gpu(s) else _modes(s)[0]
     got = interleave({
-        "single": lambda: ours_rate(data, "awac", k, s, True),
-        "stacked": lambda: ours_rate(data, "awac", k, s, True, seeds=s.experiment_seeds),
+        "single": lambda: ours_rate(data, "awac", k, s, **opts),
+        "stacked": lambda: ours_rate(data, "awac", k, s, seeds=s.experiment_seeds, **opts),
     }, s.train_repeats)
     single, stacked = median(got["single"]), median(got["stacked"]) * members
     figs.append(figure("train", f"awac_{members}seed_ensemble_member_steps_per_s", "member-steps/s", stacked, single,
-                       "one seed at a time (ours, fp32)", target_text="(info)"))
+                       f"one seed at a time (ours, {label}{where})", target_text="(info)"))
 
-    figs.extend(experiment_figures(s, log))
+    if not on_gpu(s):
+        figs.extend(experiment_figures(s, log))
     return figs
 
 
@@ -138,12 +153,12 @@ def experiment_figures(s: BenchSettings, log=print) -> list:
     contenders = {"chapter": lambda: chapter_runs(threads)}
     if threads < cores:
         contenders[f"chapter_{cores}_threads"] = lambda: chapter_runs(cores)
-    for label, det in _modes():
-        contenders[f"ours_{label}"] = lambda d=det: ours(d)
+    for label, opts in _modes(s):
+        contenders[f"ours_{label}"] = lambda d=opts["deterministic"]: ours(d)
     times = {k: median(v) for k, v in interleave(contenders, 1).items()}
     log("  experiment wall s: " + ", ".join(f"{k} {v:.1f}" for k, v in times.items()))
     reference = min(v for k, v in times.items() if k.startswith("chapter"))
-    for label, _ in _modes():
+    for label, _ in _modes(s):
         figs.append(figure("train", f"experiment_{len(seeds)}seeds_wall_s_{label}", "s", times[f"ours_{label}"],
                            reference, f"{len(seeds)} chapter runs", higher_is_better=False,
                            target=lambda o, r, x: x >= 4.0, target_text=">= 4x faster",

@@ -20,6 +20,9 @@ def register(subparsers) -> None:
     p.add_argument("--json", metavar="PATH", help="write the results as JSON")
     p.add_argument("--only", metavar="GROUPS", help="comma-separated subset of train,decode,eval,serve,record")
     p.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's choice)")
+    p.add_argument("--device", default="cpu",
+                   help="where the training figures train: cpu (default), or cuda / cuda:N; every contender "
+                        "trains there, d3rlpy and the chapter loop included")
     p.add_argument("--markdown", action="store_true", help="print the table as markdown")
     p.add_argument("--tiny", action="store_true", help=argparse.SUPPRESS)  # tests: every path, tiny sizes
     p.set_defaults(func=run)
@@ -37,6 +40,13 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--threads must be >= 1, got {args.threads}")
     settings = BenchSettings.tiny_settings() if args.tiny else BenchSettings.quick_settings() if args.quick else BenchSettings()
     settings.threads = args.threads
+    from ..learners.config import check_device
+
+    try:
+        check_device(args.device)
+    except ValueError as exc:
+        raise UserError(f"--{exc}") from None
+    settings.device = args.device
     figures, payload = run_bench(settings, only, log=lambda line: print(line, flush=True))
     print()
     print(format_table(figures, markdown=args.markdown))

@@ -14,10 +14,21 @@ from .data import Batch, MemberData
 from .precision import compute_dtype
 
 
-def make_adam(params, lr: float) -> torch.optim.Adam:
+def make_adam(params, lr: float, device: str = "cpu") -> torch.optim.Adam:
     # fused: one kernel for the whole update instead of several per parameter (a
-    # critic's Adam step took 300 us with foreach, 130 us fused)
-    return torch.optim.Adam(params, lr=lr, fused=True)
+    # critic's Adam step took 300 us with foreach, 130 us fused). capturable on CUDA:
+    # its step counter stays on the GPU, so the step can be recorded in a CUDA graph.
+    return torch.optim.Adam(params, lr=lr, fused=True, capturable=torch.device(device).type == "cuda")
+
+
+def make_network(cfg: TrainConfig, members: int, in_dim: int, out_dim: int, generators=None,
+                 tanh_output: bool = False) -> EnsembleMLP:
+    """An ensemble MLP of the config's width and precision, on the config's device.
+    Weights are drawn on the CPU from the members' generators first, so a seed gives
+    the same initial network on every device."""
+    net = EnsembleMLP(members, in_dim, cfg.hidden, out_dim, generators, tanh_output=tanh_output,
+                      compute_dtype=compute_dtype(cfg.deterministic, cfg.device))
+    return net.to(cfg.device)
 
 
 def per_member_mean(x: torch.Tensor) -> torch.Tensor:
@@ -36,9 +47,8 @@ class Learner:
         self.cfg = cfg
         self.members = members
         self.obs_dim, self.act_dim = obs_dim, act_dim
-        self.policy = EnsembleMLP(members, obs_dim, cfg.hidden, act_dim, generators, tanh_output=True,
-                                  compute_dtype=compute_dtype(cfg.deterministic))
-        self.policy_opt = make_adam(self.policy.parameters(), cfg.lr)
+        self.policy = make_network(cfg, members, obs_dim, act_dim, generators, tanh_output=True)
+        self.policy_opt = make_adam(self.policy.parameters(), cfg.lr, cfg.device)
 
     def update(self, batch: Batch) -> dict[str, torch.Tensor]:
         raise NotImplementedError
@@ -70,12 +80,11 @@ class TwinCritic:
     def __init__(self, cfg: TrainConfig, members: int, generators, obs_dim: int, act_dim: int):
         self.members = members
         gens = [g for g in generators for _ in range(2)]
-        dtype = compute_dtype(cfg.deterministic)
-        self.online = EnsembleMLP(2 * members, obs_dim + act_dim, cfg.hidden, 1, gens, compute_dtype=dtype)
-        self.target = EnsembleMLP(2 * members, obs_dim + act_dim, cfg.hidden, 1, compute_dtype=dtype)
+        self.online = make_network(cfg, 2 * members, obs_dim + act_dim, 1, gens)
+        self.target = make_network(cfg, 2 * members, obs_dim + act_dim, 1)
         self.target.load_state_dict(self.online.state_dict())
         self.target.requires_grad_(False)
-        self.opt = make_adam(self.online.parameters(), cfg.lr)
+        self.opt = make_adam(self.online.parameters(), cfg.lr, cfg.device)
         self.tau = cfg.tau
 
     def _pairs(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
@@ -118,14 +127,15 @@ class TwinCritic:
         per-chunk tensors left between the chunks' freed activations fragmented the heap
         by 100+ MiB on a 2M-row bag) and summed once, so the figure does not depend on
         the chunk size."""
-        sizes = torch.tensor(data.sizes)
+        device = data.obs.device
+        sizes = torch.tensor(data.sizes, device=device)
         n = max(data.sizes)
-        q = torch.empty(self.members, n, dtype=torch.float64)
+        q = torch.empty(self.members, n, dtype=torch.float64, device=device)
         for lo in range(0, n, chunk):
             obs = data.obs[:, lo: lo + chunk].expand(self.members, -1, -1)
             act = data.action[:, lo: lo + chunk].expand(self.members, -1, -1)
             q[:, lo: lo + chunk] = self.q_both(obs, act).mean(1)[..., 0]  # (M, b)
-        valid = torch.arange(n).unsqueeze(0) < sizes.unsqueeze(1)
+        valid = torch.arange(n, device=device).unsqueeze(0) < sizes.unsqueeze(1)
         totals = (q * valid).sum(1)
         return [abs(float(totals[m]) / data.sizes[m]) for m in range(self.members)]
 

@@ -42,6 +42,13 @@ class TrainConfig:
     # True: fp32 everywhere, the same numbers whatever the CPU's bf16 support.
     # Both are byte-identical run to run for a seed on one machine.
     deterministic: bool = False
+    # "cpu", or "cuda" / "cuda:N" for an NVIDIA GPU (fp32; the hidden-layer bf16 above is
+    # the CPU's). Nothing requires a GPU.
+    device: str = "cpu"
+    # On CUDA, record the whole update once as a CUDA graph and replay it each step:
+    # chapter-size networks are launch-bound on a GPU (a step is a few hundred tiny
+    # kernels), and one replay replaces all of those launches.
+    cuda_graph: bool = True
 
     def __post_init__(self) -> None:
         if self.algo not in ALGORITHMS:
@@ -53,6 +60,24 @@ class TrainConfig:
             raise ValueError(f"filter_top_frac must be in (0, 1], got {self.filter_top_frac}")
         if self.correction_ratio is not None and not 0.0 <= self.correction_ratio <= 1.0:
             raise ValueError(f"correction_ratio must be in [0, 1], got {self.correction_ratio}")
+        check_device(self.device)
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+def check_device(device: str) -> None:
+    """Raise ValueError unless ``device`` names a torch device this machine has."""
+    import torch
+
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError):
+        raise ValueError(f"device: expected 'cpu', 'cuda' or 'cuda:N', got '{device}'") from None
+    if dev.type not in ("cpu", "cuda"):
+        raise ValueError(f"device: expected 'cpu', 'cuda' or 'cuda:N', got '{device}'")
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(f"device {device}: no CUDA GPU is available here (torch {torch.__version__}); use --device cpu")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise ValueError(f"device {device}: this machine has {torch.cuda.device_count()} CUDA device(s)")

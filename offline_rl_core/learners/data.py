@@ -37,7 +37,7 @@ class MemberData:
     not copied (a view with a member axis of size 1 broadcast in gather).
     """
 
-    def __init__(self, datasets: list[Transitions]):
+    def __init__(self, datasets: list[Transitions], device: str = "cpu"):
         self.members = len(datasets)
         self.shared = all(d is datasets[0] for d in datasets)
         sources = [datasets[0]] if self.shared else datasets
@@ -61,6 +61,9 @@ class MemberData:
         # Actions that must not be imitated: the policy's last steps before a human
         # takeover (see ``intervention_actor_mask``); the critic still learns from them.
         self.actor_mask = torch.cat([stack_one(intervention_actor_mask(d), n_max) for d in sources])
+        if torch.device(device).type != "cpu":  # the whole dataset lives beside the networks
+            for name in ("obs", "action", "reward", "next_obs", "not_done", "actor_mask"):
+                setattr(self, name, getattr(self, name).to(device))
 
     def gather(self, idx: torch.Tensor) -> Batch:
         """idx: (M, B) row indices, one row of indices per member."""
@@ -69,7 +72,7 @@ class MemberData:
             m, b = idx.shape
             take = lambda t: t[0].index_select(0, flat).view(m, b, -1)  # noqa: E731
         else:
-            rows = torch.arange(idx.shape[0]).unsqueeze(1)
+            rows = torch.arange(idx.shape[0], device=idx.device).unsqueeze(1)
             take = lambda t: t[rows, idx]  # noqa: E731
         return Batch(take(self.obs), take(self.action), take(self.reward), take(self.next_obs), take(self.not_done),
                      take(self.actor_mask))
@@ -84,8 +87,9 @@ class IndexSampler:
     """
 
     def __init__(self, sizes: list[int], batch_size: int, generators: list[torch.Generator],
-                 pools: list | None = None, ratio: float | None = None):
+                 pools: list | None = None, ratio: float | None = None, device: str = "cpu"):
         self.sizes = sizes
+        self.device = torch.device(device)
         self.batch_size = batch_size
         self.generators = generators
         self.pools = pools or [None] * len(sizes)
@@ -114,7 +118,9 @@ class IndexSampler:
     def next(self) -> torch.Tensor:
         """(M, B) indices for the next step."""
         if self._chunk is None or self._pos == self._chunk.shape[1]:
-            self._chunk = torch.stack([self._draw(m, INDEX_CHUNK_STEPS) for m in range(len(self.sizes))])
+            # drawn on the CPU whatever the device, so a seed gives the same batches everywhere
+            chunk = torch.stack([self._draw(m, INDEX_CHUNK_STEPS) for m in range(len(self.sizes))])
+            self._chunk = chunk.to(self.device)
             self._pos = 0
         idx = self._chunk[:, self._pos]
         self._pos += 1

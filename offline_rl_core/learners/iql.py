@@ -11,9 +11,7 @@ from __future__ import annotations
 
 import torch
 
-from ..networks import EnsembleMLP
-from .base import Learner, TwinCritic, make_adam, per_member_mean, regression_error
-from .precision import compute_dtype
+from .base import Learner, TwinCritic, make_adam, make_network, per_member_mean, regression_error
 
 
 class IQL(Learner):
@@ -23,8 +21,8 @@ class IQL(Learner):
     def __init__(self, cfg, members, generators, obs_dim, act_dim):
         super().__init__(cfg, members, generators, obs_dim, act_dim)
         self.critic = TwinCritic(cfg, members, generators, obs_dim, act_dim)
-        self.value = EnsembleMLP(members, obs_dim, cfg.hidden, 1, generators, compute_dtype=compute_dtype(cfg.deterministic))
-        self.value_opt = make_adam(self.value.parameters(), cfg.lr)
+        self.value = make_network(cfg, members, obs_dim, 1, generators)
+        self.value_opt = make_adam(self.value.parameters(), cfg.lr, cfg.device)
 
     def update(self, batch):
         cfg = self.cfg

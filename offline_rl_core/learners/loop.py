@@ -25,6 +25,7 @@ from .data import IndexSampler, MemberData, correction_pools, top_episode_rows
 from .filtered_bc import FilteredBC
 from .iql import IQL
 from .naive import NaiveMaxQ
+from .stepper import make_step
 
 LEARNERS = {"bc": BC, "filtered_bc": FilteredBC, "awac": AWAC, "iql": IQL, "naive": NaiveMaxQ}
 
@@ -54,6 +55,12 @@ def torch_threads(n: int):
         yield
     finally:
         torch.set_num_threads(previous)
+
+
+def on_device(device: str):
+    """Make ``device`` current while training (CUDA streams and graphs use the current device)."""
+    dev = torch.device(device)
+    return torch.cuda.device(dev) if dev.type == "cuda" else contextlib.nullcontext()
 
 
 def seed_generators(seed: int) -> tuple[torch.Generator, torch.Generator]:
@@ -99,16 +106,17 @@ def train_seeds(
         for m in range(len(seeds)):
             learner.policy.load_member_state(m, init["policy_state"])
             learner.load_learner_state(m, init.get("learner_state") or {})
-    data = MemberData(datasets)
+    data = MemberData(datasets, cfg.device)
     pools = [_member_pools(d, cfg) for d in datasets]
     sampler = IndexSampler(data.sizes, cfg.batch_size, [g[1] for g in gens],
-                           pools if any(p is not None for p in pools) else None, cfg.correction_ratio)
+                           pools if any(p is not None for p in pools) else None, cfg.correction_ratio, cfg.device)
+    step_once = make_step(learner.update, data, (len(seeds), cfg.batch_size), cfg.device, cfg.cuda_graph)
 
     histories: list[dict[str, list[float]]] = [{"step": []} for _ in seeds]
     start = time.perf_counter()
-    with torch_threads(cfg.threads):
+    with torch_threads(cfg.threads), on_device(cfg.device):
         for step in range(1, cfg.steps + 1):
-            losses = learner.update(data.gather(sampler.next()))
+            losses = step_once(sampler.next())
             if step % cfg.log_every == 0 or step == cfg.steps:
                 values = {k: v.float().tolist() for k, v in losses.items()}  # the only host sync
                 for m, hist in enumerate(histories):

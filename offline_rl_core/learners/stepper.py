@@ -1,0 +1,80 @@
+"""How one gradient step is run: directly, or on a GPU as a replayed CUDA graph.
+
+A learner's ``update`` is the same Python either way. On the CPU the loop calls it.
+On CUDA, chapter-size networks are bound by kernel launches, not arithmetic: one
+AWAC step is a few hundred kernels of a few microseconds each, and Python issues
+them more slowly than the GPU runs them. ``CudaGraphStep`` records the whole step
+(batch gather, forwards, backwards, both Adam steps, Polyak) once and then replays
+it with a single launch per step.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+
+from .data import MemberData
+
+# Eager steps before the capture: Adam creates its state and cuBLAS its workspaces
+# on first use, and neither may happen inside a capture. They are real training
+# steps: the run's results do not depend on when the capture happens.
+WARMUP_STEPS = 3
+
+
+class EagerStep:
+    def __init__(self, update: Callable, data: MemberData):
+        self.update, self.data = update, data
+
+    def __call__(self, idx: torch.Tensor) -> dict[str, torch.Tensor]:
+        return self.update(self.data.gather(idx))
+
+
+class CudaGraphStep:
+    """``update(data.gather(idx))`` recorded as a CUDA graph after ``WARMUP_STEPS``.
+
+    The graph reads the batch indices from one static tensor, so each step is a copy
+    of the next indices into it and one replay. The returned losses are the graph's
+    own output tensors, overwritten by the next replay: read them before stepping on
+    (the training loop reads them at once, every ``log_every`` steps).
+    """
+
+    def __init__(self, update: Callable, data: MemberData, idx_shape: tuple[int, int], device: torch.device):
+        self.update, self.data, self.device = update, data, device
+        self.static_idx = torch.zeros(idx_shape, dtype=torch.long, device=device)
+        self.graph: torch.cuda.CUDAGraph | None = None
+        self.outputs: dict[str, torch.Tensor] = {}
+        self.eager_steps = 0
+
+    def __call__(self, idx: torch.Tensor) -> dict[str, torch.Tensor]:
+        self.static_idx.copy_(idx)
+        if self.graph is None:
+            if self.eager_steps < WARMUP_STEPS:
+                self.eager_steps += 1
+                return self._eager_on_side_stream()
+            self.graph = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(self.graph):  # records; runs nothing
+                self.outputs = self.update(self.data.gather(self.static_idx))
+        self.graph.replay()
+        return self.outputs
+
+    def _eager_on_side_stream(self) -> dict[str, torch.Tensor]:
+        # warm-up off the default stream, as torch's graph-capture recipe asks
+        main = torch.cuda.current_stream(self.device)
+        side = torch.cuda.Stream(self.device)
+        side.wait_stream(main)
+        with torch.cuda.stream(side):
+            out = self.update(self.data.gather(self.static_idx))
+        main.wait_stream(side)
+        return out
+
+
+def make_step(update: Callable, data: MemberData, idx_shape: tuple[int, int], device: str, cuda_graph: bool):
+    """The step runner for ``device``: a CUDA graph on CUDA (unless ``cuda_graph`` is
+    False), else the plain call."""
+    dev = torch.device(device)
+    if dev.type == "cuda" and cuda_graph:
+        if dev.index is None:
+            dev = torch.device("cuda", torch.cuda.current_device())
+        return CudaGraphStep(update, data, idx_shape, dev)
+    return EagerStep(update, data)
