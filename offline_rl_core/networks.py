@@ -34,7 +34,6 @@ class EnsembleMLP(nn.Module):
         self.tanh_output = tanh_output
         # the matmuls' dtype: fp32, or bf16 in fast mode (parameters stay fp32)
         self.hidden_layer = HiddenLayer(compute_dtype)
-        self.hidden_layer_gpu = HiddenLayer(compute_dtype, onednn=False)
         dims = [in_dim, hidden, hidden, out_dim]
         self.weights = nn.ParameterList()
         self.biases = nn.ParameterList()
@@ -57,8 +56,19 @@ class EnsembleMLP(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """x: (E, B, in) -> (E, B, out)."""
-        hidden = self.hidden_layer if x.is_cpu else self.hidden_layer_gpu
-        return ensemble_mlp(x, list(self.weights), list(self.biases), self.tanh_output, hidden)
+        if not x.is_cpu:
+            return self._forward_batched(x)
+        return ensemble_mlp(x, list(self.weights), list(self.biases), self.tanh_output, self.hidden_layer)
+
+    def _forward_batched(self, x: torch.Tensor) -> torch.Tensor:
+        """On a GPU: one batched product per layer for all members, autograd for the
+        backward. The CPU's hand-written member-by-member kernels exist to cut per-op
+        overhead, which a replayed CUDA graph has already removed."""
+        (w1, w2, w3), (b1, b2, b3) = self.weights, self.biases
+        h = torch.baddbmm(b1, x, w1).relu()
+        h = torch.baddbmm(b2, h, w2).relu()
+        y = torch.baddbmm(b3, h, w3)
+        return y.tanh() if self.tanh_output else y
 
     def member_state(self, m: int) -> dict[str, torch.Tensor]:
         """Member m as plain Linear weights ``{'0.weight' (out,in), '0.bias', ...}``:
