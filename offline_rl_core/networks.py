@@ -1,7 +1,8 @@
 """The one MLP every learner uses, in ensemble form.
 
 ``EnsembleMLP`` holds E independent ``in -> hidden -> hidden -> out`` ReLU networks as
-stacked weights and evaluates all of them with one batched matmul per layer. A
+stacked weights. On the CPU they run member by member through the hand-written kernels of
+``mlp_kernels``; on a GPU, one batched product per layer for all members. A
 single policy is E=1; the twin critics of one run are E=2; three seeds trained
 together are E=3 policies and E=6 critics. Members never share parameters, and Adam
 is elementwise, so training E members together is the same maths as training them
