@@ -17,7 +17,10 @@ help:
 	@echo "make bench     full benchmark against the reference implementations -> bench/results.json"
 	@echo "make hil-demo  the corrections loop: serve, correct, record, retrain, reload"
 
+# The C++ AWAC step (offline_rl_core/csrc) compiles once into torch's extension cache;
+# later runs only check it (about a second). Without a compiler the Python step runs.
 setup: $(STAMP)
+	@$(PY) -m offline_rl_core.learners.awac_cpp || echo "(training uses the Python step)"
 
 # Re-runs only when the project's packaging changes; torch goes in first so that
 # nothing else can make pip pick a newer (CUDA) torch.

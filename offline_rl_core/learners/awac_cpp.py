@@ -1,0 +1,92 @@
+"""The C++ form of the written-out AWAC update (``csrc/awac_step.cpp``).
+
+Built with torch's JIT extension loader on first use and cached (``TORCH_EXTENSIONS_DIR``,
+by default ``~/.cache/torch_extensions``); ``make setup`` builds it ahead so no run
+waits for it. Needs g++, ninja and the Python headers; where any is missing
+``unavailable_reason`` says which, and the Python step runs instead.
+``python -m offline_rl_core.learners.awac_cpp`` builds it and reports.
+"""
+
+from __future__ import annotations
+
+import functools
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+from .written_out import adam_state
+
+SOURCE = Path(__file__).resolve().parent.parent / "csrc" / "awac_step.cpp"
+EXTENSION = "pusher_rl_awac_step"
+
+
+def _cached(name: str) -> bool:
+    try:  # private helper, only to say whether a compile is coming
+        from torch.utils.cpp_extension import _get_build_directory
+
+        return any(Path(_get_build_directory(name, verbose=False)).glob("*.so"))
+    except Exception:  # noqa: BLE001
+        return True
+
+
+@functools.lru_cache(maxsize=1)
+def _load():
+    """(module, None) or (None, reason)."""
+    try:
+        from torch.utils.cpp_extension import load, verify_ninja_availability
+
+        verify_ninja_availability()
+    except Exception as exc:  # noqa: BLE001
+        return None, f"no ninja ({exc})"
+    if not SOURCE.exists():
+        return None, f"{SOURCE} is missing"
+    if not _cached(EXTENSION):
+        print("pusher-rl: compiling the C++ AWAC step (once; about 20 s, then cached)", file=sys.stderr, flush=True)
+    try:
+        return load(name=EXTENSION, sources=[str(SOURCE)], extra_cflags=["-O2"], verbose=False), None
+    except Exception as exc:  # noqa: BLE001 - a compiler error is a reason to fall back, not to stop
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        return None, f"build failed: {first}"
+
+
+def unavailable_reason() -> str | None:
+    """None when the extension is built (building it now if needed), else why not."""
+    return _load()[1]
+
+
+class CppStep:
+    """One AWAC update in one C++ call; byte-identical to ``written_out.AWACStep``."""
+
+    def __init__(self, learner):
+        self.ext = _load()[0]
+        self.learner = learner
+        layer = learner.policy.hidden_layer
+        self.bf16, self.onednn = layer.dtype == torch.bfloat16, layer.onednn
+
+    def __call__(self, batch) -> dict[str, torch.Tensor]:
+        learner, cfg = self.learner, self.learner.cfg
+        pol, pol_m, pol_v, pol_s, pol_lr, (beta1, beta2), eps, wd = adam_state(learner.policy_opt)
+        q, q_m, q_v, q_s, q_lr, _, _, _ = adam_state(learner.critic.opt)
+        q_target = list(learner.critic.target.parameters())
+        critic_half, policy_loss = self.ext.awac_update(
+            pol, q, q_target, pol_m, pol_v, pol_s, q_m, q_v, q_s,
+            batch.obs, batch.action, batch.reward, batch.next_obs, batch.not_done, batch.actor_mask,
+            cfg.gamma, cfg.beta, cfg.weight_clip, learner.critic.tau, pol_lr, q_lr, beta1, beta2, eps, wd,
+            self.bf16, self.onednn)
+        return {"critic_loss": critic_half, "policy_loss": policy_loss}
+
+
+def main() -> int:
+    t0 = time.perf_counter()
+    reason = unavailable_reason()
+    if reason is not None:
+        print(f"C++ AWAC step not built: {reason}; training uses the Python step", file=sys.stderr)
+        return 1
+    print(f"C++ AWAC step ready ({time.perf_counter() - t0:.1f} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
