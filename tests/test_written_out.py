@@ -79,3 +79,22 @@ def test_unknown_step_mode_is_a_one_line_error(monkeypatch, tmp_path):
     assert "PUSHER_RL_STEP=fastest: expected one of auto, cpp, python, autograd" in proc.stderr
     assert "Traceback" not in proc.stderr
     assert not (tmp_path / "run").exists()
+
+
+def test_a_lock_left_by_an_interrupted_build_does_not_hang_the_next_run(tmp_path):
+    """torch's loader waits forever on its build lock; a Ctrl-C during the first
+    compile leaves one behind. An old lock is cleared, a fresh one (a build running
+    in another process) is left alone."""
+    import os
+    import time
+
+    from offline_rl_core.learners.awac_cpp import _clear_stale_lock
+
+    lock = tmp_path / "lock"
+    lock.write_text("")
+    _clear_stale_lock(tmp_path)
+    assert lock.exists()
+    old = time.time() - 3600
+    os.utime(lock, (old, old))
+    _clear_stale_lock(tmp_path)
+    assert not lock.exists()

@@ -22,13 +22,28 @@ SOURCE = Path(__file__).resolve().parent.parent / "csrc" / "awac_step.cpp"
 EXTENSION = "pusher_rl_awac_step"
 
 
-def _cached(name: str) -> bool:
-    try:  # private helper, only to say whether a compile is coming
+def _build_dir(name: str) -> Path | None:
+    try:  # a private helper of torch's loader; only for the two checks below
         from torch.utils.cpp_extension import _get_build_directory
 
-        return any(Path(_get_build_directory(name, verbose=False)).glob("*.so"))
+        return Path(_get_build_directory(name, verbose=False))
     except Exception:  # noqa: BLE001
-        return True
+        return None
+
+
+def _cached(build_dir: Path | None) -> bool:
+    return build_dir is None or any(build_dir.glob("*.so"))
+
+
+def _clear_stale_lock(build_dir: Path | None, max_age_s: float = 300.0) -> None:
+    """torch's loader waits forever on the lock file of a build that was interrupted
+    (Ctrl-C during the first compile); a compile takes ~20 s, so an old lock is stale."""
+    lock = build_dir / "lock" if build_dir is not None else None
+    try:
+        if lock is not None and time.time() - lock.stat().st_mtime > max_age_s:
+            lock.unlink()
+    except OSError:
+        pass
 
 
 @functools.lru_cache(maxsize=1)
@@ -42,7 +57,9 @@ def _load():
         return None, f"no ninja ({exc})"
     if not SOURCE.exists():
         return None, f"{SOURCE} is missing"
-    if not _cached(EXTENSION):
+    build_dir = _build_dir(EXTENSION)
+    _clear_stale_lock(build_dir)
+    if not _cached(build_dir):
         print("pusher-rl: compiling the C++ AWAC step (once; about 20 s, then cached)", file=sys.stderr, flush=True)
     try:
         return load(name=EXTENSION, sources=[str(SOURCE)], extra_cflags=["-O2"], verbose=False), None
