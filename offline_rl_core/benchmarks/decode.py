@@ -140,12 +140,16 @@ def large_bag_figures(s: BenchSettings, base: Transitions, tmp: Path, log=print)
     label = f"{rows / 1e6:g}M"
     # the 4 s target is for 2M transitions; a smaller (quick) bag is held to the same rate
     limit_s = 4.0 * rows / 2_000_000
+    # ...but not to the memory ratio: torch's fixed ~100 MiB of first-step buffers is small
+    # beside 2M rows' arrays and not beside a quick run's
+    full = rows >= 2_000_000
     return [
         figure("decode", f"large_bag_{label}_decode_s", "s", got["decode_s"], limit_s, f"target {limit_s:.2g} s",
                higher_is_better=False, target=lambda o, r, x: o < r, target_text=f"< {limit_s:.2g} s",
                note=f"read_transitions, fresh process; {rows:,} transitions"),
         figure("decode", f"large_bag_{label}_train_peak_mem", "MiB", got["peak_delta_bytes"] / 2**20,
                got["arrays_bytes"] / 2**20, "its arrays (Transitions nbytes)", higher_is_better=False,
-               target=lambda o, r, x: o < 2 * r, target_text="< 2x arrays",
+               target=(lambda o, r, x: o < 2 * r) if full else None,
+               target_text="< 2x arrays" if full else "(info: the target is for 2M rows)",
                note=f"peak RSS growth over decode + {s.large_bag_train_steps} AWAC steps"),
     ]
