@@ -13,11 +13,14 @@ arithmetic is the 256x256 hidden layer, so that is the layer this module is abou
   input and output layers stay fp32: they cost almost nothing, and bf16 Q values
   (8 mantissa bits) would quantise AWAC's advantage weights.
 
-One ``autograd.Function`` per network call instead of autograd's node per op: the
-step is short enough (a few ms) that per-op overhead is a third of it.
+``mlp_forward`` and ``mlp_backward`` are the whole network, forward and backward. The
+autograd ``Function`` below wraps them (one autograd node per network call instead of
+one per op), and the training steps of ``learners/written_out.py`` call them without
+autograd at all: the step is short enough (a few ms) that per-op overhead is a third
+of it. On a GPU, ``networks.py`` does not use this module.
 
-The oneDNN op is detected, never assumed: without it, and for tensors on a GPU, the
-hidden layer uses ``addmm`` and ``mm``, the same maths in the default BLAS's order.
+The oneDNN op is detected, never assumed: without it the hidden layer uses ``addmm``
+and ``mm``, the same maths in the default BLAS's order.
 """
 
 from __future__ import annotations
@@ -50,10 +53,9 @@ class HiddenLayer:
     """The 256x256 layer's three products for one member (2-D tensors), all in ``dtype``
     (fp32 or bf16); ``cast`` brings an fp32 tensor to it."""
 
-    def __init__(self, dtype: torch.dtype, onednn: bool | None = None):
+    def __init__(self, dtype: torch.dtype):
         self.dtype = dtype
-        # oneDNN is a CPU library: tensors on a GPU take addmm / mm (cuBLAS)
-        self.onednn = onednn_linear_available() if onednn is None else onednn
+        self.onednn = onednn_linear_available()
 
     def cast(self, t: torch.Tensor) -> torch.Tensor:
         return t.to(self.dtype)
@@ -74,6 +76,54 @@ class HiddenLayer:
         return g_c.mm(w_c.t())
 
 
+def mlp_forward(x, w1, b1, w2, b2, w3, b3, tanh_output: bool, hidden: HiddenLayer, w2c=None, b2c=None):
+    """(E, B, in) -> (y, w2c, activations): the three layers member by member. ``w2c``
+    / ``b2c``, the hidden weights already cast, may be passed in by a caller that runs
+    one network twice between updates. Used by the autograd Function below and by the
+    written-out training steps (``learners/written_out.py``)."""
+    members = w1.shape[0]
+    y = x.new_empty(members, x.shape[1], w3.shape[2])
+    if w2c is None:
+        w2c, b2c = hidden.cast(w2), hidden.cast(b2)
+    acts = []
+    for m in range(members):
+        h1 = torch.addmm(b1[m], x[m], w1[m]).relu_()
+        h1c = hidden.cast(h1)
+        h2 = hidden.forward_relu(h1c, w2c[m], b2c[m, 0]).float()
+        # the thin output layer as (w.T @ h.T).T: MKL is ~6x slower on a 256x256 by
+        # 256x2 product than on its transpose
+        y[m].copy_(torch.addmm(b3[m].t(), w3[m].t(), h2.t()).t())
+        acts.append((h1, h1c, h2))
+    if tanh_output:
+        y.tanh_()
+    return y, w2c, acts
+
+
+def mlp_backward(grad_y, x, w1, w2c, w3, y, acts, tanh_output: bool, hidden: HiddenLayer, input_grad: bool):
+    """Gradients (x or None, w1, b1, w2, b2, w3, b3) of ``mlp_forward``'s output."""
+    g3_all = grad_y * (1.0 - y * y) if tanh_output else grad_y
+    grad_w1, grad_w3 = torch.empty_like(w1), torch.empty_like(w3)
+    grad_w2 = w1.new_empty(w2c.shape)  # fp32, like the parameter
+    grad_b1 = x.new_empty(w1.shape[0], 1, w1.shape[2])
+    grad_b2 = x.new_empty(w2c.shape[0], 1, w2c.shape[2])
+    grad_b3 = g3_all.sum(1, keepdim=True)
+    grad_x = torch.empty_like(x) if input_grad else None
+    for m in range(w1.shape[0]):
+        h1, h1c, h2 = acts[m]
+        g3 = g3_all[m]
+        grad_w3[m].copy_(g3.t().mm(h2).t())
+        g2 = _relu_grad(g3.mm(w3[m].t()), h2, 0)
+        torch.sum(g2, 0, keepdim=True, out=grad_b2[m])
+        g2c = hidden.cast(g2)
+        grad_w2[m].copy_(hidden.grad_weight(h1c, g2c))
+        g1 = _relu_grad(hidden.grad_input(g2c, w2c[m]).float(), h1, 0)
+        torch.mm(x[m].t(), g1, out=grad_w1[m])
+        torch.sum(g1, 0, keepdim=True, out=grad_b1[m])
+        if grad_x is not None:
+            torch.mm(g1, w1[m].t(), out=grad_x[m])
+    return grad_x, grad_w1, grad_b1, grad_w2, grad_b2, grad_w3, grad_b3
+
+
 class _EnsembleMLPFunction(torch.autograd.Function):
     """Members one by one with 2-D products: torch's batched ``bmm`` on CPU is slow for
     the thin first and last layers (a 256x256 by 256x1 product took 85 us batched,
@@ -81,49 +131,17 @@ class _EnsembleMLPFunction(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, x, w1, b1, w2, b2, w3, b3, tanh_output: bool, hidden: HiddenLayer):
-        members = w1.shape[0]
-        y = x.new_empty(members, x.shape[1], w3.shape[2])
-        w2c, b2c = hidden.cast(w2), hidden.cast(b2)
-        saved = []
-        for m in range(members):
-            h1 = torch.addmm(b1[m], x[m], w1[m]).relu_()
-            h1c = hidden.cast(h1)
-            h2 = hidden.forward_relu(h1c, w2c[m], b2c[m, 0]).float()
-            # the thin output layer as (w.T @ h.T).T: MKL is ~6x slower on a 256x256 by
-            # 256x2 product than on its transpose
-            y[m].copy_(torch.addmm(b3[m].t(), w3[m].t(), h2.t()).t())
-            saved += [h1, h1c, h2]
-        if tanh_output:
-            y.tanh_()
+        y, w2c, acts = mlp_forward(x, w1, b1, w2, b2, w3, b3, tanh_output, hidden)
         ctx.tanh_output, ctx.hidden = tanh_output, hidden
-        ctx.save_for_backward(x, w1, w2c, w3, y, *saved)
+        ctx.save_for_backward(x, w1, w2c, w3, y, *[t for act in acts for t in act])
         return y
 
     @staticmethod
     def backward(ctx, grad_y):
-        x, w1, w2c, w3, y, *saved = ctx.saved_tensors
-        hidden = ctx.hidden
-        g3_all = grad_y * (1.0 - y * y) if ctx.tanh_output else grad_y
-        grad_w1, grad_w3 = torch.empty_like(w1), torch.empty_like(w3)
-        grad_w2 = w1.new_empty(w2c.shape)  # fp32, like the parameter
-        grad_b1 = x.new_empty(w1.shape[0], 1, w1.shape[2])
-        grad_b2 = x.new_empty(w2c.shape[0], 1, w2c.shape[2])
-        grad_b3 = g3_all.sum(1, keepdim=True)
-        grad_x = torch.empty_like(x) if ctx.needs_input_grad[0] else None
-        for m in range(w1.shape[0]):
-            h1, h1c, h2 = saved[3 * m: 3 * m + 3]
-            g3 = g3_all[m]
-            grad_w3[m].copy_(g3.t().mm(h2).t())
-            g2 = _relu_grad(g3.mm(w3[m].t()), h2, 0)
-            torch.sum(g2, 0, keepdim=True, out=grad_b2[m])
-            g2c = hidden.cast(g2)
-            grad_w2[m].copy_(hidden.grad_weight(h1c, g2c))
-            g1 = _relu_grad(hidden.grad_input(g2c, w2c[m]).float(), h1, 0)
-            torch.mm(x[m].t(), g1, out=grad_w1[m])
-            torch.sum(g1, 0, keepdim=True, out=grad_b1[m])
-            if grad_x is not None:
-                torch.mm(g1, w1[m].t(), out=grad_x[m])
-        return grad_x, grad_w1, grad_b1, grad_w2, grad_b2, grad_w3, grad_b3, None, None
+        x, w1, w2c, w3, y, *flat = ctx.saved_tensors
+        acts = [tuple(flat[i: i + 3]) for i in range(0, len(flat), 3)]
+        grads = mlp_backward(grad_y, x, w1, w2c, w3, y, acts, ctx.tanh_output, ctx.hidden, ctx.needs_input_grad[0])
+        return (*grads, None, None)
 
 
 def ensemble_mlp(x, weights, biases, tanh_output: bool, hidden: HiddenLayer) -> torch.Tensor:

@@ -57,7 +57,7 @@ struct Saved {
   std::vector<Tensor> h1, h1c, h2;
 };
 
-// mlp_kernels._EnsembleMLPFunction.forward
+// mlp_kernels.mlp_forward
 // w2c/b2c: the hidden layer's weights already cast (the policy's serve both of its
 // forwards, its weights do not change in between), or undefined to cast here
 Tensor mlp_forward(const Net& n, const Tensor& x, bool tanh_output, const Hidden& hid, Saved* saved,
@@ -88,7 +88,7 @@ Tensor mlp_forward(const Net& n, const Tensor& x, bool tanh_output, const Hidden
   return y;
 }
 
-// mlp_kernels._EnsembleMLPFunction.backward (no input gradient: AWAC never needs one);
+// mlp_kernels.mlp_backward (no input gradient: AWAC never needs one);
 // returns grads in parameter order w1, w2, w3, b1, b2, b3
 std::vector<Tensor> mlp_backward(const Net& n, const Saved& s, const Tensor& grad_y, bool tanh_output,
                                  const Hidden& hid) {

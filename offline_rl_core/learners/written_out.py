@@ -21,8 +21,8 @@ import sys
 import torch
 
 from ..errors import UserError
+from ..mlp_kernels import HiddenLayer, mlp_backward, mlp_forward
 
-_relu_grad = torch.ops.aten.threshold_backward
 STEP_ENV = "PUSHER_RL_STEP"
 STEP_MODES = ("auto", "cpp", "python", "autograd")
 
@@ -55,71 +55,22 @@ def _adam_step(state: tuple, grads: list[torch.Tensor]) -> None:
                        weight_decay=weight_decay, eps=eps, amsgrad=False, maximize=False)
 
 
-class _Hidden:
-    """``mlp_kernels.HiddenLayer``'s three products, unbound from autograd."""
-
-    def __init__(self, layer):
-        self.dtype, self.onednn, self.bf16 = layer.dtype, layer.onednn, layer.dtype == torch.bfloat16
-
-    def forward_relu(self, x, w, b):
-        if self.onednn:
-            return torch.ops.mkldnn._linear_pointwise(x, w.t(), b, "relu", [], "")
-        return torch.addmm(b, x, w).relu_()
-
-    def grad_weight(self, x, g):
-        if self.onednn and not self.bf16:
-            return torch.ops.mkldnn._linear_pointwise(x.t(), g.t(), None, "none", [], "")
-        return x.t().mm(g)
-
-    def grad_input(self, g, w):
-        if self.onednn:
-            return torch.ops.mkldnn._linear_pointwise(g, w, None, "none", [], "")
-        return g.mm(w.t())
-
-
-def _forward(params, x, tanh_output: bool, hid: _Hidden, saved: list | None, w2c=None, b2c=None):
-    """``_EnsembleMLPFunction.forward``; ``saved`` collects what the backward needs."""
+def _forward(params, x, tanh_output: bool, hidden: HiddenLayer, saved: list | None, w2c=None, b2c=None):
+    """The network's forward (``mlp_kernels.mlp_forward``); ``saved`` collects what
+    ``_backward`` needs."""
     w1, w2, w3, b1, b2, b3 = params
-    y = x.new_empty(w1.shape[0], x.shape[1], w3.shape[2])
-    if w2c is None:
-        w2c, b2c = w2.to(hid.dtype), b2.to(hid.dtype)
-    acts = []
-    for m in range(w1.shape[0]):
-        h1 = torch.addmm(b1[m], x[m], w1[m]).relu_()
-        h1c = h1.to(hid.dtype)
-        h2 = hid.forward_relu(h1c, w2c[m], b2c[m, 0]).float()
-        y[m].copy_(torch.addmm(b3[m].t(), w3[m].t(), h2.t()).t())
-        acts.append((h1, h1c, h2))
-    if tanh_output:
-        y.tanh_()
+    y, w2c, acts = mlp_forward(x, w1, b1, w2, b2, w3, b3, tanh_output, hidden, w2c, b2c)
     if saved is not None:
         saved.extend([x, w2c, y, acts])
     return y
 
 
-def _backward(params, saved: list, grad_y, tanh_output: bool, hid: _Hidden) -> list[torch.Tensor]:
-    """``_EnsembleMLPFunction.backward`` without the input gradient (AWAC needs none);
-    gradients in parameter order."""
+def _backward(params, saved: list, grad_y, tanh_output: bool, hidden: HiddenLayer) -> list[torch.Tensor]:
+    """Parameter gradients in parameter order (w1, w2, w3, b1, b2, b3); no input
+    gradient (neither update needs one)."""
     w1, w2, w3, b1, b2, b3 = params
     x, w2c, y, acts = saved
-    g3_all = grad_y * torch.rsub(y * y, 1.0) if tanh_output else grad_y
-    members = w1.shape[0]
-    gw1, gw3 = torch.empty_like(w1), torch.empty_like(w3)
-    gw2 = w1.new_empty(w2c.shape)
-    gb1 = x.new_empty(members, 1, w1.shape[2])
-    gb2 = x.new_empty(members, 1, w2c.shape[2])
-    gb3 = g3_all.sum(1, keepdim=True)
-    for m in range(members):
-        h1, h1c, h2 = acts[m]
-        g3 = g3_all[m]
-        gw3[m].copy_(g3.t().mm(h2).t())
-        g2 = _relu_grad(g3.mm(w3[m].t()), h2, 0)
-        torch.sum(g2, 0, keepdim=True, out=gb2[m])
-        g2c = g2.to(hid.dtype)
-        gw2[m].copy_(hid.grad_weight(h1c, g2c))
-        g1 = _relu_grad(hid.grad_input(g2c, w2c[m]).float(), h1, 0)
-        torch.mm(x[m].t(), g1, out=gw1[m])
-        torch.sum(g1, 0, keepdim=True, out=gb1[m])
+    _, gw1, gb1, gw2, gb2, gw3, gb3 = mlp_backward(grad_y, x, w1, w2c, w3, y, acts, tanh_output, hidden, False)
     return [gw1, gw2, gw3, gb1, gb2, gb3]
 
 
@@ -134,7 +85,7 @@ class AWACStep:
 
     def __init__(self, learner):
         self.learner = learner
-        self.hid = _Hidden(learner.policy.hidden_layer)
+        self.hid = learner.policy.hidden_layer
 
     def __call__(self, batch) -> dict[str, torch.Tensor]:
         learner, cfg, hid = self.learner, self.learner.cfg, self.hid
@@ -184,7 +135,7 @@ class BCStep:
 
     def __init__(self, learner):
         self.learner = learner
-        self.hid = _Hidden(learner.policy.hidden_layer)
+        self.hid = learner.policy.hidden_layer
 
     def __call__(self, batch) -> dict[str, torch.Tensor]:
         pol_state = adam_state(self.learner.policy_opt)
