@@ -1,8 +1,8 @@
 """The C++ form of the written-out AWAC update (``csrc/awac_step.cpp``).
 
-Built with torch's JIT extension loader on first use and cached (``TORCH_EXTENSIONS_DIR``,
-by default ``~/.cache/torch_extensions``); ``make setup`` builds it ahead so no run
-waits for it. Needs g++, ninja and the Python headers; where any is missing
+Built with torch's JIT extension loader on first use and cached under
+``TORCH_EXTENSIONS_DIR`` (default ``~/.cache/torch_extensions``), one directory per
+source version; ``make setup`` builds it ahead so no run waits for it. Needs g++, ninja and the Python headers; where any is missing
 ``unavailable_reason`` says which, and the Python step runs instead.
 ``python -m offline_rl_core.learners.awac_cpp`` builds it and reports.
 """
@@ -10,6 +10,8 @@ waits for it. Needs g++, ninja and the Python headers; where any is missing
 from __future__ import annotations
 
 import functools
+import hashlib
+import os
 import sys
 import time
 from pathlib import Path
@@ -19,29 +21,28 @@ import torch
 from .written_out import adam_state
 
 SOURCE = Path(__file__).resolve().parent.parent / "csrc" / "awac_step.cpp"
-EXTENSION = "pusher_rl_awac_step"
+COMPILE_FLAGS = ["-O2"]
 
 
-def _build_dir(name: str) -> Path | None:
-    try:  # a private helper of torch's loader; only for the two checks below
-        from torch.utils.cpp_extension import _get_build_directory
-
-        return Path(_get_build_directory(name, verbose=False))
-    except Exception:  # noqa: BLE001
-        return None
-
-
-def _cached(build_dir: Path | None) -> bool:
-    return build_dir is None or any(build_dir.glob("*.so"))
+def _build_dir(source: bytes) -> Path:
+    """One build directory per (source, torch, Python): every checkout with the same
+    source shares one build, and a changed source never overwrites a build that
+    another checkout may have loaded."""
+    digest = hashlib.sha256(source + f"{torch.__version__} {sys.version} {COMPILE_FLAGS}".encode()).hexdigest()
+    root = Path(os.environ.get("TORCH_EXTENSIONS_DIR") or Path.home() / ".cache" / "torch_extensions")
+    return root / f"pusher_rl_awac_step_{digest[:16]}"
 
 
-def _clear_stale_lock(build_dir: Path | None, max_age_s: float = 300.0) -> None:
+def _cached(build_dir: Path) -> bool:
+    return any(build_dir.glob("*.so"))
+
+
+def _clear_stale_lock(build_dir: Path, max_age_s: float = 300.0) -> None:
     """torch's loader waits forever on the lock file of a build that was interrupted
     (Ctrl-C during the first compile); a compile takes ~20 s, so an old lock is stale."""
-    lock = build_dir / "lock" if build_dir is not None else None
     try:
-        if lock is not None and time.time() - lock.stat().st_mtime > max_age_s:
-            lock.unlink()
+        if time.time() - (build_dir / "lock").stat().st_mtime > max_age_s:
+            (build_dir / "lock").unlink()
     except OSError:
         pass
 
@@ -55,14 +56,30 @@ def _load():
         verify_ninja_availability()
     except Exception as exc:  # noqa: BLE001
         return None, f"no ninja ({exc})"
-    if not SOURCE.exists():
-        return None, f"{SOURCE} is missing"
-    build_dir = _build_dir(EXTENSION)
+    try:
+        source = SOURCE.read_bytes()
+    except OSError as exc:
+        return None, f"cannot read {SOURCE}: {exc.strerror}"
+    build_dir = _build_dir(source)
+    name = build_dir.name
+    try:
+        build_dir.mkdir(parents=True, exist_ok=True)
+        # compiled from a copy inside the build directory: ninja's commands then name
+        # the same path from every checkout, so a second checkout does not rebuild
+        copy = build_dir / "awac_step.cpp"
+        if not copy.exists() or copy.read_bytes() != source:
+            tmp = build_dir / f".awac_step.cpp.{os.getpid()}"
+            tmp.write_bytes(source)
+            tmp.replace(copy)
+    except OSError as exc:
+        return None, f"cannot write {build_dir}: {exc.strerror}"
     _clear_stale_lock(build_dir)
     if not _cached(build_dir):
         print("pusher-rl: compiling the C++ AWAC step (once; about 20 s, then cached)", file=sys.stderr, flush=True)
     try:
-        return load(name=EXTENSION, sources=[str(SOURCE)], extra_cflags=["-O2"], verbose=False), None
+        module = load(name=name, sources=[str(copy)], extra_cflags=COMPILE_FLAGS, build_directory=str(build_dir),
+                      verbose=False)
+        return module, None
     except Exception as exc:  # noqa: BLE001 - a compiler error is a reason to fall back, not to stop
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         return None, f"build failed: {first}"
