@@ -91,8 +91,13 @@ class NodeProcess:
             time.sleep(0.05)
         return False
 
-    def wait(self, timeout: float) -> int:
-        return self.proc.wait(timeout=timeout)
+    def wait(self, timeout: float) -> int | None:
+        """The exit status, or None if still running after ``timeout`` (so that an
+        ``assert p.wait(...) == 0, p.output()`` shows what the process printed)."""
+        try:
+            return self.proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            return None
 
     def stop(self, sig: int = signal.SIGINT, timeout: float = 10.0) -> int:
         """Signal by pid, then kill after ``timeout``; returns the exit status."""

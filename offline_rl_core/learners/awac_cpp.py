@@ -25,10 +25,12 @@ COMPILE_FLAGS = ["-O2"]
 
 
 def _build_dir(source: bytes) -> Path:
-    """One build directory per (source, torch, Python): every checkout with the same
-    source shares one build, and a changed source never overwrites a build that
-    another checkout may have loaded."""
-    digest = hashlib.sha256(source + f"{torch.__version__} {sys.version} {COMPILE_FLAGS}".encode()).hexdigest()
+    """One build directory per (source, torch install, Python): checkouts that share an
+    environment share one build, and a changed source or another environment never
+    overwrites a build that some process may have loaded."""
+    # torch's location too: the build's include paths point into this environment's torch
+    where = f"{torch.__version__} {Path(torch.__file__).parent} {sys.version} {COMPILE_FLAGS}"
+    digest = hashlib.sha256(source + where.encode()).hexdigest()
     root = Path(os.environ.get("TORCH_EXTENSIONS_DIR") or Path.home() / ".cache" / "torch_extensions")
     return root / f"pusher_rl_awac_step_{digest[:16]}"
 
