@@ -62,8 +62,8 @@ class EnsembleMLP(nn.Module):
         return ensemble_mlp(x, list(self.weights), list(self.biases), self.tanh_output, self.hidden_layer)
 
     def _forward_batched(self, x: torch.Tensor) -> torch.Tensor:
-        """On a GPU: one batched product per layer for all members, autograd for the
-        backward. The CPU's hand-written member-by-member kernels exist to cut per-op
+        """On a GPU: one batched product per layer for all members, in fp32, autograd for
+        the backward. The CPU's hand-written member-by-member kernels exist to cut per-op
         overhead, which a replayed CUDA graph has already removed."""
         (w1, w2, w3), (b1, b2, b3) = self.weights, self.biases
         h = torch.baddbmm(b1, x, w1).relu()

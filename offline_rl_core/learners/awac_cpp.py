@@ -97,20 +97,21 @@ class CppStep:
 
     def __init__(self, learner):
         self.ext = _load()[0]
-        self.learner = learner
         layer = learner.policy.hidden_layer
-        self.bf16, self.onednn = layer.dtype == torch.bfloat16, layer.onednn
-
-    def __call__(self, batch) -> dict[str, torch.Tensor]:
-        learner, cfg = self.learner, self.learner.cfg
+        bf16 = layer.dtype == torch.bfloat16
+        # everything but the batch, taken once: the optimisers' tensors are updated in place
         pol, pol_m, pol_v, pol_s, pol_lr, (beta1, beta2), eps, wd = adam_state(learner.policy_opt)
         q, q_m, q_v, q_s, q_lr, _, _, _ = adam_state(learner.critic.opt)
         q_target = list(learner.critic.target.parameters())
+        cfg = learner.cfg
+        self.tensors = (pol, q, q_target, pol_m, pol_v, pol_s, q_m, q_v, q_s)
+        self.scalars = (cfg.gamma, cfg.beta, cfg.weight_clip, learner.critic.tau, pol_lr, q_lr, beta1, beta2, eps, wd,
+                        bf16, layer.onednn)
+
+    def __call__(self, batch) -> dict[str, torch.Tensor]:
         critic_half, policy_loss = self.ext.awac_update(
-            pol, q, q_target, pol_m, pol_v, pol_s, q_m, q_v, q_s,
-            batch.obs, batch.action, batch.reward, batch.next_obs, batch.not_done, batch.actor_mask,
-            cfg.gamma, cfg.beta, cfg.weight_clip, learner.critic.tau, pol_lr, q_lr, beta1, beta2, eps, wd,
-            self.bf16, self.onednn)
+            *self.tensors, batch.obs, batch.action, batch.reward, batch.next_obs, batch.not_done, batch.actor_mask,
+            *self.scalars)
         return {"critic_loss": critic_half, "policy_loss": policy_loss}
 
 

@@ -27,7 +27,7 @@ def make_network(cfg: TrainConfig, members: int, in_dim: int, out_dim: int, gene
     Weights are drawn on the CPU from the members' generators first, so a seed gives
     the same initial network on every device."""
     net = EnsembleMLP(members, in_dim, cfg.hidden, out_dim, generators, tanh_output=tanh_output,
-                      compute_dtype=compute_dtype(cfg.deterministic, cfg.device))
+                      compute_dtype=compute_dtype(cfg.deterministic))
     return net.to(cfg.device)
 
 

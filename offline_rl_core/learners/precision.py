@@ -31,10 +31,8 @@ def native_bf16() -> bool:
     return bool(cpu_bf16_flags() & {"amx_bf16", "avx512_bf16"})
 
 
-def compute_dtype(deterministic: bool, device: str = "cpu") -> torch.dtype:
-    """The hidden layer's matmul dtype: bf16 when allowed (not deterministic) and the CPU
-    has it natively. On a GPU, fp32: at 256x256 the step is bound by kernel launches,
-    not arithmetic, so bf16 would buy nothing there."""
-    if torch.device(device).type != "cpu":
-        return torch.float32
+def compute_dtype(deterministic: bool) -> torch.dtype:
+    """The CPU hidden layer's matmul dtype: bf16 when allowed (not deterministic) and the
+    CPU has it natively. (A GPU runs fp32 whatever this says, see ``networks``: at
+    256x256 its step is bound by kernel launches, so bf16 would buy nothing there.)"""
     return torch.bfloat16 if not deterministic and native_bf16() else torch.float32

@@ -29,8 +29,9 @@ STEP_MODES = ("auto", "cpp", "python", "autograd")
 
 def adam_state(opt: torch.optim.Adam) -> tuple:
     """(params, exp_avgs, exp_avg_sqs, steps, lr, betas, eps, weight_decay) of a fused
-    Adam, its state created on first use exactly as ``Adam.step`` creates it (so the
-    optimiser's ``state_dict`` stays valid whichever path stepped it)."""
+    Adam, its state created exactly as ``Adam.step`` creates it on first use (so the
+    optimiser's ``state_dict`` stays valid whichever path stepped it). The steps take
+    it once, when built: ``_fused_adam_`` updates these tensors in place."""
     group = opt.param_groups[0]
     if len(opt.param_groups) != 1 or not group["fused"] or group["amsgrad"] or group["maximize"] \
             or group.get("decoupled_weight_decay", False):
@@ -86,12 +87,13 @@ class AWACStep:
     def __init__(self, learner):
         self.learner = learner
         self.hid = learner.policy.hidden_layer
+        self.pol_state, self.q_state = adam_state(learner.policy_opt), adam_state(learner.critic.opt)
+        self.q_target = list(learner.critic.target.parameters())
 
     def __call__(self, batch) -> dict[str, torch.Tensor]:
         learner, cfg, hid = self.learner, self.learner.cfg, self.hid
-        pol_state, q_state = adam_state(learner.policy_opt), adam_state(learner.critic.opt)
+        pol_state, q_state, q_target = self.pol_state, self.q_state, self.q_target
         pol, q = pol_state[0], q_state[0]
-        q_target = list(learner.critic.target.parameters())
         obs, action = batch.obs, batch.action
         members = obs.shape[0]
         with torch.inference_mode():
@@ -134,12 +136,12 @@ class BCStep:
     """One BC update (``bc.py``), written out."""
 
     def __init__(self, learner):
-        self.learner = learner
         self.hid = learner.policy.hidden_layer
+        self.pol_state = adam_state(learner.policy_opt)
 
     def __call__(self, batch) -> dict[str, torch.Tensor]:
-        pol_state = adam_state(self.learner.policy_opt)
-        pol, hid = pol_state[0], self.hid
+        pol_state, hid = self.pol_state, self.hid
+        pol = pol_state[0]
         members = batch.obs.shape[0]
         with torch.inference_mode():
             saved: list = []
