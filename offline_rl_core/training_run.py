@@ -20,7 +20,8 @@ import numpy as np
 
 from .bag import read_transitions
 from .errors import UserError
-from .evaluation import evaluate_policy, write_json_atomic
+from .atomic import write_json_atomic
+from .evaluation import evaluate_policy
 from .learners import ALGORITHMS, Progress, TrainConfig, train
 from .plots import plot_training_curve
 from .policy import load_checkpoint, save_checkpoint

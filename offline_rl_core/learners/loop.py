@@ -45,6 +45,7 @@ class TrainResult:
     checkpoint: dict
     history: dict[str, list[float]] = field(default_factory=dict)
     mean_abs_q: float | None = None
+    step_kind: str = "eager"  # how the steps ran: "cpp" / "python" replay of the recorded update, or "eager"
 
 
 @contextlib.contextmanager
@@ -127,6 +128,7 @@ def train_seeds(
                     scalars = {k: float(np.mean(v)) for k, v in values.items()}
                     progress(Progress(step, cfg.steps, time.perf_counter() - start, scalars))
         mean_abs_q = learner.mean_abs_q(data)
+    step_kind = getattr(step_once, "kind", "eager")
 
     hashes: dict[int, str] = {}
     results = []
@@ -151,9 +153,11 @@ def train_seeds(
             "transitions": len(datasets[m]),
             "mean_abs_q": None if mean_abs_q is None else float(mean_abs_q[m]),
             "train_seconds": round(time.perf_counter() - start, 3),
+            "train_step": step_kind,
+            "kernels": learner.policy.hidden_layer.kernels.describe() if cfg.device == "cpu" else cfg.device,
         }
         results.append(TrainResult(seed, LoadedPolicy(checkpoint), checkpoint, histories[m],
-                                   None if mean_abs_q is None else float(mean_abs_q[m])))
+                                   None if mean_abs_q is None else float(mean_abs_q[m]), step_kind))
     return results
 
 
