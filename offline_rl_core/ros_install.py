@@ -157,6 +157,16 @@ def _write_if_changed(path: Path, text: str, mode: int | None = None) -> None:
         path.chmod(mode)
 
 
+def _drop_stale_module_links(site: Path, package: RosPackage) -> None:
+    """Remove links into the package's source whose module it no longer has (a renamed module)."""
+    for link in site.iterdir():
+        if not link.is_symlink() or link.name in package.modules:
+            continue
+        target = Path(os.readlink(link))
+        if target.parent == package.path and not (target / "__init__.py").is_file():
+            link.unlink()
+
+
 def install_package(package: RosPackage, venv: Path, python: Path) -> None:
     venv = venv.absolute()
     _write_if_changed(venv / INDEX_DIR / package.name, "")
@@ -164,6 +174,7 @@ def install_package(package: RosPackage, venv: Path, python: Path) -> None:
     site = site_packages(venv)
     for module in package.modules:
         _symlink(site / module, package.path / module)
+    _drop_stale_module_links(site, package)
     lib_dir = venv / "lib" / package.name
     wanted = set()
     for exe, module, function in package.console_scripts:

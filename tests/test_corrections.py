@@ -22,8 +22,8 @@ from ros_helpers import INDEX, REPO, probe_node, require_ros, ros_env, spawn  # 
 CORRECTIONS_SRC = REPO / "ros_ws" / "src" / "corrections"
 sys.path.insert(0, str(CORRECTIONS_SRC))  # the pure-Python parts, importable without the install
 
-from corrections.arbiter import HUMAN, POLICY, LockstepArbiter, RealtimeArbiter  # noqa: E402
-from corrections.scripted import CorrectorParams, ScriptedCorrector  # noqa: E402
+from pusher_corrections.arbiter import HUMAN, POLICY, LockstepArbiter, RealtimeArbiter  # noqa: E402
+from pusher_corrections.scripted import CorrectorParams, ScriptedCorrector  # noqa: E402
 
 
 def require_corrections() -> None:
@@ -39,8 +39,9 @@ B = np.array([-0.25, 0.75], np.float32)
 # ---------------------------------------------------------------- packaging
 def test_corrections_package_declares_two_executables():
     package = ros_install.read_package(CORRECTIONS_SRC)
-    assert package.name == "corrections" and package.modules == ["corrections"]
-    assert package.console_scripts == [("mux", "corrections.mux", "main"), ("corrector", "corrections.corrector", "main")]
+    assert package.name == "corrections" and package.modules == ["pusher_corrections"]
+    assert package.console_scripts == [("mux", "pusher_corrections.mux", "main"),
+                                       ("corrector", "pusher_corrections.corrector", "main")]
     assert "install_scripts=$base/lib/corrections" in (CORRECTIONS_SRC / "setup.cfg").read_text()
 
 

@@ -8,7 +8,7 @@ answer again; each state is decided once.
 
 ``--mode scripted`` (default): takes over with the scripted expert when the fingertip
 has not got closer to the target for ``patience`` steps, hands back after
-``hold_steps`` steps or on success (see ``corrections.scripted``). Parameters
+``hold_steps`` steps or on success (see ``pusher_corrections.scripted``). Parameters
 (``-p name:=value`` or the flags): ``patience`` (8), ``hold_steps`` (25),
 ``grace_steps`` (20: states at an episode's start before progress is judged),
 ``min_progress`` (0.002 m), ``noise`` (0.0, std of torque noise), ``reaction_delay``
@@ -42,6 +42,8 @@ from rclpy.task import Future
 from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import JointState
 
+from pusher_common.stamps import stamp_key
+
 from offline_rl_core.errors import caused_by_interrupt
 from offline_rl_core.env import ACT_DIM, JOINT_NAMES
 
@@ -52,10 +54,6 @@ KEYS = {
     "a": (0, -1.0), "d": (0, 1.0), "s": (0, 0.0),
     "j": (1, -1.0), "l": (1, 1.0), "k": (1, 0.0),
 }
-
-
-def stamp_key(stamp) -> int:
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
 class KeyboardTeleop:

@@ -35,14 +35,12 @@ from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import JointState
 
 from offline_rl_core.env import ACT_DIM, JOINT_NAMES, observation_from_joints
+from pusher_common.stamps import stamp_key
+
 from offline_rl_core.errors import UserError, caused_by_interrupt
 from offline_rl_core.policy import load_policy
 
 WARN_THROTTLE_S = 2.0
-
-
-def stamp_key(stamp) -> int:
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
 def file_signature(path: str):

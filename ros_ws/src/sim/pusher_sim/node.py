@@ -35,7 +35,6 @@ from pathlib import Path
 
 import numpy as np
 import rclpy
-from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PointStamped
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
@@ -50,7 +49,8 @@ from offline_rl_core.bag import encode_transition_rows
 from offline_rl_core.env import ACT_DIM, CONTROL_HZ, JOINT_NAMES, MAX_STEPS, PusherReachEnv
 from offline_rl_core.transitions import LAYOUT_SLICES, SOURCE_NAMES, SOURCE_POLICY, TRANSITION_WIDTH
 
-from .spin import spin_until_future_complete
+from pusher_common.spin import spin_until_future_complete
+from pusher_common.stamps import stamp_from_ns, stamp_key
 
 TICK_NS = 1_000_000_000 // CONTROL_HZ  # 20 ms
 TICKS_PER_EPISODE = MAX_STEPS  # lockstep: one tick per published state
@@ -68,14 +68,6 @@ def source_from_tag(frame_id: str) -> int:
     if tag.isdigit() and int(tag) in SOURCE_NAMES:
         return int(tag)
     return SOURCE_POLICY
-
-
-def stamp_to_ns(stamp) -> int:
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
-
-
-def ns_to_stamp(ns: int) -> Time:
-    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
 
 
 class PusherSim(Node):
@@ -149,7 +141,7 @@ class PusherSim(Node):
             if self.transition_pub.get_subscription_count() < self.wait_for_subscribers:
                 return  # the republish timer tries again
             self.wait_for_subscribers = 0  # matched once: never hold again
-        stamp = ns_to_stamp(self.stamp_ns)
+        stamp = stamp_from_ns(self.stamp_ns)
         target = self.env.target
         self.target_msg.header.stamp = stamp
         self.target_msg.point.x, self.target_msg.point.y, self.target_msg.point.z = (float(v) for v in target)
@@ -247,7 +239,7 @@ class PusherSim(Node):
     def on_command(self, msg: JointState) -> None:
         if self.finished.done():
             return
-        if self.mode == "lockstep" and stamp_to_ns(msg.header.stamp) != self.stamp_ns:
+        if self.mode == "lockstep" and stamp_key(msg.header.stamp) != self.stamp_ns:
             return  # answers an older state (or a republished one, answered twice): stale
         action = self.parse_command(msg)
         if action is None:

@@ -16,7 +16,7 @@ Parameters:
 
 The rule in lockstep: exactly one command per stamp. A teleop action for the stamp
 wins; a yield lets the policy's action for the stamp through; a late message for a
-decided stamp only repeats the decided command (see ``corrections.arbiter``).
+decided stamp only repeats the decided command (see ``pusher_corrections.arbiter``).
 """
 
 from __future__ import annotations
@@ -33,6 +33,8 @@ from rclpy.qos import DurabilityPolicy, QoSProfile
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool
 
+from pusher_common.stamps import stamp_key
+
 from offline_rl_core.errors import caused_by_interrupt
 from offline_rl_core.env import ACT_DIM, JOINT_NAMES
 
@@ -40,10 +42,6 @@ from .arbiter import HUMAN, LockstepArbiter, RealtimeArbiter
 
 WARN_THROTTLE_S = 2.0
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-
-
-def stamp_key(stamp) -> int:
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
 class Mux(Node):
