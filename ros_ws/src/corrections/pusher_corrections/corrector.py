@@ -47,7 +47,7 @@ from pusher_common.stamps import stamp_key
 from offline_rl_core.errors import caused_by_interrupt
 from offline_rl_core.env import ACT_DIM, JOINT_NAMES
 
-from .scripted import CorrectorParams, ScriptedCorrector
+from offline_rl_core.corrector import CorrectorParams, ScriptedCorrector
 
 KEEP_ANSWERS = 64
 KEYS = {
