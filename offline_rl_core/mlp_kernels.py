@@ -59,29 +59,38 @@ def mlp_forward(x, w1, b1, w2, b2, w3, b3, tanh_output: bool, hidden: HiddenLaye
     return y, w2c, acts
 
 
-def mlp_backward(grad_y, x, w1, w2c, w3, y, acts, tanh_output: bool, hidden: HiddenLayer, input_grad: bool):
-    """Gradients (x or None, w1, b1, w2, b2, w3, b3) of ``mlp_forward``'s output."""
+def mlp_backward(grad_y, x, w1, w2c, w3, y, acts, tanh_output: bool, hidden: HiddenLayer, input_grad: bool,
+                 weight_grads: bool = True):
+    """Gradients (x or None, w1, b1, w2, b2, w3, b3) of ``mlp_forward``'s output; the
+    weights' are None without ``weight_grads`` (a loss that moves another network
+    through this one's output, as an actor's through a critic, needs only x's)."""
     g3_all = grad_y * (1.0 - y * y) if tanh_output else grad_y
-    grad_w1, grad_w3 = torch.empty_like(w1), torch.empty_like(w3)
-    grad_w2 = w1.new_empty(w2c.shape)  # fp32, like the parameter
-    grad_b1 = x.new_empty(w1.shape[0], 1, w1.shape[2])
-    grad_b2 = x.new_empty(w2c.shape[0], 1, w2c.shape[2])
-    grad_b3 = g3_all.sum(1, keepdim=True)
+    grads = [None] * 6
+    if weight_grads:
+        grad_w1, grad_w3 = torch.empty_like(w1), torch.empty_like(w3)
+        grad_w2 = w1.new_empty(w2c.shape)  # fp32, like the parameter
+        grad_b1 = x.new_empty(w1.shape[0], 1, w1.shape[2])
+        grad_b2 = x.new_empty(w2c.shape[0], 1, w2c.shape[2])
+        grad_b3 = g3_all.sum(1, keepdim=True)
+        grads = [grad_w1, grad_b1, grad_w2, grad_b2, grad_w3, grad_b3]
     grad_x = torch.empty_like(x) if input_grad else None
     for m in range(w1.shape[0]):
         h1, h1c, h2 = acts[m]
         g3 = g3_all[m]
-        grad_w3[m].copy_(g3.t().mm(h2).t())
+        if weight_grads:
+            grad_w3[m].copy_(g3.t().mm(h2).t())
         g2 = _relu_grad(g3.mm(w3[m].t()), h2, 0)
-        torch.sum(g2, 0, keepdim=True, out=grad_b2[m])
         g2c = hidden.cast(g2)
-        grad_w2[m].copy_(hidden.grad_weight(h1c, g2c))
+        if weight_grads:
+            torch.sum(g2, 0, keepdim=True, out=grad_b2[m])
+            grad_w2[m].copy_(hidden.grad_weight(h1c, g2c))
         g1 = _relu_grad(hidden.grad_input(g2c, w2c[m]).float(), h1, 0)
-        torch.mm(x[m].t(), g1, out=grad_w1[m])
-        torch.sum(g1, 0, keepdim=True, out=grad_b1[m])
+        if weight_grads:
+            torch.mm(x[m].t(), g1, out=grad_w1[m])
+            torch.sum(g1, 0, keepdim=True, out=grad_b1[m])
         if grad_x is not None:
             torch.mm(g1, w1[m].t(), out=grad_x[m])
-    return grad_x, grad_w1, grad_b1, grad_w2, grad_b2, grad_w3, grad_b3
+    return (grad_x, *grads)
 
 
 class _EnsembleMLPFunction(torch.autograd.Function):
@@ -100,7 +109,8 @@ class _EnsembleMLPFunction(torch.autograd.Function):
     def backward(ctx, grad_y):
         x, w1, w2c, w3, y, *flat = ctx.saved_tensors
         acts = [tuple(flat[i: i + 3]) for i in range(0, len(flat), 3)]
-        grads = mlp_backward(grad_y, x, w1, w2c, w3, y, acts, ctx.tanh_output, ctx.hidden, ctx.needs_input_grad[0])
+        grads = mlp_backward(grad_y, x, w1, w2c, w3, y, acts, ctx.tanh_output, ctx.hidden, ctx.needs_input_grad[0],
+                             weight_grads=any(ctx.needs_input_grad[1:7]))
         return (*grads, None, None)
 
 

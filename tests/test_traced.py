@@ -32,13 +32,19 @@ def _run(monkeypatch, data, mode: str, algo: str, seeds=(0, 1), **overrides):
     return train_seeds(data, TrainConfig(algo=algo, **{**CFG, **overrides}), list(seeds))
 
 
+def _tensors(checkpoint) -> dict:
+    flat = {f"policy.{k}": v for k, v in checkpoint["policy_state"].items()}
+    for name, part in checkpoint["learner_state"].items():
+        flat.update({f"{name}.{k}": v for k, v in part.items()} if isinstance(part, dict) else {name: part})
+    return flat
+
+
 def _assert_same_bytes(got, want):
     for g, w in zip(got, want):
-        parts_g = [g.checkpoint["policy_state"], *g.checkpoint["learner_state"].values()]
-        parts_w = [w.checkpoint["policy_state"], *w.checkpoint["learner_state"].values()]
-        for pg, pw in zip(parts_g, parts_w):
-            for key in pw:
-                np.testing.assert_array_equal(pg[key].numpy(), pw[key].numpy(), err_msg=key)
+        tg, tw = _tensors(g.checkpoint), _tensors(w.checkpoint)
+        assert tg.keys() == tw.keys()
+        for key in tw:
+            np.testing.assert_array_equal(tg[key].numpy(), tw[key].numpy(), err_msg=key)
         assert g.history == w.history
         assert g.mean_abs_q == w.mean_abs_q
 

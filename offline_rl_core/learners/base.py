@@ -42,12 +42,13 @@ class Learner:
 
     name = "base"
     uses_critic = False
+    policy_tanh = True  # the policy network ends in tanh (False: it outputs a pre-squash mean)
 
     def __init__(self, cfg: TrainConfig, members: int, generators: list[torch.Generator], obs_dim: int, act_dim: int):
         self.cfg = cfg
         self.members = members
         self.obs_dim, self.act_dim = obs_dim, act_dim
-        self.policy = make_network(cfg, members, obs_dim, act_dim, generators, tanh_output=True)
+        self.policy = make_network(cfg, members, obs_dim, act_dim, generators, tanh_output=self.policy_tanh)
         self.policy_opt = make_adam(self.policy.parameters(), cfg.lr, cfg.device)
 
     def update(self, batch: Batch) -> dict[str, torch.Tensor]:

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
-ALGORITHMS = ("bc", "filtered_bc", "awac", "iql", "naive")
+ALGORITHMS = ("bc", "filtered_bc", "awac", "iql", "naive", "sac")
 
 
 @dataclass
@@ -26,6 +26,12 @@ class TrainConfig:
     expectile: float = 0.7
     temperature: float = 3.0
     max_weight: float = 100.0
+    # SAC (the online learner): entropy weight, fixed unless target_entropy is set; the
+    # Gaussian's initial log-std; weight of the squared error to a person's actions
+    alpha: float = 0.01
+    target_entropy: float | None = None
+    init_log_std: float = -1.0
+    bc_weight: float = 1.0
     # filtered BC: keep the top fraction of episodes by return
     filter_top_frac: float = 0.1
     # corrections: share of each batch drawn from correction transitions (None = uniform)
@@ -58,6 +64,10 @@ class TrainConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not 0.0 < self.filter_top_frac <= 1.0:
             raise ValueError(f"filter_top_frac must be in (0, 1], got {self.filter_top_frac}")
+        if self.alpha <= 0:
+            raise ValueError(f"alpha must be > 0, got {self.alpha}")
+        if self.bc_weight < 0:
+            raise ValueError(f"bc_weight must be >= 0, got {self.bc_weight}")
         if self.correction_ratio is not None and not 0.0 <= self.correction_ratio <= 1.0:
             raise ValueError(f"correction_ratio must be in [0, 1], got {self.correction_ratio}")
         check_device(self.device)

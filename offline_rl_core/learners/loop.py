@@ -25,9 +25,10 @@ from .data import IndexSampler, MemberData, correction_pools, top_episode_rows
 from .filtered_bc import FilteredBC
 from .iql import IQL
 from .naive import NaiveMaxQ
+from .sac import SAC
 from .stepper import make_step
 
-LEARNERS = {"bc": BC, "filtered_bc": FilteredBC, "awac": AWAC, "iql": IQL, "naive": NaiveMaxQ}
+LEARNERS = {"bc": BC, "filtered_bc": FilteredBC, "awac": AWAC, "iql": IQL, "naive": NaiveMaxQ, "sac": SAC}
 
 
 @dataclass
