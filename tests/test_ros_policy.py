@@ -152,7 +152,7 @@ def test_closed_loop_matches_in_process_evaluation(spawn, data, tmp_path):
     spawn(ros2("run", "policy", "node", "--checkpoint", data["a"]), "policy")
     sim = spawn(
         ros2("run", "sim", "node", "--ros-args", "-p", "mode:=lockstep", "-p", f"seed:={seed}",
-             "-p", f"episodes:={episodes}", "-p", f"summary:={summary}", "-r", "/pusher/command:=/policy/action"),
+             "-p", f"episodes:={episodes}", "-p", f"summary:={summary}", "-r", "pusher/command:=policy/action"),
         "sim",
     )
     assert sim.wait(timeout=120) == 0, sim.output()
@@ -163,3 +163,31 @@ def test_closed_loop_matches_in_process_evaluation(spawn, data, tmp_path):
     # 1-row vs N-row float32 rounding of the policy output separates the two.
     assert round(over_ros["success_rate"], 6) == in_process["success_rate"]
     assert abs(over_ros["mean_final_dist"] - in_process["mean_final_dist"]) < 1e-4
+
+
+@pytest.mark.slow
+def test_two_namespaced_pipelines_on_one_domain_stay_apart(spawn, data, tmp_path):
+    """`-r __ns:=/armN` moves a whole closed loop: two of them, one domain, no cross-talk.
+
+    Both lockstep sims stamp their states alike, so a policy heard across namespaces
+    would answer the other sim's states and its results would no longer be its own."""
+    from offline_rl_core.evaluation import evaluate_policy
+
+    episodes = 3
+    runs = {"arm1": (data["a"], 500000), "arm2": (data["b"], 600000)}
+    sims = {}
+    for ns, (checkpoint, seed) in runs.items():
+        spawn(ros2("run", "policy", "node", "--checkpoint", checkpoint, "--ros-args", "-r", f"__ns:=/{ns}"), f"policy_{ns}")
+        sims[ns] = spawn(
+            ros2("run", "sim", "node", "--ros-args", "-r", f"__ns:=/{ns}", "-p", "mode:=lockstep", "-p", f"seed:={seed}",
+                 "-p", f"episodes:={episodes}", "-p", f"summary:={tmp_path / ns}.json", "-r", "pusher/command:=policy/action"),
+            f"sim_{ns}",
+        )
+    for ns, sim in sims.items():
+        assert sim.wait(timeout=120) == 0, sim.output()
+    for ns, (checkpoint, seed) in runs.items():
+        over_ros = json.loads((tmp_path / f"{ns}.json").read_text())
+        in_process = evaluate_policy(load_policy(checkpoint), episodes, seed)
+        assert over_ros["episodes"] == episodes
+        assert round(over_ros["success_rate"], 6) == in_process["success_rate"], ns
+        assert abs(over_ros["mean_final_dist"] - in_process["mean_final_dist"]) < 1e-4, ns

@@ -125,9 +125,9 @@ class Corrector(Node):
         self.answers: dict[int, JointState] = {}
         self.states = 0
         self.corrections = 0
-        self.create_subscription(PointStamped, "/pusher/target", self.on_target, 10)
-        self.create_subscription(JointState, "/pusher/state", self.on_state, 10)
-        self.pub = self.create_publisher(JointState, "/teleop/action", 10)
+        self.create_subscription(PointStamped, "pusher/target", self.on_target, 10)
+        self.create_subscription(JointState, "pusher/state", self.on_state, 10)
+        self.pub = self.create_publisher(JointState, "teleop/action", 10)
         desc = f"scripted ({', '.join(f'{k}={v}' for k, v in values.items())})" if self.mode == "scripted" else "keyboard"
         self.get_logger().info(f"corrector {desc}: answering /pusher/state on /teleop/action")
 

@@ -56,10 +56,10 @@ class Mux(Node):
             raise ValueError(f"parameter hold_ms must be >= 0, got {self.hold_s * 1000}")
         self.arbiter = LockstepArbiter() if self.mode == "lockstep" else RealtimeArbiter(self.hold_s)
         self.intervening: bool | None = None
-        self.command_pub = self.create_publisher(JointState, "/pusher/command", 10)
-        self.intervening_pub = self.create_publisher(Bool, "/corrections/intervening", LATCHED)
-        self.create_subscription(JointState, "/policy/action", self.on_policy, 10)
-        self.teleop_sub = self.create_subscription(JointState, "/teleop/action", self.on_teleop, 10)
+        self.command_pub = self.create_publisher(JointState, "pusher/command", 10)
+        self.intervening_pub = self.create_publisher(Bool, "corrections/intervening", LATCHED)
+        self.create_subscription(JointState, "policy/action", self.on_policy, 10)
+        self.teleop_sub = self.create_subscription(JointState, "teleop/action", self.on_teleop, 10)
         if self.mode == "realtime":
             self.create_timer(min(max(self.hold_s / 4, 0.005), 0.05), self.check_hold)
         self.set_intervening(False)
@@ -87,7 +87,7 @@ class Mux(Node):
         return self.require_teleop or self.teleop_sub.get_publisher_count() > 0
 
     def on_policy(self, msg: JointState) -> None:
-        action = self.parse(msg, "/policy/action", allow_empty=False)
+        action = self.parse(msg, "policy/action", allow_empty=False)
         if action is False:
             return
         stamp = stamp_key(msg.header.stamp)
@@ -97,7 +97,7 @@ class Mux(Node):
             self.send(self.arbiter.on_policy(stamp, action, time.monotonic()), msg)
 
     def on_teleop(self, msg: JointState) -> None:
-        action = self.parse(msg, "/teleop/action", allow_empty=True)
+        action = self.parse(msg, "teleop/action", allow_empty=True)
         if action is False:
             return
         stamp = stamp_key(msg.header.stamp)

@@ -73,10 +73,10 @@ class PolicyServer(Node):
         self.answered = 0
 
         # Target subscription first: when both are ready the executor takes it first.
-        self.create_subscription(PointStamped, "/pusher/target", self.on_target, 10)
-        self.create_subscription(PointStamped, "/pusher/fingertip", self.on_fingertip, 10)
-        self.create_subscription(JointState, "/pusher/state", self.on_state, 10)
-        self.action_pub = self.create_publisher(JointState, "/policy/action", 10)
+        self.create_subscription(PointStamped, "pusher/target", self.on_target, 10)
+        self.create_subscription(PointStamped, "pusher/fingertip", self.on_fingertip, 10)
+        self.create_subscription(JointState, "pusher/state", self.on_state, 10)
+        self.action_pub = self.create_publisher(JointState, "policy/action", 10)
         self.create_timer(self.poll_period, self.check_checkpoint)
         self.get_logger().info(f"serving {self.policy.algorithm} policy from {self.path}")
 

@@ -99,14 +99,14 @@ class PusherSim(Node):
         self.held_source = SOURCE_POLICY
         self.tick_times: list[float] = []
 
-        self.state_pub = self.create_publisher(JointState, "/pusher/state", 10)
-        self.target_pub = self.create_publisher(PointStamped, "/pusher/target", 10)
+        self.state_pub = self.create_publisher(JointState, "pusher/state", 10)
+        self.target_pub = self.create_publisher(PointStamped, "pusher/target", 10)
         # The fingertip the env's observation uses (MuJoCo's site, see env.apply_action):
         # lets a ROS policy rebuild the training observation exactly.
-        self.fingertip_pub = self.create_publisher(PointStamped, "/pusher/fingertip", 10)
-        self.transition_pub = self.create_publisher(Float32MultiArray, "/pusher/transition", TRANSITION_QOS)
-        self.create_subscription(JointState, "/pusher/command", self.on_command, 10)
-        self.create_service(Trigger, "/pusher/reset", self.on_reset)
+        self.fingertip_pub = self.create_publisher(PointStamped, "pusher/fingertip", 10)
+        self.transition_pub = self.create_publisher(Float32MultiArray, "pusher/transition", TRANSITION_QOS)
+        self.create_subscription(JointState, "pusher/command", self.on_command, 10)
+        self.create_service(Trigger, "pusher/reset", self.on_reset)
         self.state_msg = JointState(name=list(JOINT_NAMES))
         self.target_msg = PointStamped()
         self.target_msg.header.frame_id = "world"

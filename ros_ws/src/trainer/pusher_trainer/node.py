@@ -43,7 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
 class Trainer(Node):
     def __init__(self):
         super().__init__("trainer")
-        self.progress_pub = self.create_publisher(String, "/trainer/progress", PROGRESS_QOS)
+        self.progress_pub = self.create_publisher(String, "~/progress", PROGRESS_QOS)
         self.console = console_progress()
 
     def report(self, p) -> None:
