@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import subprocess
 import time
 
 import numpy as np
@@ -118,6 +119,21 @@ def test_policy_answers_rejects_and_hot_reloads(spawn, data, tmp_path):
         assert node.spin_until(lambda: "cannot reload" in node_proc.output(), 10), node_proc.output()
         reply = answer_to(send(q, qd))
         assert reply is not None and np.array_equal(np.array(reply.effort, np.float32), want_b)  # old one serves
+
+        # The checkpoint is a parameter too: setting it switches the policy at once; one that
+        # does not load is refused with the reason, and the policy serving goes on.
+        def param_set(value):
+            return subprocess.run(ros2("param", "set", "/policy", "checkpoint", value), capture_output=True,
+                                  text=True, timeout=60)
+
+        switched = param_set(data["a"])
+        assert switched.stdout.strip() == "Set parameter successful", switched.stderr
+        reply = answer_to(send(q, qd))
+        assert reply is not None and np.array_equal(np.array(reply.effort, np.float32), policy_a.act(obs))
+        refused = param_set(tmp_path / "none.pt")
+        assert refused.stderr.startswith("Setting parameter failed: parameter checkpoint: ") and "none.pt" in refused.stderr
+        reply = answer_to(send(q, qd))
+        assert reply is not None and np.array_equal(np.array(reply.effort, np.float32), policy_a.act(obs))
 
 
 @pytest.mark.slow
