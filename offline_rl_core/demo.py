@@ -111,7 +111,7 @@ def run_demo(out: Path, bag: Path, steps: int, record_episodes: int, seed: int) 
     policy = RosProcess(ros2_run("policy", "node", "--checkpoint", out / "awac" / "policy.pt"), env, logs / "policy.log")
     sim = RosProcess(ros2_run("sim", "node", "--ros-args", "-p", "mode:=lockstep", "-p", f"seed:={EVAL_SEED + seed}",
                               "-p", f"episodes:={EVAL_EPISODES}", "-p", f"summary:={closed_loop}",
-                              "-r", "/pusher/command:=/policy/action"), env, logs / "closed_loop_sim.log")
+                              "-r", "pusher/command:=policy/action"), env, logs / "closed_loop_sim.log")
     with policy, sim:
         wait_for(sim, 600, "the closed-loop sim")
     if not closed_loop.exists():

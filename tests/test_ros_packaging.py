@@ -12,7 +12,7 @@ import pytest
 
 from offline_rl_core import ros_install
 
-from ros_helpers import MODULES, PACKAGES, REPO
+from ros_helpers import MODULES, PACKAGES, REPO, require_ros
 
 SRC = REPO / "ros_ws" / "src"
 
@@ -37,12 +37,34 @@ def test_every_package_declares_node_and_real_dependencies():
         assert f"install_scripts=$base/lib/{name}" in (SRC / name / "setup.cfg").read_text()
 
 
+# (package, module with PARAMS, config file): each node's every setting, installed with its package
+CONFIGS = [("sim", "pusher_sim.node", "sim"), ("policy", "pusher_policy.node", "policy"),
+           ("trainer", "pusher_trainer.node", "trainer"), ("corrections", "pusher_corrections.mux", "mux"),
+           ("corrections", "pusher_corrections.corrector", "corrector")]
+
+
+def test_config_files_hold_every_setting_with_its_default():
+    require_ros()
+    import importlib
+
+    import yaml
+
+    for package, module, name in CONFIGS:
+        params = importlib.import_module(module).PARAMS
+        text = (SRC / package / "config" / f"{name}.yaml").read_text()
+        values = yaml.safe_load(text)["/**"]["ros__parameters"]
+        assert values == {p.name: p.default for p in params if p.default not in (None, [])}, name
+        assert all(f"# {p.name}: (unset)" in text for p in params if p.default in (None, [])), name
+
+
 def test_ros_install_lays_out_an_ament_prefix_and_is_idempotent(tmp_path, capsys):
     venv = fake_venv(tmp_path)
-    args = ["--venv", str(venv), "--no-shim", *[str(SRC / p) for p in (*PACKAGES, "pusher_common")]]
+    args = ["--venv", str(venv), "--no-shim", *[str(SRC / p) for p in (*PACKAGES, "corrections", "pusher_common")]]
     for _ in range(2):
         assert ros_install.main(args) == 0
     site = ros_install.site_packages(venv)
+    for package, _, config in CONFIGS:
+        assert (venv / "share" / package / "config" / f"{config}.yaml").is_file()
     for name in PACKAGES:
         assert (venv / "share" / "ament_index" / "resource_index" / "packages" / name).is_file()
         assert (venv / "share" / name / "package.xml").resolve() == (SRC / name / "package.xml").resolve()
@@ -97,4 +119,6 @@ def test_colcon_builds_the_workspace(tmp_path):
     for name in PACKAGES:
         assert (ws / "install" / name / "lib" / name / "node").is_file(), name
         assert (ws / "install" / name / "share" / "ament_index" / "resource_index" / "packages" / name).exists()
+    for package, _, config in CONFIGS:
+        assert (ws / "install" / package / "share" / package / "config" / f"{config}.yaml").is_file()
     assert not (ws / "install" / "ros2_shim").exists()  # tools/ carries COLCON_IGNORE

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import subprocess
 import time
 
 import numpy as np
@@ -119,6 +120,21 @@ def test_policy_answers_rejects_and_hot_reloads(spawn, data, tmp_path):
         reply = answer_to(send(q, qd))
         assert reply is not None and np.array_equal(np.array(reply.effort, np.float32), want_b)  # old one serves
 
+        # The checkpoint is a parameter too: setting it switches the policy at once; one that
+        # does not load is refused with the reason, and the policy serving goes on.
+        def param_set(value):
+            return subprocess.run(ros2("param", "set", "/policy", "checkpoint", value), capture_output=True,
+                                  text=True, timeout=60)
+
+        switched = param_set(data["a"])
+        assert switched.stdout.strip() == "Set parameter successful", switched.stderr
+        reply = answer_to(send(q, qd))
+        assert reply is not None and np.array_equal(np.array(reply.effort, np.float32), policy_a.act(obs))
+        refused = param_set(tmp_path / "none.pt")
+        assert refused.stderr.startswith("Setting parameter failed: parameter checkpoint: ") and "none.pt" in refused.stderr
+        reply = answer_to(send(q, qd))
+        assert reply is not None and np.array_equal(np.array(reply.effort, np.float32), policy_a.act(obs))
+
 
 @pytest.mark.slow
 def test_trainer_node_from_the_card_command_publishes_progress(spawn, data, tmp_path):
@@ -152,7 +168,7 @@ def test_closed_loop_matches_in_process_evaluation(spawn, data, tmp_path):
     spawn(ros2("run", "policy", "node", "--checkpoint", data["a"]), "policy")
     sim = spawn(
         ros2("run", "sim", "node", "--ros-args", "-p", "mode:=lockstep", "-p", f"seed:={seed}",
-             "-p", f"episodes:={episodes}", "-p", f"summary:={summary}", "-r", "/pusher/command:=/policy/action"),
+             "-p", f"episodes:={episodes}", "-p", f"summary:={summary}", "-r", "pusher/command:=policy/action"),
         "sim",
     )
     assert sim.wait(timeout=120) == 0, sim.output()
@@ -163,3 +179,31 @@ def test_closed_loop_matches_in_process_evaluation(spawn, data, tmp_path):
     # 1-row vs N-row float32 rounding of the policy output separates the two.
     assert round(over_ros["success_rate"], 6) == in_process["success_rate"]
     assert abs(over_ros["mean_final_dist"] - in_process["mean_final_dist"]) < 1e-4
+
+
+@pytest.mark.slow
+def test_two_namespaced_pipelines_on_one_domain_stay_apart(spawn, data, tmp_path):
+    """`-r __ns:=/armN` moves a whole closed loop: two of them, one domain, no cross-talk.
+
+    Both lockstep sims stamp their states alike, so a policy heard across namespaces
+    would answer the other sim's states and its results would no longer be its own."""
+    from offline_rl_core.evaluation import evaluate_policy
+
+    episodes = 3
+    runs = {"arm1": (data["a"], 500000), "arm2": (data["b"], 600000)}
+    sims = {}
+    for ns, (checkpoint, seed) in runs.items():
+        spawn(ros2("run", "policy", "node", "--checkpoint", checkpoint, "--ros-args", "-r", f"__ns:=/{ns}"), f"policy_{ns}")
+        sims[ns] = spawn(
+            ros2("run", "sim", "node", "--ros-args", "-r", f"__ns:=/{ns}", "-p", "mode:=lockstep", "-p", f"seed:={seed}",
+                 "-p", f"episodes:={episodes}", "-p", f"summary:={tmp_path / ns}.json", "-r", "pusher/command:=policy/action"),
+            f"sim_{ns}",
+        )
+    for ns, sim in sims.items():
+        assert sim.wait(timeout=120) == 0, sim.output()
+    for ns, (checkpoint, seed) in runs.items():
+        over_ros = json.loads((tmp_path / f"{ns}.json").read_text())
+        in_process = evaluate_policy(load_policy(checkpoint), episodes, seed)
+        assert over_ros["episodes"] == episodes
+        assert round(over_ros["success_rate"], 6) == in_process["success_rate"], ns
+        assert abs(over_ros["mean_final_dist"] - in_process["mean_final_dist"]) < 1e-4, ns

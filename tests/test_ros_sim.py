@@ -27,10 +27,9 @@ def test_lockstep_validates_commands_tags_sources_and_resets(spawn, tmp_path):
     from std_srvs.srv import Trigger
 
     summary = tmp_path / "summary.json"
-    sim = spawn(
-        ros2("run", "sim", "node", "--ros-args", "-p", "mode:=lockstep", "-p", "seed:=11", "-p", f"summary:={summary}"),
-        "sim",
-    )
+    params = tmp_path / "sim.yaml"  # settings from a params file, as a launch file passes them
+    params.write_text(f"/**:\n  ros__parameters:\n    mode: lockstep\n    seed: 11\n    summary: '{summary}'\n")
+    sim = spawn(ros2("run", "sim", "node", "--ros-args", "--params-file", params), "sim")
     states, targets, transitions = [], [], []
     with probe_node() as node:
         node.create_subscription(JointState, "/pusher/state", states.append, 10)
@@ -81,3 +80,10 @@ def test_lockstep_validates_commands_tags_sources_and_resets(spawn, tmp_path):
     assert sim.stop() == 0
     data = json.loads(summary.read_text())
     assert data == {"episodes": 0, "success_rate": 0.0, "mean_final_dist": None, "mean_return": None}
+
+
+def test_a_bad_parameter_is_one_line_and_exit_2(spawn):
+    sim = spawn(ros2("run", "sim", "node", "--ros-args", "-p", "mode:=fast"), "sim")
+    assert sim.wait(timeout=60) == 2
+    lines = sim.output().strip().splitlines()
+    assert lines == ["sim: error: parameter mode: must be one of realtime, lockstep; got 'fast'"], lines

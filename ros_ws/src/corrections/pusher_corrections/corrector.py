@@ -23,7 +23,6 @@ Any torque key takes over; the held torques are sent with every state until spac
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import select
@@ -31,21 +30,19 @@ import sys
 import termios
 import threading
 import tty
+from dataclasses import replace
 
 import numpy as np
-import rclpy
 from geometry_msgs.msg import PointStamped
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.task import Future
-from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import JointState
 
-from pusher_common.stamps import stamp_key
-
-from offline_rl_core.errors import caused_by_interrupt
+from offline_rl_core.errors import UserError
 from offline_rl_core.env import ACT_DIM, JOINT_NAMES
+from pusher_common.node_main import run_node
+from pusher_common.params import Param, Settings
+from pusher_common.stamps import stamp_key
 
 from offline_rl_core.corrector import CorrectorParams, ScriptedCorrector
 
@@ -61,7 +58,7 @@ class KeyboardTeleop:
 
     def __init__(self, stream=sys.stdin):
         if not stream.isatty():
-            raise ValueError("--mode keyboard needs an interactive terminal (stdin is not a tty)")
+            raise UserError("--mode keyboard needs an interactive terminal (stdin is not a tty)")
         self.stream = stream
         self.torque = np.zeros(ACT_DIM, np.float32)
         self.active = False
@@ -101,21 +98,32 @@ class KeyboardTeleop:
         termios.tcsetattr(self.stream.fileno(), termios.TCSADRAIN, self.saved)
 
 
+PARAMS = (
+    Param("mode", "scripted", "scripted: the scripted expert takes over when progress stalls; keyboard: a person "
+          "at this terminal", choices=("scripted", "keyboard"), read_only=True, flag="--mode"),
+    Param("patience", 8, "k: states without progress before taking over", low=1, flag="--patience"),
+    Param("grace_steps", 20, "states at an episode's start before progress is judged", low=0, flag="--grace-steps"),
+    Param("hold_steps", 25, "m: steps of a takeover before handing back", low=1, flag="--hold-steps"),
+    Param("min_progress", 0.002, "metres the distance must shrink to count as progress", low=0.0, flag="--min-progress"),
+    Param("noise", 0.0, "std of Gaussian noise on the corrections' torques (a shaky hand)", low=0.0, flag="--noise"),
+    Param("reaction_delay", 0, "states between deciding to take over and acting", low=0, flag="--reaction-delay"),
+    Param("seed", 0, "seed of the correction noise", low=0, read_only=True, flag="--seed"),
+)
+RULE_PARAMS = tuple(p.name for p in PARAMS if p.name != "mode")
+
+
 class Corrector(Node):
-    def __init__(self, args: argparse.Namespace, finished: Future):
-        super().__init__("corrector")
-        p = CorrectorParams()
-        values = {
-            name: type(getattr(p, name))(self.declare_parameter(
-                name, getattr(args, name) if getattr(args, name) is not None else getattr(p, name),
-                ParameterDescriptor(dynamic_typing=True)).value)
-            for name in ("patience", "hold_steps", "grace_steps", "min_progress", "noise", "reaction_delay", "seed")
-        }
-        self.mode = args.mode
-        self.finished = finished
+    def __init__(self, overrides=()):
+        super().__init__("corrector", parameter_overrides=list(overrides))
+        self.settings = Settings(self, PARAMS, on_change=self.on_parameter_change, check=self.check_parameter)
+        self.mode = self.settings.mode
+        self.finished = Future()  # done when the person quits (keyboard mode)
+        values = {name: getattr(self.settings, name) for name in RULE_PARAMS}
         if self.mode == "scripted":
-            self.params = CorrectorParams(**values)
-            self.teleop = ScriptedCorrector(self.params)
+            try:
+                self.teleop = ScriptedCorrector(CorrectorParams(**values))
+            except ValueError as exc:
+                raise UserError(str(exc)) from None
         else:
             self.teleop = KeyboardTeleop()
             self.create_timer(0.1, self.check_quit)
@@ -125,11 +133,23 @@ class Corrector(Node):
         self.answers: dict[int, JointState] = {}
         self.states = 0
         self.corrections = 0
-        self.create_subscription(PointStamped, "/pusher/target", self.on_target, 10)
-        self.create_subscription(JointState, "/pusher/state", self.on_state, 10)
-        self.pub = self.create_publisher(JointState, "/teleop/action", 10)
+        self.create_subscription(PointStamped, "pusher/target", self.on_target, 10)
+        self.create_subscription(JointState, "pusher/state", self.on_state, 10)
+        self.pub = self.create_publisher(JointState, "teleop/action", 10)
         desc = f"scripted ({', '.join(f'{k}={v}' for k, v in values.items())})" if self.mode == "scripted" else "keyboard"
         self.get_logger().info(f"corrector {desc}: answering /pusher/state on /teleop/action")
+
+    def check_parameter(self, name: str, value) -> str | None:
+        if self.mode != "scripted":
+            return f"{name} belongs to the scripted corrector; this one is a keyboard"
+        try:
+            replace(self.teleop.p, **{name: value})  # the rule's own validation
+        except ValueError as exc:
+            return str(exc)
+        return None
+
+    def on_parameter_change(self, name: str, value) -> None:
+        self.teleop.p = replace(self.teleop.p, **{name: value})  # from the next state on
 
     def check_quit(self) -> None:
         if self.teleop.quit.is_set() and not self.finished.done():
@@ -177,49 +197,13 @@ class Corrector(Node):
     def close(self) -> None:
         if isinstance(self.teleop, KeyboardTeleop):
             self.teleop.restore()
-
-
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="ros2 run corrections corrector",
-                                     description="Take over from the policy on /teleop/action: scripted expert or keyboard.")
-    parser.add_argument("--mode", choices=("scripted", "keyboard"), default="scripted")
-    parser.add_argument("--patience", type=int, help="k: steps without progress before taking over (default 8)")
-    parser.add_argument("--grace-steps", type=int, help="states at an episode's start before progress is judged (default 20)")
-    parser.add_argument("--hold-steps", type=int, help="m: steps before handing back (default 25)")
-    parser.add_argument("--min-progress", type=float, help="metres the distance must shrink to count as progress (0.002)")
-    parser.add_argument("--noise", type=float, help="std of Gaussian noise on the corrections (0)")
-    parser.add_argument("--reaction-delay", type=int, help="steps between deciding and taking over (0)")
-    parser.add_argument("--seed", type=int, help="seed of the noise (0)")
-    return parser
+        extra = f", {self.teleop.takeovers} takeovers" if self.mode == "scripted" else ""
+        print(f"corrector: answered {self.states} states, {self.corrections} with a correction{extra}", file=sys.stderr)
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv if argv is None else argv
-    args = build_parser().parse_args(remove_ros_args(argv)[1:])
-    rclpy.init(args=argv)
-    node = None
-    finished = Future()
-    try:
-        node = Corrector(args, finished)
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        executor.spin_until_future_complete(finished)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except ValueError as exc:
-        print(f"corrector: error: {exc}", file=sys.stderr)
-        return 2
-    except Exception as exc:
-        if rclpy.ok() and not caused_by_interrupt(exc):
-            raise
-    finally:
-        if node is not None:
-            node.close()
-            extra = f", {node.teleop.takeovers} takeovers" if node.mode == "scripted" else ""
-            print(f"corrector: answered {node.states} states, {node.corrections} with a correction{extra}", file=sys.stderr)
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(Corrector, prog="corrector", command="ros2 run corrections corrector", flags=PARAMS, argv=argv,
+                    description="Take over from the policy on teleop/action: scripted expert or keyboard.")
 
 
 if __name__ == "__main__":

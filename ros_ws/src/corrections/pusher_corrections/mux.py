@@ -25,18 +25,15 @@ import sys
 import time
 
 import numpy as np
-import rclpy
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.qos import DurabilityPolicy, QoSProfile
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool
 
-from pusher_common.stamps import stamp_key
-
-from offline_rl_core.errors import caused_by_interrupt
 from offline_rl_core.env import ACT_DIM, JOINT_NAMES
+from pusher_common.node_main import run_node
+from pusher_common.params import Param, Settings
+from pusher_common.stamps import stamp_key
 
 from .arbiter import HUMAN, LockstepArbiter, RealtimeArbiter
 
@@ -44,30 +41,56 @@ WARN_THROTTLE_S = 2.0
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
+PARAMS = (
+    Param("mode", "realtime", "as the sim's: realtime (a teleop action holds the arm for hold_ms) or lockstep "
+          "(exactly one command per state stamp)", choices=("realtime", "lockstep"), read_only=True),
+    Param("hold_ms", 100.0, "realtime: milliseconds a teleop action holds the arm; policy actions inside the hold "
+          "are dropped", low=0.0, high=60_000.0),
+    Param("require_teleop", False, "lockstep: always wait for the corrector's word on each stamp (otherwise only "
+          "while a teleop/action publisher is matched)"),
+)
+ONLY_IN = {"hold_ms": "realtime", "require_teleop": "lockstep"}
+
+
+def hold_check_period(hold_s: float) -> float:
+    return min(max(hold_s / 4, 0.005), 0.05)
+
+
 class Mux(Node):
-    def __init__(self):
-        super().__init__("mux")
-        self.mode = self.declare_parameter("mode", "realtime").value
-        self.hold_s = float(self.declare_parameter("hold_ms", 100.0, ParameterDescriptor(dynamic_typing=True)).value) / 1000.0
-        self.require_teleop = bool(self.declare_parameter("require_teleop", False).value)
-        if self.mode not in ("realtime", "lockstep"):
-            raise ValueError(f"parameter mode must be 'realtime' or 'lockstep', got {self.mode!r}")
-        if self.hold_s < 0:
-            raise ValueError(f"parameter hold_ms must be >= 0, got {self.hold_s * 1000}")
+    def __init__(self, overrides=()):
+        super().__init__("mux", parameter_overrides=list(overrides))
+        self.settings = Settings(self, PARAMS, on_change=self.on_parameter_change, check=self.check_parameter)
+        self.mode = self.settings.mode
+        self.hold_s = self.settings.hold_ms / 1000.0
+        self.require_teleop = self.settings.require_teleop
         self.arbiter = LockstepArbiter() if self.mode == "lockstep" else RealtimeArbiter(self.hold_s)
         self.intervening: bool | None = None
-        self.command_pub = self.create_publisher(JointState, "/pusher/command", 10)
-        self.intervening_pub = self.create_publisher(Bool, "/corrections/intervening", LATCHED)
-        self.create_subscription(JointState, "/policy/action", self.on_policy, 10)
-        self.teleop_sub = self.create_subscription(JointState, "/teleop/action", self.on_teleop, 10)
+        self.command_pub = self.create_publisher(JointState, "pusher/command", 10)
+        self.intervening_pub = self.create_publisher(Bool, "corrections/intervening", LATCHED)
+        self.create_subscription(JointState, "policy/action", self.on_policy, 10)
+        self.teleop_sub = self.create_subscription(JointState, "teleop/action", self.on_teleop, 10)
+        self.hold_timer = None
         if self.mode == "realtime":
-            self.create_timer(min(max(self.hold_s / 4, 0.005), 0.05), self.check_hold)
+            self.hold_timer = self.create_timer(hold_check_period(self.hold_s), self.check_hold)
         self.set_intervening(False)
         self.get_logger().info(
             f"mux {self.mode}: /policy/action + /teleop/action -> /pusher/command"
             + (f" (hold {self.hold_s * 1000:.0f} ms)" if self.mode == "realtime" else
                f" (one command per stamp{', always waiting for the corrector' if self.require_teleop else ''})")
         )
+
+    def check_parameter(self, name: str, value) -> str | None:
+        if ONLY_IN.get(name, self.mode) != self.mode:
+            return f"{name} applies in {ONLY_IN[name]} mode only; this mux runs in {self.mode} mode"
+        return None
+
+    def on_parameter_change(self, name: str, value) -> None:
+        if name == "hold_ms":
+            self.hold_s = value / 1000.0
+            self.arbiter.hold_s = self.hold_s
+            self.hold_timer.timer_period_ns = int(hold_check_period(self.hold_s) * 1e9)
+        elif name == "require_teleop":
+            self.require_teleop = value
 
     def parse(self, msg: JointState, topic: str, allow_empty: bool) -> np.ndarray | None | bool:
         """The action; None for an empty effort (a yield) when allowed; False if malformed."""
@@ -87,7 +110,7 @@ class Mux(Node):
         return self.require_teleop or self.teleop_sub.get_publisher_count() > 0
 
     def on_policy(self, msg: JointState) -> None:
-        action = self.parse(msg, "/policy/action", allow_empty=False)
+        action = self.parse(msg, "policy/action", allow_empty=False)
         if action is False:
             return
         stamp = stamp_key(msg.header.stamp)
@@ -97,7 +120,7 @@ class Mux(Node):
             self.send(self.arbiter.on_policy(stamp, action, time.monotonic()), msg)
 
     def on_teleop(self, msg: JointState) -> None:
-        action = self.parse(msg, "/teleop/action", allow_empty=True)
+        action = self.parse(msg, "teleop/action", allow_empty=True)
         if action is False:
             return
         stamp = stamp_key(msg.header.stamp)
@@ -127,29 +150,14 @@ class Mux(Node):
             self.intervening_pub.publish(Bool(data=value))
 
 
+    def close(self) -> None:
+        counts = self.arbiter.counts
+        print(f"mux: forwarded {counts['policy']} policy and {counts['human']} human commands", file=sys.stderr)
+
+
 def main(argv: list[str] | None = None) -> int:
-    rclpy.init(args=sys.argv if argv is None else argv)
-    node = None
-    try:
-        node = Mux()
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except ValueError as exc:
-        print(f"mux: error: {exc}", file=sys.stderr)
-        return 2
-    except Exception as exc:
-        if rclpy.ok() and not caused_by_interrupt(exc):
-            raise
-    finally:
-        if node is not None:
-            counts = node.arbiter.counts
-            print(f"mux: forwarded {counts['policy']} policy and {counts['human']} human commands", file=sys.stderr)
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(Mux, prog="mux", command="ros2 run corrections mux", argv=argv,
+                    description="policy/action + teleop/action -> pusher/command, tagged with who acted.")
 
 
 if __name__ == "__main__":

@@ -18,7 +18,6 @@ stamp; an arm that publishes none gets planar forward kinematics of its joints.
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import sys
@@ -27,18 +26,16 @@ import sys
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
-import rclpy
 from geometry_msgs.msg import PointStamped
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import JointState
 
 from offline_rl_core.env import ACT_DIM, JOINT_NAMES, observation_from_joints
-from pusher_common.stamps import stamp_key
-
-from offline_rl_core.errors import UserError, caused_by_interrupt
+from offline_rl_core.errors import UserError
 from offline_rl_core.policy import load_policy
+from pusher_common.node_main import run_node
+from pusher_common.params import Param, Settings
+from pusher_common.stamps import stamp_key
 
 WARN_THROTTLE_S = 2.0
 
@@ -52,18 +49,29 @@ def file_signature(path: str):
     return (st.st_mtime_ns, st.st_size, st.st_ino)
 
 
+PARAMS = (
+    Param("checkpoint", "", "policy checkpoint to serve (policy.pt, or a run directory holding one); "
+          "watched and reloaded when replaced; setting it switches to another checkpoint", flag="--checkpoint"),
+    Param("poll_period", 0.5, "seconds between checks of the checkpoint file for a new version", low=0.01, high=60.0),
+)
+
+
+def checkpoint_file(path: str) -> str:
+    """A run directory means the policy.pt in it (the file the trainer replaces)."""
+    return os.path.join(path, "policy.pt") if os.path.isdir(path) else path
+
+
 class PolicyServer(Node):
-    def __init__(self, checkpoint: str | None):
-        super().__init__("policy")
-        param = self.declare_parameter("checkpoint", "").value
-        self.poll_period = float(self.declare_parameter("poll_period", 0.5).value)
-        self.path = checkpoint or param
-        if not self.path:
+    def __init__(self, overrides=()):
+        super().__init__("policy", parameter_overrides=list(overrides))
+        self.settings = Settings(self, PARAMS, on_change=self.on_parameter_change, check=self.check_parameter)
+        self.poll_period = self.settings.poll_period
+        if not self.settings.checkpoint:
             raise UserError("no checkpoint given: pass --checkpoint PATH or -p checkpoint:=PATH")
-        if os.path.isdir(self.path):  # a run directory: watch the file the trainer replaces
-            self.path = os.path.join(self.path, "policy.pt")
+        self.path = checkpoint_file(self.settings.checkpoint)
         self.signature = file_signature(self.path)
         self.policy = load_policy(self.path)  # UserError with one clear line if missing/broken
+        self.candidate = None  # a checkpoint set at run time, loaded while checking it
         self.target_stamp: int | None = None
         self.target_xy: np.ndarray | None = None
         self.co_stamped = False  # the source stamps targets with their state's stamp
@@ -73,12 +81,33 @@ class PolicyServer(Node):
         self.answered = 0
 
         # Target subscription first: when both are ready the executor takes it first.
-        self.create_subscription(PointStamped, "/pusher/target", self.on_target, 10)
-        self.create_subscription(PointStamped, "/pusher/fingertip", self.on_fingertip, 10)
-        self.create_subscription(JointState, "/pusher/state", self.on_state, 10)
-        self.action_pub = self.create_publisher(JointState, "/policy/action", 10)
-        self.create_timer(self.poll_period, self.check_checkpoint)
+        self.create_subscription(PointStamped, "pusher/target", self.on_target, 10)
+        self.create_subscription(PointStamped, "pusher/fingertip", self.on_fingertip, 10)
+        self.create_subscription(JointState, "pusher/state", self.on_state, 10)
+        self.action_pub = self.create_publisher(JointState, "policy/action", 10)
+        self.poll_timer = self.create_timer(self.poll_period, self.check_checkpoint)
         self.get_logger().info(f"serving {self.policy.algorithm} policy from {self.path}")
+
+    # -------------------------------------------------------------- parameters
+    def check_parameter(self, name: str, value) -> str | None:
+        if name != "checkpoint":
+            return None
+        path = checkpoint_file(value)
+        try:
+            self.candidate = (path, file_signature(path), load_policy(path))
+        except UserError as exc:  # refused with the reason; the old policy serves on
+            return str(exc)
+        except Exception as exc:  # noqa: BLE001 - whatever is wrong with the file
+            return f"cannot load {path}: {exc}"
+        return None
+
+    def on_parameter_change(self, name: str, value) -> None:
+        if name == "poll_period":
+            self.poll_timer.timer_period_ns = int(value * 1e9)
+        elif name == "checkpoint" and self.candidate is not None:
+            self.path, self.signature, self.policy = self.candidate
+            self.candidate = None
+            self.get_logger().info(f"serving {self.policy.algorithm} policy from {self.path}")
 
     # -------------------------------------------------------------- checkpoint
     def check_checkpoint(self) -> None:
@@ -175,30 +204,8 @@ class PolicyServer(Node):
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv if argv is None else argv
-    parser = argparse.ArgumentParser(prog="ros2 run policy node", description="Serve a trained policy on /policy/action.")
-    parser.add_argument("--checkpoint", help="policy checkpoint (policy.pt, or a run directory holding one)")
-    args = parser.parse_args(remove_ros_args(argv)[1:])
-    rclpy.init(args=argv)
-    node = None
-    try:
-        node = PolicyServer(args.checkpoint)
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        executor.spin()
-    except UserError as exc:
-        print(f"policy: error: {exc}", file=sys.stderr)
-        return exc.exit_code
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except Exception as exc:
-        if rclpy.ok() and not caused_by_interrupt(exc):
-            raise  # a real error; otherwise a signal shut the context down mid-wait
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(PolicyServer, prog="policy", flags=PARAMS, argv=argv,
+                    description="Serve a trained policy on policy/action.")
 
 
 if __name__ == "__main__":

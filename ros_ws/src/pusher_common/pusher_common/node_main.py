@@ -47,15 +47,20 @@ def run_node(
     make_node: Callable,
     *,
     prog: str,
+    command: str | None = None,
     flags: Sequence[Param] = (),
     description: str | None = None,
     argv: list[str] | None = None,
     spin: Callable = spin_executor,
     runs_in_main: bool = False,
 ) -> int:
-    """Run one node process; returns its exit status."""
+    """Run one node process; returns its exit status.
+
+    ``prog`` names the node in error lines; ``command`` is how it is started, for
+    ``--help`` (default ``ros2 run PROG node``).
+    """
     argv = list(sys.argv if argv is None else argv)
-    parser = argparse.ArgumentParser(prog=f"ros2 run {prog}", description=description,
+    parser = argparse.ArgumentParser(prog=command or f"ros2 run {prog} node", description=description,
                                      epilog="Every option is also a ROS parameter: --ros-args -p NAME:=VALUE "
                                             "or --params-file FILE.")
     add_flags(parser, flags)

@@ -14,6 +14,8 @@ A node lists its settings once, as :class:`Param` entries; from that list come
 A parameter that is not read-only must take effect when set: the node passes
 ``on_change(name, value)``, called after a change was accepted; settings without such
 handling are declared read-only, so ``ros2 param set`` is refused rather than ignored.
+A node may also pass ``check(name, value) -> reason or None`` to refuse a run-time value
+that is well-typed but unusable (a checkpoint that does not load).
 """
 
 from __future__ import annotations
@@ -129,10 +131,12 @@ def overrides_from_flags(params: Sequence[Param], args: argparse.Namespace | Non
 class Settings:
     """A node's declared parameters; ``settings.name`` is the current value."""
 
-    def __init__(self, node, params: Sequence[Param], on_change: Callable[[str, Any], None] | None = None):
+    def __init__(self, node, params: Sequence[Param], on_change: Callable[[str, Any], None] | None = None,
+                 check: Callable[[str, Any], str | None] | None = None):
         self._node = node
         self._params = {p.name: p for p in params}
         self._on_change = on_change
+        self._check = None  # only for run-time changes: the node checks its starting values itself
         self._values: dict[str, Any] = {}
         node.add_on_set_parameters_callback(self._validate)
         for p in params:
@@ -146,10 +150,11 @@ class Settings:
                 else:
                     declared = node.declare_parameter(p.name, p.default, p.descriptor())
             except (InvalidParameterValueException, InvalidParameterTypeException) as exc:
-                reason = str(exc).split("Reason: ", 1)[-1]
+                reason = str(exc).split("Reason: ", 1)[-1].removesuffix(f": {p.name}")
                 raise UserError(reason if reason.startswith("parameter ") else f"parameter {p.name}: {reason}") from None
             self._values[p.name] = p.check(declared.value)[0]
         node.add_post_set_parameters_callback(self._changed)
+        self._check = check
 
     def __getattr__(self, name: str):
         try:
@@ -165,7 +170,9 @@ class Settings:
             spec = self._params.get(parameter.name)
             if spec is None:
                 continue  # rclpy's own (use_sim_time, ...)
-            _, why = spec.check(parameter.value)
+            value, why = spec.check(parameter.value)
+            if why is None and self._check is not None:
+                why = self._check(parameter.name, value)
             if why:
                 return SetParametersResult(successful=False, reason=f"parameter {parameter.name}: {why}")
         return SetParametersResult(successful=True)
@@ -193,7 +200,8 @@ def params_from_parser(parser: argparse.ArgumentParser, read_only: bool = True) 
     for action in parser._actions:  # noqa: SLF001 - argparse has no public listing
         if not action.option_strings or action.dest in ("help",) or action.dest is argparse.SUPPRESS:
             continue
-        flag = max(action.option_strings, key=len)
+        flag = next((o for o in action.option_strings if o.startswith("--") and not o.startswith("--no-")),
+                    action.option_strings[0])
         description = (action.help or action.dest.replace("_", " ")) % {"default": action.default} \
             if action.help and "%(default)" in action.help else (action.help or action.dest.replace("_", " "))
         if isinstance(action, argparse.BooleanOptionalAction) or isinstance(action.const, bool):

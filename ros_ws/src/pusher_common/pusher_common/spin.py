@@ -66,3 +66,8 @@ def spin_until_future_complete(executor: Executor, future: Future) -> None:
                 executor.spin_once(timeout_sec=0)
     finally:
         sigint.destroy()
+
+
+def spin_node_fast(executor: Executor, node) -> None:
+    """``run_node``'s ``spin`` for a node with a ``finished`` future, on the fast path."""
+    spin_until_future_complete(executor, node.finished)

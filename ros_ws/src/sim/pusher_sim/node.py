@@ -28,15 +28,12 @@ from __future__ import annotations
 
 import array
 import json
-import os
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import rclpy
 from geometry_msgs.msg import PointStamped
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
@@ -44,12 +41,14 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float32MultiArray
 from std_srvs.srv import Trigger
 
-from offline_rl_core.errors import caused_by_interrupt
+from offline_rl_core.atomic import atomic_path
 from offline_rl_core.bag import encode_transition_rows
 from offline_rl_core.env import ACT_DIM, CONTROL_HZ, JOINT_NAMES, MAX_STEPS, PusherReachEnv
 from offline_rl_core.transitions import LAYOUT_SLICES, SOURCE_NAMES, SOURCE_POLICY, TRANSITION_WIDTH
 
-from pusher_common.spin import spin_until_future_complete
+from pusher_common.node_main import run_node
+from pusher_common.params import Param, Settings
+from pusher_common.spin import spin_node_fast
 from pusher_common.stamps import stamp_from_ns, stamp_key
 
 TICK_NS = 1_000_000_000 // CONTROL_HZ  # 20 ms
@@ -70,24 +69,36 @@ def source_from_tag(frame_id: str) -> int:
     return SOURCE_POLICY
 
 
-class PusherSim(Node):
-    def __init__(self):
-        super().__init__("sim")
-        self.mode = self.declare_parameter("mode", "realtime").value
-        self.seed = int(self.declare_parameter("seed", 0).value)
-        self.max_episodes = int(self.declare_parameter("episodes", 0).value)
-        self.summary_path = str(self.declare_parameter("summary", "").value)
-        terminate = bool(self.declare_parameter("terminate_on_success", False).value)
-        self.republish_period = float(self.declare_parameter("republish_period", 0.1).value)
-        # lockstep: hold the first state until this many /pusher/transition readers are
-        # matched (a passive recorder then gets every transition from the first one on)
-        self.wait_for_subscribers = int(self.declare_parameter("wait_for_subscribers", 0).value)
-        if self.mode not in ("realtime", "lockstep"):
-            raise ValueError(f"parameter mode must be 'realtime' or 'lockstep', got {self.mode!r}")
-        if self.max_episodes < 0:
-            raise ValueError(f"parameter episodes must be >= 0 (0 = forever), got {self.max_episodes}")
+PARAMS = (
+    Param("mode", "realtime", "realtime: a 50 Hz timer steps the arm with the latest command held; "
+          "lockstep: the arm steps once per command stamped with the current state's stamp",
+          choices=("realtime", "lockstep"), read_only=True),
+    Param("seed", 0, "episode e resets with reset seed seed + e", low=0, read_only=True),
+    Param("episodes", 0, "episodes to run before exiting (0: run until stopped)", low=0),
+    Param("summary", "", "JSON file written on exit: episodes, success_rate, mean_final_dist, mean_return "
+          "(empty: none)"),
+    Param("terminate_on_success", False, "end an episode as soon as the fingertip reaches the target"),
+    Param("republish_period", 0.1, "lockstep: seconds before a state whose command has not come is published again",
+          low=0.001, high=60.0),
+    # a passive recorder started beside the sim then gets every transition from the first on
+    Param("wait_for_subscribers", 0, "lockstep: hold the first state until this many pusher/transition readers "
+          "are matched", low=0, read_only=True),
+)
 
-        self.env = PusherReachEnv(terminate_on_success=terminate)
+
+class PusherSim(Node):
+    def __init__(self, overrides=()):
+        super().__init__("sim", parameter_overrides=list(overrides))
+        self.settings = Settings(self, PARAMS, on_change=self.on_parameter_change)
+        s = self.settings
+        self.mode = s.mode
+        self.seed = s.seed
+        self.max_episodes = s.episodes
+        self.summary_path = s.summary
+        self.wait_for_subscribers = s.wait_for_subscribers
+        self.republish_period = s.republish_period
+
+        self.env = PusherReachEnv(terminate_on_success=s.terminate_on_success)
         self.finished = Future()  # done when `episodes` episodes have run
         self.episode = 0  # index of the current episode; it resets with seed + episode
         self.results: list[tuple[bool, float, float]] = []  # (success, final dist, return) per episode
@@ -99,14 +110,14 @@ class PusherSim(Node):
         self.held_source = SOURCE_POLICY
         self.tick_times: list[float] = []
 
-        self.state_pub = self.create_publisher(JointState, "/pusher/state", 10)
-        self.target_pub = self.create_publisher(PointStamped, "/pusher/target", 10)
+        self.state_pub = self.create_publisher(JointState, "pusher/state", 10)
+        self.target_pub = self.create_publisher(PointStamped, "pusher/target", 10)
         # The fingertip the env's observation uses (MuJoCo's site, see env.apply_action):
         # lets a ROS policy rebuild the training observation exactly.
-        self.fingertip_pub = self.create_publisher(PointStamped, "/pusher/fingertip", 10)
-        self.transition_pub = self.create_publisher(Float32MultiArray, "/pusher/transition", TRANSITION_QOS)
-        self.create_subscription(JointState, "/pusher/command", self.on_command, 10)
-        self.create_service(Trigger, "/pusher/reset", self.on_reset)
+        self.fingertip_pub = self.create_publisher(PointStamped, "pusher/fingertip", 10)
+        self.transition_pub = self.create_publisher(Float32MultiArray, "pusher/transition", TRANSITION_QOS)
+        self.create_subscription(JointState, "pusher/command", self.on_command, 10)
+        self.create_service(Trigger, "pusher/reset", self.on_reset)
         self.state_msg = JointState(name=list(JOINT_NAMES))
         self.target_msg = PointStamped()
         self.target_msg.header.frame_id = "world"
@@ -114,14 +125,29 @@ class PusherSim(Node):
         self.fingertip_msg.header.frame_id = "world"
 
         self.start_episode()
+        self.republish_timer = None
         if self.mode == "realtime":
             self.create_timer(1.0 / CONTROL_HZ, self.on_tick)
         else:
-            self.create_timer(self.republish_period, self.on_republish_timer)
+            self.republish_timer = self.create_timer(self.republish_period, self.on_republish_timer)
         self.get_logger().info(
             f"{self.mode} pusher-reach, seed {self.seed}, "
             f"{'endless' if self.max_episodes == 0 else f'{self.max_episodes} episodes'}"
         )
+
+    def on_parameter_change(self, name: str, value) -> None:
+        if name == "episodes":
+            self.max_episodes = value
+            if value and len(self.results) >= value:
+                self.finish()
+        elif name == "summary":
+            self.summary_path = value
+        elif name == "terminate_on_success":
+            self.env.terminate_on_success = value  # from the next step on
+        elif name == "republish_period":
+            self.republish_period = value
+            if self.republish_timer is not None:
+                self.republish_timer.timer_period_ns = int(value * 1e9)
 
     # -------------------------------------------------------------- episodes
     def start_episode(self) -> None:
@@ -210,11 +236,8 @@ class PusherSim(Node):
     def write_summary(self) -> None:
         if not self.summary_path:
             return
-        path = Path(self.summary_path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-        tmp.write_text(json.dumps(self.summary(), indent=2) + "\n")
-        os.replace(tmp, path)
+        with atomic_path(self.summary_path) as tmp:
+            tmp.write_text(json.dumps(self.summary(), indent=2) + "\n")
 
     # -------------------------------------------------------------- callbacks
     def parse_command(self, msg: JointState) -> np.ndarray | None:
@@ -283,31 +306,16 @@ class PusherSim(Node):
         )
 
 
+    def close(self) -> None:
+        self.write_summary()
+        report = self.timing_report()
+        if report:
+            self.get_logger().info(f"realtime timing: {report}")
+
+
 def main(argv: list[str] | None = None) -> int:
-    rclpy.init(args=sys.argv if argv is None else argv)
-    node = None
-    try:
-        node = PusherSim()
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        spin_until_future_complete(executor, node.finished)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except ValueError as exc:
-        print(f"sim: error: {exc}", file=sys.stderr)
-        return 2
-    except Exception as exc:
-        if rclpy.ok() and not caused_by_interrupt(exc):
-            raise  # a real error; otherwise a signal shut the context down mid-wait
-    finally:
-        if node is not None:
-            node.write_summary()
-            report = node.timing_report()
-            if report:
-                node.get_logger().info(f"realtime timing: {report}")
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(PusherSim, prog="sim", argv=argv, spin=spin_node_fast,
+                    description="The MuJoCo pusher-reach arm behind ROS 2 topics.")
 
 
 if __name__ == "__main__":
