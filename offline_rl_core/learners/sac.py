@@ -64,12 +64,12 @@ class SAC(Learner):
         q = self.critic.q_min(batch.obs, action)
         self.critic.online.requires_grad_(True)
         bc = (torch.tanh(mean) - batch.action).pow(2).mean(-1, keepdim=True) * batch.human
-        return per_member_mean(alpha * log_prob - q) + self.cfg.bc_weight * per_member_mean(bc), log_prob
+        return per_member_mean(alpha * log_prob - q) + self.cfg.bc_weight * per_member_mean(bc), log_prob, q
 
     def update(self, batch):
         alpha = self.log_alpha.detach().exp()
         critic_loss = self.critic_update(batch, alpha)
-        policy_loss, log_prob = self.actor_loss(batch, alpha)
+        policy_loss, log_prob, q = self.actor_loss(batch, alpha)
         self.step_policy(policy_loss)
         if self.alpha_opt is not None:
             alpha_loss = per_member_mean(-self.log_alpha * (log_prob.detach() + self.cfg.target_entropy))
@@ -78,7 +78,7 @@ class SAC(Learner):
             self.alpha_opt.step()
         self.critic.polyak()
         return {"critic_loss": critic_loss / 2, "policy_loss": policy_loss.detach(), "alpha": alpha.flatten(),
-                "log_std": self.log_std.detach().mean((1, 2))}
+                "log_std": self.log_std.detach().mean((1, 2)), "q_policy": q.detach().mean((1, 2))}
 
     def mean_abs_q(self, data):
         return self.critic.mean_abs_q(data)
