@@ -23,6 +23,7 @@ from .errors import UserError
 from .atomic import write_json_atomic
 from .evaluation import evaluate_policy
 from .learners import ALGORITHMS, Progress, TrainConfig, train
+from .learners.resume import ResumePoints
 from .plots import plot_training_curve
 from .policy import load_checkpoint, save_checkpoint
 from .transitions import SOURCE_NAMES, Transitions
@@ -46,29 +47,21 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--eval-seed", type=int, default=DEFAULT_EVAL_SEED,
                         help="first reset seed of the evaluation rollouts (default: %(default)s)")
     parser.add_argument("--init", metavar="CHECKPOINT", help="warm-start policy (and critics if stored) from a checkpoint")
-    hp = parser.add_argument_group("hyper-parameters (defaults are the chapter's)")
-    hp.add_argument("--batch-size", type=int, default=d.batch_size)
-    hp.add_argument("--hidden", type=int, default=d.hidden)
-    hp.add_argument("--lr", type=float, default=d.lr)
-    hp.add_argument("--gamma", type=float, default=d.gamma)
-    hp.add_argument("--tau", type=float, default=d.tau, help="Polyak rate of the target critics")
-    hp.add_argument("--beta", type=float, default=d.beta, help="AWAC temperature")
-    hp.add_argument("--weight-clip", type=float, default=d.weight_clip, help="AWAC weight clip")
-    hp.add_argument("--expectile", type=float, default=d.expectile, help="IQL expectile")
-    hp.add_argument("--temperature", type=float, default=d.temperature, help="IQL inverse temperature")
-    hp.add_argument("--max-weight", type=float, default=d.max_weight, help="IQL weight clip")
-    hp.add_argument("--filter-top-frac", type=float, default=d.filter_top_frac, help="filtered BC: share of best episodes")
-    hp.add_argument("--correction-ratio", type=float, default=d.correction_ratio,
-                    help="share of each batch drawn from correction runs (policy/human transitions); default: uniform")
-    hp.add_argument("--threads", type=int, default=d.threads, help="torch threads while training (default: %(default)s)")
-    hp.add_argument("--log-every", type=int, default=d.log_every, help="steps between progress reports")
-    hp.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=d.deterministic,
-                    help="fp32 everywhere; the default runs the hidden layer in bf16 where the CPU has native bf16 "
-                         "(AMX / AVX512-BF16). Both are byte-identical run to run for a seed")
-    hp.add_argument("--device", default=d.device,
-                    help="cpu (default), or cuda / cuda:N to train on an NVIDIA GPU; evaluation stays on the CPU")
-    hp.add_argument("--cuda-graph", action=argparse.BooleanOptionalAction, default=d.cuda_graph,
-                    help="on CUDA, replay each step as one recorded CUDA graph (default: on)")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue from DIR/resume.pt, the resume point a killed run left (same result, same bytes)")
+    parser.add_argument("--resume-every", type=float, default=1.0, metavar="S",
+                        help="seconds between resume points (default: %(default)s)")
+    groups = {"run": parser, "hyper-parameters": parser.add_argument_group("hyper-parameters (defaults are the chapter's)")}
+    for f in fields(TrainConfig):
+        if f.name in ("algo", "steps"):
+            continue  # above, with their own choices and help
+        flag, default = "--" + f.name.replace("_", "-"), getattr(d, f.name)
+        options = dict(default=default, help=f.metadata["help"] + (" (default: %(default)s)" if default is not None else ""))
+        if isinstance(default, bool):
+            options["action"] = argparse.BooleanOptionalAction
+        else:
+            options["type"] = type(default) if default is not None else float
+        groups[f.metadata["group"]].add_argument(flag, **options)
 
 
 def config_from_args(args: argparse.Namespace) -> TrainConfig:
@@ -111,6 +104,8 @@ def run_training(
     init: str | None = None,
     progress: Callable[[Progress], None] | None = None,
     log: Callable[[str], None] = lambda s: print(s, file=sys.stderr),
+    resume: bool = False,
+    resume_every: float = 1.0,
 ) -> Path:
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
@@ -126,8 +121,16 @@ def run_training(
                             f"the bag's ({data.obs.shape[1]}, {data.action.shape[1]})")
         if int(init_ckpt["hidden"]) != cfg.hidden:
             raise UserError(f"{init}: checkpoint hidden size {init_ckpt['hidden']} differs from --hidden {cfg.hidden}")
+    if resume_every <= 0:
+        raise UserError(f"--resume-every must be > 0, got {resume_every}")
+    points = ResumePoints(out / "resume.pt", resume_every, resume)
+    if resume:
+        log(f"resuming from {points.path}" if points.path.exists() else f"no resume point at {points.path}; starting")
     log(f"training {cfg.algo} on {len(data)} transitions from {len(bags)} bag(s), {cfg.steps} steps, seed {seed}")
-    result = train(data, cfg, seed, progress=progress, init=init_ckpt)
+    try:
+        result = train(data, cfg, seed, progress=progress, init=init_ckpt, resume=points)
+    except ValueError as exc:  # an unreadable or foreign resume point
+        raise UserError(str(exc)) from None
 
     metrics: dict = {
         "algorithm": cfg.algo,
@@ -149,6 +152,7 @@ def run_training(
     save_checkpoint(out / "policy.pt", result.checkpoint)
     write_json_atomic(out / "metrics.json", metrics)
     plot_training_curve(result.history, out / "training_curve.png", title=f"{cfg.algo} seed {seed}")
+    points.done()  # the run is complete: its resume point is spent
     return out
 
 
@@ -160,7 +164,7 @@ def run_training_from_args(args: argparse.Namespace, progress: Callable[[Progres
     cfg = config_from_args(args)
     out = args.out or default_out_dir(args.algo, args.seed)
     return run_training(args.bag, cfg, args.seed, out, args.eval_episodes, args.eval_seed, args.init,
-                        progress=progress or console_progress())
+                        progress=progress or console_progress(), resume=args.resume, resume_every=args.resume_every)
 
 
 def summary_line(out: Path) -> str:

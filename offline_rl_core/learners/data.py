@@ -140,6 +140,15 @@ class IndexSampler:
             parts.append(extra[pick])
         return torch.cat(parts, dim=1)
 
+    def state(self) -> dict:
+        return {"generators": [g.get_state() for g in self.generators], "chunk": self._chunk, "pos": self._pos}
+
+    def load_state(self, state: dict) -> None:
+        for g, s in zip(self.generators, state["generators"]):
+            g.set_state(s)
+        self._chunk = None if state["chunk"] is None else state["chunk"].to(self.device)
+        self._pos = int(state["pos"])
+
     def next(self) -> torch.Tensor:
         """(M, B) indices for the next step."""
         if self._chunk is None or self._pos == self._chunk.shape[1]:

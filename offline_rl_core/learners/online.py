@@ -22,7 +22,6 @@ from __future__ import annotations
 import time
 from dataclasses import asdict, dataclass
 
-import numpy as np
 import torch
 
 from ..policy import CHECKPOINT_FORMAT, CHECKPOINT_VERSION
@@ -30,6 +29,7 @@ from ..transitions import Transitions
 from .config import TrainConfig
 from .data import MemberData
 from .loop import LEARNERS, seed_generators, torch_threads
+from .resume import learner_training_state, load_learner_training_state
 from .stepper import make_step
 
 
@@ -168,18 +168,14 @@ class OnlineLearner:
     # ------------------------------------------------------------------ resume
     def state(self) -> dict:
         """Everything needed to resume: tensors, generators, counters, the online rows."""
-        learner = self.learner
         return {
             "format": "pusher-rl/online-learner",
             "version": 1,
             "seed": self.seed,
             "config": self.cfg.to_dict(),
             "online": asdict(self.settings),
-            "modules": {name: m.state_dict() for name, m in _modules(learner).items()},
-            "params": {name: p.detach().clone() for name, p in _params(learner).items()},
-            "optimizers": {name: o.state_dict() for name, o in _optimizers(learner).items()},
-            "generators": {"sample": self.sample_gen.get_state(),
-                           **{name: g.get_state() for name, g in _generators(learner).items()}},
+            "learner": learner_training_state(learner),
+            "sample_generator": self.sample_gen.get_state(),
             "n_online": self.n_online,
             "updates": self.updates,
             "train_version": self.version,
@@ -193,53 +189,10 @@ class OnlineLearner:
             raise ValueError("not an online learner state")
         if self.updates:
             raise ValueError("restore into a learner that has not trained yet")
-        learner = self.learner
-        with torch.no_grad():
-            for name, module in _modules(learner).items():
-                module.load_state_dict(state["modules"][name])
-            for name, p in _params(learner).items():
-                p.copy_(state["params"][name])
-        for name, opt in _optimizers(learner).items():
-            opt.load_state_dict(state["optimizers"][name])
-        self.sample_gen.set_state(state["generators"]["sample"])
-        for name, gen in _generators(learner).items():
-            gen.set_state(state["generators"][name])
+        load_learner_training_state(self.learner, state["learner"])
+        self.sample_gen.set_state(state["sample_generator"])
         n = int(state["n_online"])
         for name in MemberData.FIELDS:
             getattr(self.data, name)[0, self.n_offline: self.n_offline + n] = state["online_rows"][name]
         self.data.sizes = [self.n_offline + n]
         self.n_online, self.updates, self.version = n, int(state["updates"]), int(state["train_version"])
-
-
-def _named(learner, kind) -> dict:
-    """The learner's attributes of type ``kind``, and its helpers' (e.g. critic.opt),
-    by dotted name: what resuming must restore."""
-    found = {}
-    for name, value in vars(learner).items():
-        if isinstance(value, kind):
-            found[name] = value
-        elif hasattr(value, "__dict__") and not isinstance(value, (torch.nn.Module, torch.Tensor)):
-            for sub, inner in vars(value).items():
-                if isinstance(inner, kind):
-                    found[f"{name}.{sub}"] = inner
-    return found
-
-
-def _modules(learner) -> dict:
-    return _named(learner, torch.nn.Module)
-
-
-def _params(learner) -> dict:
-    return {k: v for k, v in _named(learner, torch.Tensor).items() if isinstance(v, torch.nn.Parameter)}
-
-
-def _optimizers(learner) -> dict:
-    return _named(learner, torch.optim.Optimizer)
-
-
-def _generators(learner) -> dict:
-    return _named(learner, torch.Generator)
-
-
-def as_transitions(rows: np.ndarray) -> Transitions:
-    return Transitions.from_rows(np.asarray(rows, dtype=np.float32).reshape(-1, rows.shape[-1]))
