@@ -9,7 +9,9 @@ every weights version it returns is published for the acting policy node
 - ``policy.pt``: the latest weights version, a checkpoint any tool loads (atomic);
 - ``learner_state.pt``: everything needed to resume (networks, optimisers, generators,
   counters, the online buffer), written atomically every ``save_every`` seconds and at exit;
-- ``progress.jsonl``: one line per weights version (counts, losses, timings).
+- ``progress.jsonl``: one line per weights version (counts, losses, timings);
+- ``snapshots/policy_NNNNNN.pt``: the weights every ``snapshot_every`` transitions (the
+  learning curve is scored from them afterwards, off the critical path).
 
 Resuming (``resume``): the saved state is loaded, and with a ``session_bag`` (the
 passive recorder's bag of the same session) the transitions that arrived after the save
@@ -49,6 +51,7 @@ class LearnerServiceConfig:
     save_every: float = 2.0  # seconds between resume points
     resume: bool = False
     session_bag: str | None = None  # the session's recording: transitions missed while down
+    snapshot_every: int = 0  # live transitions between kept copies of the weights (0: none)
     settings: OnlineSettings = field(default_factory=OnlineSettings)
     train: TrainConfig = field(default_factory=lambda: TrainConfig(algo="sac"))
 
@@ -113,10 +116,16 @@ class LearnerService:
         self.started = time.monotonic()
         self.last_save = time.monotonic()
         self.out.mkdir(parents=True, exist_ok=True)
+        if cfg.snapshot_every and cfg.snapshot_every % cfg.settings.publish_every:
+            raise UserError(f"snapshot_every ({cfg.snapshot_every}) must be a multiple of publish_every "
+                            f"({cfg.settings.publish_every})")
         if cfg.resume:
             self._resume()
         else:
             self._write_policy(self.learner.weights())
+            if cfg.snapshot_every:
+                save_checkpoint(self.out / "snapshots" / "policy_000000.pt", {**self.learner.weights(), "wall_s": 0.0,
+                                                                             "train_s": 0.0})
         self.weights = self.learner.weights()  # the version the actor should be acting on
 
     # ---------------------------------------------------------------- input
@@ -154,6 +163,11 @@ class LearnerService:
 
     def _on_version(self, weights: dict) -> None:
         self._write_policy(weights)
+        n, every = weights["trained_through"], self.cfg.snapshot_every
+        if every and n % every == 0:
+            snap = {**weights, "wall_s": round(time.monotonic() - self.started, 3),
+                    "train_s": round(self.learner.train_seconds, 3)}
+            save_checkpoint(self.out / "snapshots" / f"policy_{n:06d}.pt", snap)
         line = {"weights_version": weights["weights_version"], "trained_through": weights["trained_through"],
                 "updates": self.learner.updates, "received": self.learner.n_online,
                 "rejected": self.rejected.total, "train_s": round(self.learner.train_seconds, 3),

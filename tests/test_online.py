@@ -111,3 +111,90 @@ def test_in_process_stage_is_reproducible_and_learns_from_corrections(offline, p
     assert one["counts"]["steps"] == 300 and one["counts"]["human"] > 0  # the corrector took over
     assert [p["env_steps"] for p in one["curve"]] == [0, 150, 300]
     assert one["final_weights"]["weights_version"] == 12
+
+
+# ---------------------------------------------------------------- the learner node's logic
+def _service(tmp_path, bag, prior_path, name, **kw):
+    from offline_rl_core.online_service import LearnerService, LearnerServiceConfig
+
+    cfg = LearnerServiceConfig(bags=[str(bag)], out=str(tmp_path / name), prior=str(prior_path), seed=5,
+                               settings=OnlineSettings(publish_every=10), train=TrainConfig(algo="sac", **SMALL), **kw)
+    return LearnerService(cfg, log=lambda s: None)
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory, offline, prior):
+    from offline_rl_core.bag import write_transitions
+    from offline_rl_core.policy import save_checkpoint
+
+    d = tmp_path_factory.mktemp("online")
+    write_transitions(d / "offline.db3", offline)
+    save_checkpoint(d / "prior.pt", prior)
+    stream = _stream(40)
+    write_transitions(d / "session.db3", stream)
+    return d, stream
+
+
+def _drain(service):
+    versions = []
+    while service.learner.updates_owed > 0:
+        versions += service.work(budget_s=10.0)
+    return versions
+
+
+def test_bad_live_transitions_are_counted_and_never_trained_on(tmp_path, files):
+    from offline_rl_core.bag.cdr import encode_transition_rows
+
+    d, stream = files
+    service = _service(tmp_path, d / "offline.db3", d / "prior.pt", "bad")
+    rows = stream.to_rows()[:3].copy()
+    nan, wild, good = rows[0].copy(), rows[1].copy(), rows[2]
+    nan[3] = np.nan
+    wild[8] = 1e38  # an action far outside [-1, 1]
+    payloads = encode_transition_rows(np.stack([nan, wild, good]))
+    assert "non-finite obs" in service.receive(payloads[0])
+    assert service.receive(payloads[1]) == "action outside [-1, 1]"
+    assert service.receive(b"\x00\x01\x00\x00garbage") .startswith("bad layout")
+    assert service.receive(payloads[2]) is None
+    assert service.learner.n_online == 1
+    assert service.rejected.total == 3
+
+
+def test_weights_messages_round_trip_and_snapshots_are_kept(tmp_path, files):
+    from offline_rl_core.bag.cdr import encode_transition_rows
+    from offline_rl_core.online_service import decode_weights, encode_weights
+
+    d, stream = files
+    service = _service(tmp_path, d / "offline.db3", d / "prior.pt", "w", snapshot_every=20)
+    for payload in encode_transition_rows(stream.to_rows()):
+        service.receive(payload)
+    versions = _drain(service)
+    assert [v["weights_version"] for v in versions] == [1, 2, 3, 4]
+    back = decode_weights(encode_weights(versions[-1]))
+    assert back["weights_version"] == 4 and back["trained_through"] == 40
+    assert torch.equal(_flat(back), _flat(versions[-1]))
+    assert sorted(p.name for p in (tmp_path / "w" / "snapshots").iterdir()) == [
+        "policy_000000.pt", "policy_000020.pt", "policy_000040.pt"]
+    assert len((tmp_path / "w" / "progress.jsonl").read_text().splitlines()) == 4
+
+
+def test_a_killed_learner_resumes_from_its_state_and_the_session_bag(tmp_path, files):
+    from offline_rl_core.bag.cdr import encode_transition_rows
+
+    d, stream = files
+    payloads = encode_transition_rows(stream.to_rows())
+    whole = _service(tmp_path, d / "offline.db3", d / "prior.pt", "whole")
+    for p in payloads:
+        whole.receive(p)
+    _drain(whole)
+    first = _service(tmp_path, d / "offline.db3", d / "prior.pt", "run")
+    for p in payloads[:17]:
+        first.receive(p)
+    _drain(first)
+    first.save()  # its last resume point; then it dies, and transitions 17.. go by unseen
+    resumed = _service(tmp_path, d / "offline.db3", d / "prior.pt", "run", resume=True,
+                       session_bag=str(d / "session.db3"))
+    assert resumed.learner.n_online == 40  # read back from the session's recording
+    _drain(resumed)
+    assert resumed.learner.version == whole.learner.version == 4
+    assert torch.equal(_flat(resumed.learner.weights()), _flat(whole.learner.weights()))

@@ -174,7 +174,7 @@ class OnlineLearner:
             "seed": self.seed,
             "config": self.cfg.to_dict(),
             "online": asdict(self.settings),
-            "learner": learner_training_state(learner),
+            "learner": learner_training_state(self.learner),
             "sample_generator": self.sample_gen.get_state(),
             "n_online": self.n_online,
             "updates": self.updates,

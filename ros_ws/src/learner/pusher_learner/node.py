@@ -67,6 +67,8 @@ PARAMS = [
     Param("threads", 1, "torch threads while training", low=1, read_only=True, flag="--threads"),
     Param("save_every", 2.0, "seconds between resume points (learner_state.pt)", low=0.1, read_only=True,
           flag="--save-every"),
+    Param("snapshot_every", 0, "live transitions between kept weights snapshots (OUT/snapshots; 0: none)", low=0,
+          read_only=True, flag="--snapshot-every"),
     Param("resume", False, "continue from OUT/learner_state.pt", read_only=True, flag="--resume"),
     Param("session_bag", None, "the session's recording, to read back transitions missed while down (with --resume)",
           read_only=True, flag="--session-bag", kind=str),
@@ -87,7 +89,7 @@ class Learner(Node):
                                   capacity=s.capacity)
         self.service = LearnerService(LearnerServiceConfig(
             bags=list(s.bag), out=s.out, prior=s.prior or None, seed=s.seed, save_every=s.save_every, resume=s.resume,
-            session_bag=s.session_bag or None, settings=settings, train=train), log=self.get_logger().info)
+            session_bag=s.session_bag or None, snapshot_every=s.snapshot_every, settings=settings, train=train), log=self.get_logger().info)
         self.weights_pub = self.create_publisher(UInt8MultiArray, "~/weights", WEIGHTS_QOS)
         self.status_pub = self.create_publisher(String, "~/status", 10)
         self.create_subscription(Float32MultiArray, "pusher/transition", self.on_transition, TRANSITION_QOS, raw=True)
