@@ -165,7 +165,10 @@ def test_trainer_node_from_the_card_command_publishes_progress(spawn, data, tmp_
 
 
 @pytest.mark.slow
-def test_closed_loop_matches_in_process_evaluation(spawn, data, tmp_path):
+@pytest.mark.parametrize("spin", ["fast", "executor"])
+def test_closed_loop_matches_in_process_evaluation(spawn, data, tmp_path, spin):
+    """Also both ways the sim can spin: the private wait-set fast path, and rclpy's public
+    executor (what runs where an rclpy lacks that API)."""
     from offline_rl_core.evaluation import evaluate_policy
 
     episodes, seed = 6, 500000
@@ -174,7 +177,7 @@ def test_closed_loop_matches_in_process_evaluation(spawn, data, tmp_path):
     sim = spawn(
         ros2("run", "sim", "node", "--ros-args", "-p", "mode:=lockstep", "-p", f"seed:={seed}",
              "-p", f"episodes:={episodes}", "-p", f"summary:={summary}", "-r", "pusher/command:=policy/action"),
-        "sim",
+        "sim", env={**os.environ, "PUSHER_RL_SPIN": spin},
     )
     assert sim.wait(timeout=120) == 0, sim.output()
     over_ros = json.loads(summary.read_text())
