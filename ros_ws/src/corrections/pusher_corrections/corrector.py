@@ -1,8 +1,8 @@
 """``ros2 run corrections corrector``: the human in human-in-the-loop, or a stand-in.
 
-Watches ``/pusher/state`` with its ``/pusher/target`` (paired by stamp, as the policy
-node does) and answers every state on ``/teleop/action`` (JointState, stamp = the
-state's, frame_id 'human'): either a correction (effort = torques in [-1, 1]) or a
+Watches ``pusher/state`` with its ``pusher/target`` (paired by stamp, as the policy
+node does: ``offline_rl_core.pairing``) and answers every state on ``teleop/action``
+(JointState, stamp = the state's): either a correction (effort = torques in [-1, 1]) or a
 *yield* (empty effort: the policy keeps the arm). A republished state gets the same
 answer again; each state is decided once.
 
@@ -34,12 +34,15 @@ from dataclasses import replace
 
 import numpy as np
 from geometry_msgs.msg import PointStamped
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.task import Future
 from sensor_msgs.msg import JointState
 
 from offline_rl_core.errors import UserError
 from offline_rl_core.env import ACT_DIM, JOINT_NAMES
+from offline_rl_core.joint_messages import joints_from_state
+from offline_rl_core.pairing import Paired, StatePairing
 from pusher_common.node_main import run_node
 from pusher_common.params import Param, Settings
 from pusher_common.stamps import stamp_key
@@ -126,10 +129,8 @@ class Corrector(Node):
                 raise UserError(str(exc)) from None
         else:
             self.teleop = KeyboardTeleop()
-            self.create_timer(0.1, self.check_quit)
-        self.target_stamp: int | None = None
-        self.target_xy: np.ndarray | None = None
-        self.pending: JointState | None = None
+            self.create_timer(0.1, self.check_quit, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self.pairing = StatePairing(use_fingertip=False)  # the rule computes its fingertip
         self.answers: dict[int, JointState] = {}
         self.states = 0
         self.corrections = 0
@@ -156,43 +157,33 @@ class Corrector(Node):
             self.finished.set_result(True)
 
     def on_target(self, msg: PointStamped) -> None:
-        if not (math.isfinite(msg.point.x) and math.isfinite(msg.point.y)):
-            return
-        self.target_stamp = stamp_key(msg.header.stamp)
-        self.target_xy = np.array([msg.point.x, msg.point.y])
-        if self.pending is not None and stamp_key(self.pending.header.stamp) == self.target_stamp:
-            pending, self.pending = self.pending, None
-            self.answer(pending)
+        if math.isfinite(msg.point.x) and math.isfinite(msg.point.y):
+            self.answer(self.pairing.on_target(stamp_key(msg.header.stamp), (msg.point.x, msg.point.y)))
 
     def on_state(self, msg: JointState) -> None:
-        if self.target_xy is not None and self.target_stamp == stamp_key(msg.header.stamp):
-            self.pending = None
-            self.answer(msg)
-        else:
-            self.pending = msg  # answered when its target arrives
+        self.answer(self.pairing.on_state(stamp_key(msg.header.stamp), msg))
 
-    def answer(self, msg: JointState) -> None:
-        stamp = stamp_key(msg.header.stamp)
+    def answer(self, paired: Paired | None) -> None:
+        if paired is None:
+            return
+        msg, stamp = paired.state, paired.stamp
         out = self.answers.get(stamp)
         if out is None:  # a new state: decide once
-            position, velocity = np.asarray(msg.position, np.float64), np.asarray(msg.velocity, np.float64)
-            if len(position) < ACT_DIM or len(velocity) < ACT_DIM or not (
-                np.all(np.isfinite(position[:ACT_DIM])) and np.all(np.isfinite(velocity[:ACT_DIM]))
-            ):
+            joints, _ = joints_from_state(msg.name, msg.position, msg.velocity)
+            if joints is None:
                 return
-            action = self.teleop.decide(position[:ACT_DIM], velocity[:ACT_DIM], self.target_xy)
+            action = self.teleop.decide(joints[0], joints[1], paired.target_xy)
             self.states += 1
             out = JointState(name=list(JOINT_NAMES))
             if action is not None:
                 out.effort = [float(a) for a in action]
                 self.corrections += 1
             out.header.stamp = msg.header.stamp
-            out.header.frame_id = "human"
             self.answers[stamp] = out
             if len(self.answers) > KEEP_ANSWERS:
                 for key in sorted(self.answers)[:-KEEP_ANSWERS // 2]:
                     del self.answers[key]
-        self.pub.publish(out)
+        self.pub.publish(out)  # a republished state gets the same answer again
 
     def close(self) -> None:
         if isinstance(self.teleop, KeyboardTeleop):

@@ -1,14 +1,14 @@
 """``ros2 run corrections mux``: the policy drives, a person (or the corrector) can take over.
 
-Forwards ``/policy/action`` to ``/pusher/command`` unless the human acts on
-``/teleop/action``; each command's ``header.frame_id`` is its source tag ('policy' or
-'human', codes 2 and 3), which the sim writes into ``/pusher/transition`` so the bag
-records who acted. ``/corrections/intervening`` (std_msgs/Bool, transient local) is
-published on each change.
+Forwards ``policy/action`` to the sim unless the human acts on ``teleop/action``: each
+command goes to ``pusher/command/policy`` or ``pusher/command/human``, the sim's inputs
+that say who acted (codes 2 and 3 in ``pusher/transition``, so the bag records it).
+``corrections/intervening`` (std_msgs/Bool, transient local) is published on each change.
 
 Parameters:
 - ``mode``: ``realtime`` (default) or ``lockstep``, as the sim's.
-- ``hold_ms`` (100): realtime: a teleop action holds the arm this long (wall time);
+- ``hold_ms`` (100): realtime: a teleop action holds the arm this long (on the node's
+  clock: sim time under ``use_sim_time``);
   policy actions inside the hold are dropped. An empty teleop action lets go at once.
 - ``require_teleop`` (false): lockstep: always wait for the corrector's word on each
   stamp (an action, or an empty-effort *yield*). When false, the mux waits only while
@@ -22,7 +22,6 @@ decided stamp only repeats the decided command (see ``pusher_corrections.arbiter
 from __future__ import annotations
 
 import sys
-import time
 
 import numpy as np
 from rclpy.node import Node
@@ -30,12 +29,13 @@ from rclpy.qos import DurabilityPolicy, QoSProfile
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool
 
-from offline_rl_core.env import ACT_DIM, JOINT_NAMES
+from offline_rl_core.env import JOINT_NAMES
+from offline_rl_core.joint_messages import action_from_effort
 from pusher_common.node_main import run_node
 from pusher_common.params import Param, Settings
 from pusher_common.stamps import stamp_key
 
-from .arbiter import HUMAN, LockstepArbiter, RealtimeArbiter
+from .arbiter import HUMAN, POLICY, LockstepArbiter, RealtimeArbiter
 
 WARN_THROTTLE_S = 2.0
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -65,7 +65,9 @@ class Mux(Node):
         self.require_teleop = self.settings.require_teleop
         self.arbiter = LockstepArbiter() if self.mode == "lockstep" else RealtimeArbiter(self.hold_s)
         self.intervening: bool | None = None
-        self.command_pub = self.create_publisher(JointState, "pusher/command", 10)
+        # who acted is the topic: pusher/command/policy or pusher/command/human (the sim logs it)
+        self.command_pubs = {source: self.create_publisher(JointState, f"pusher/command/{source}", 10)
+                             for source in (POLICY, HUMAN)}
         self.intervening_pub = self.create_publisher(Bool, "corrections/intervening", LATCHED)
         self.create_subscription(JointState, "policy/action", self.on_policy, 10)
         self.teleop_sub = self.create_subscription(JointState, "teleop/action", self.on_teleop, 10)
@@ -94,17 +96,15 @@ class Mux(Node):
 
     def parse(self, msg: JointState, topic: str, allow_empty: bool) -> np.ndarray | None | bool:
         """The action; None for an empty effort (a yield) when allowed; False if malformed."""
-        effort = msg.effort
-        if len(effort) == 0 and allow_empty:
-            return None
-        action = np.array(effort, dtype=np.float64)
-        if len(action) != ACT_DIM or not np.all(np.isfinite(action)):
-            self.get_logger().warn(f"ignoring {topic}: effort must be {ACT_DIM} finite values",
-                                   throttle_duration_sec=WARN_THROTTLE_S)
+        action, problem = action_from_effort(msg.name, msg.effort, allow_empty)
+        if problem:
+            self.get_logger().warning(f"ignoring {topic}: {problem}", throttle_duration_sec=WARN_THROTTLE_S)
             return False
-        if len(msg.name) == ACT_DIM and list(msg.name) != list(JOINT_NAMES) and set(msg.name) == set(JOINT_NAMES):
-            action = action[[list(msg.name).index(j) for j in JOINT_NAMES]]
-        return np.clip(action, -1.0, 1.0).astype(np.float32)
+        return action
+
+    def now(self) -> float:
+        """Seconds on the node's clock: the hold is in sim time under use_sim_time."""
+        return self.get_clock().now().nanoseconds / 1e9
 
     def corrector_present(self) -> bool:
         return self.require_teleop or self.teleop_sub.get_publisher_count() > 0
@@ -117,7 +117,7 @@ class Mux(Node):
         if self.mode == "lockstep":
             self.send(self.arbiter.on_policy(stamp, action, self.corrector_present()), msg)
         else:
-            self.send(self.arbiter.on_policy(stamp, action, time.monotonic()), msg)
+            self.send(self.arbiter.on_policy(stamp, action, self.now()), msg)
 
     def on_teleop(self, msg: JointState) -> None:
         action = self.parse(msg, "teleop/action", allow_empty=True)
@@ -127,7 +127,7 @@ class Mux(Node):
         if self.mode == "lockstep":
             self.send(self.arbiter.on_teleop(stamp, action), msg)
         else:
-            self.send(self.arbiter.on_teleop(stamp, action, time.monotonic()), msg)
+            self.send(self.arbiter.on_teleop(stamp, action, self.now()), msg)
             self.check_hold()
 
     def send(self, command, msg: JointState) -> None:
@@ -135,14 +135,13 @@ class Mux(Node):
             return
         out = JointState(name=list(JOINT_NAMES), effort=[float(a) for a in command.action])
         out.header.stamp = msg.header.stamp
-        out.header.frame_id = command.source
-        self.command_pub.publish(out)
+        self.command_pubs[command.source].publish(out)
         if self.mode == "lockstep" and not command.resend:
             self.set_intervening(command.source == HUMAN)
 
     def check_hold(self) -> None:
         if self.mode == "realtime":
-            self.set_intervening(self.arbiter.holding(time.monotonic()))
+            self.set_intervening(self.arbiter.holding(self.now()))
 
     def set_intervening(self, value: bool) -> None:
         if value != self.intervening:

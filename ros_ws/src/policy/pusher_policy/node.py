@@ -1,19 +1,16 @@
 """``ros2 run policy node --checkpoint PATH``: serve a trained policy over topics.
 
-Every ``/pusher/state`` (with its ``/pusher/target``) is answered on ``/policy/action``:
-a JointState whose effort is the action in [-1, 1], stamped with the state's stamp,
-``frame_id`` 'policy' (the sim's source tag). A malformed or non-finite state gets no
-action and a throttled warning. The checkpoint (``--checkpoint`` or ``-p checkpoint:=``)
+Every ``pusher/state`` (with its ``pusher/target``) is answered on ``policy/action``:
+a JointState whose effort is the action in [-1, 1], stamped with the state's stamp; and,
+on ``effort_topic`` (default ``effort_controller/commands``), the same action as joint
+torques in N·m (std_msgs/Float64MultiArray), what a ros2_control effort controller
+takes. A malformed or non-finite state gets no action and a throttled warning. The checkpoint (``--checkpoint`` or ``-p checkpoint:=``)
 is polled every ``poll_period`` seconds and hot-swapped when it changes; a file that
 fails to load leaves the previous policy serving, with an error logged. A missing or
 broken checkpoint at start is one error line and exit status 2.
 
-Target pairing: when the source stamps each target with the state it belongs to (the
-sim does), a state waits for the target with its stamp, so the first state of an
-episode is never answered with the previous episode's target. Otherwise the latest
-target is used. Fingertip: once ``/pusher/fingertip`` has been heard (the sim publishes
-the fingertip its observation uses), a state also waits for the fingertip with its
-stamp; an arm that publishes none gets planar forward kinematics of its joints.
+State, target and fingertip are paired by stamp as ``offline_rl_core.pairing`` says;
+an arm that publishes no fingertip gets planar forward kinematics of its joints.
 """
 
 from __future__ import annotations
@@ -27,10 +24,14 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 from geometry_msgs.msg import PointStamped
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
 
-from offline_rl_core.env import ACT_DIM, JOINT_NAMES, observation_from_joints
+from offline_rl_core.env import JOINT_NAMES, observation_from_joints
+from offline_rl_core.joint_messages import joints_from_state, torques_from_action
+from offline_rl_core.pairing import Paired, StatePairing
 from offline_rl_core.errors import UserError
 from offline_rl_core.policy import load_policy
 from pusher_common.node_main import run_node
@@ -53,6 +54,9 @@ PARAMS = (
     Param("checkpoint", "", "policy checkpoint to serve (policy.pt, or a run directory holding one); "
           "watched and reloaded when replaced; setting it switches to another checkpoint", flag="--checkpoint"),
     Param("poll_period", 0.5, "seconds between checks of the checkpoint file for a new version", low=0.01, high=60.0),
+    Param("effort_topic", "effort_controller/commands", "also publish each action as std_msgs/Float64MultiArray joint "
+          "torques in N·m (action x motor gear) on this topic, as a ros2_control effort controller takes them "
+          "(empty: off)", read_only=True),
 )
 
 
@@ -72,12 +76,7 @@ class PolicyServer(Node):
         self.signature = file_signature(self.path)
         self.policy = load_policy(self.path)  # UserError with one clear line if missing/broken
         self.candidate = None  # a checkpoint set at run time, loaded while checking it
-        self.target_stamp: int | None = None
-        self.target_xy: np.ndarray | None = None
-        self.co_stamped = False  # the source stamps targets with their state's stamp
-        self.fingertip_stamp: int | None = None
-        self.fingertip_xy: np.ndarray | None = None
-        self.pending: JointState | None = None
+        self.pairing = StatePairing()
         self.answered = 0
 
         # Target subscription first: when both are ready the executor takes it first.
@@ -85,7 +84,11 @@ class PolicyServer(Node):
         self.create_subscription(PointStamped, "pusher/fingertip", self.on_fingertip, 10)
         self.create_subscription(JointState, "pusher/state", self.on_state, 10)
         self.action_pub = self.create_publisher(JointState, "policy/action", 10)
-        self.poll_timer = self.create_timer(self.poll_period, self.check_checkpoint)
+        effort_topic = self.settings.effort_topic
+        self.effort_pub = self.create_publisher(Float64MultiArray, effort_topic, 10) if effort_topic else None
+        # Watching a file is wall-clock work, also under use_sim_time.
+        self.poll_timer = self.create_timer(self.poll_period, self.check_checkpoint,
+                                            clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.get_logger().info(f"serving {self.policy.algorithm} policy from {self.path}")
 
     # -------------------------------------------------------------- parameters
@@ -116,7 +119,7 @@ class PolicyServer(Node):
             return
         self.signature = signature
         if signature is None:
-            self.get_logger().warn(f"{self.path} disappeared; still serving the loaded policy")
+            self.get_logger().warning(f"{self.path} disappeared; still serving the loaded policy")
             return
         try:
             policy = load_policy(self.path)
@@ -128,78 +131,42 @@ class PolicyServer(Node):
 
     # -------------------------------------------------------------- serving
     def on_target(self, msg: PointStamped) -> None:
-        x, y = msg.point.x, msg.point.y
-        if not (math.isfinite(x) and math.isfinite(y)):
-            self.get_logger().warn("ignoring /pusher/target: not finite", throttle_duration_sec=WARN_THROTTLE_S)
-            return
-        self.target_stamp = stamp_key(msg.header.stamp)
-        self.target_xy = np.array([x, y])
-        if self.pending is not None and stamp_key(self.pending.header.stamp) == self.target_stamp:
-            self.co_stamped = True
-        self.answer_pending()
+        if self.finite_point(msg, "pusher/target"):
+            self.answer(self.pairing.on_target(stamp_key(msg.header.stamp), (msg.point.x, msg.point.y)))
 
     def on_fingertip(self, msg: PointStamped) -> None:
-        x, y = msg.point.x, msg.point.y
-        if not (math.isfinite(x) and math.isfinite(y)):
-            self.get_logger().warn("ignoring /pusher/fingertip: not finite", throttle_duration_sec=WARN_THROTTLE_S)
-            return
-        self.fingertip_stamp = stamp_key(msg.header.stamp)
-        self.fingertip_xy = np.array([x, y])
-        self.answer_pending()
+        if self.finite_point(msg, "pusher/fingertip"):
+            self.answer(self.pairing.on_fingertip(stamp_key(msg.header.stamp), (msg.point.x, msg.point.y)))
 
     def on_state(self, msg: JointState) -> None:
-        if self.target_xy is not None and self.target_stamp == stamp_key(msg.header.stamp):
-            self.co_stamped = True
-        self.pending = msg
-        self.answer_pending()
+        self.answer(self.pairing.on_state(stamp_key(msg.header.stamp), msg))
 
-    def answer_pending(self) -> None:
-        """Answer the waiting state once what it pairs with has arrived."""
-        msg = self.pending
-        if msg is None or self.target_xy is None:
+    def finite_point(self, msg: PointStamped, topic: str) -> bool:
+        if math.isfinite(msg.point.x) and math.isfinite(msg.point.y):
+            return True
+        self.get_logger().warning(f"ignoring {topic}: not finite", throttle_duration_sec=WARN_THROTTLE_S)
+        return False
+
+    def answer(self, paired: Paired | None) -> None:
+        if paired is None:
             return
-        stamp = stamp_key(msg.header.stamp)
-        if self.co_stamped and self.target_stamp != stamp:
-            return  # its target is still on the way
-        if self.fingertip_xy is not None and self.fingertip_stamp != stamp:
-            return  # the source publishes fingertips: wait for this state's
-        self.pending = None
-        self.answer(msg)
-
-    def joints(self, msg: JointState):
-        """(position, velocity) of shoulder, elbow, or None (with a warning) if malformed."""
-        position, velocity = np.asarray(msg.position, np.float64), np.asarray(msg.velocity, np.float64)
-        problem = None
-        if len(position) < ACT_DIM or len(velocity) < ACT_DIM:
-            problem = f"needs {ACT_DIM} positions and velocities, got {len(position)} and {len(velocity)}"
-        elif len(msg.name) >= ACT_DIM and set(JOINT_NAMES) <= set(msg.name):
-            names = list(msg.name)
-            index = [names.index(j) for j in JOINT_NAMES]
-            if max(index) >= min(len(position), len(velocity)):
-                problem = "names and values differ in length"
-            else:
-                position, velocity = position[index], velocity[index]
-        if problem is None and not (np.all(np.isfinite(position[:ACT_DIM])) and np.all(np.isfinite(velocity[:ACT_DIM]))):
-            problem = "position or velocity is not finite"
-        if problem:
-            self.get_logger().warn(f"no action for /pusher/state: {problem}", throttle_duration_sec=WARN_THROTTLE_S)
-            return None
-        return position[:ACT_DIM], velocity[:ACT_DIM]
-
-    def answer(self, msg: JointState) -> None:
-        joints = self.joints(msg)
+        msg = paired.state
+        joints, problem = joints_from_state(msg.name, msg.position, msg.velocity)
         if joints is None:
+            self.get_logger().warning(f"no action for pusher/state: {problem}", throttle_duration_sec=WARN_THROTTLE_S)
             return
-        fingertip = self.fingertip_xy if self.fingertip_stamp == stamp_key(msg.header.stamp) else None
-        obs = observation_from_joints(joints[0], joints[1], self.target_xy, fingertip)
+        obs = observation_from_joints(joints[0], joints[1], paired.target_xy, paired.fingertip_xy)
         action = self.policy.act(obs)
         if not np.all(np.isfinite(action)):
-            self.get_logger().warn("the policy produced a non-finite action; none sent", throttle_duration_sec=WARN_THROTTLE_S)
+            self.get_logger().warning("the policy produced a non-finite action; none sent",
+                                      throttle_duration_sec=WARN_THROTTLE_S)
             return
-        out = JointState(name=list(JOINT_NAMES), effort=[float(a) for a in np.clip(action, -1.0, 1.0)])
+        action = np.clip(action, -1.0, 1.0)
+        out = JointState(name=list(JOINT_NAMES), effort=[float(a) for a in action])
         out.header.stamp = msg.header.stamp
-        out.header.frame_id = "policy"
         self.action_pub.publish(out)
+        if self.effort_pub is not None:
+            self.effort_pub.publish(Float64MultiArray(data=[float(t) for t in torques_from_action(action)]))
         self.answered += 1
 
 

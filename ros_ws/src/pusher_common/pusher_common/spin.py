@@ -2,25 +2,40 @@
 
 rclpy's executor rebuilds its wait set in Python from every entity of its nodes (the
 parameter services, QoS event handlers, timers, ...) on each wake-up, and wakes about
-twice per callback: that cost per message, not DDS, held lockstep recording to ~900
-transitions/s. Here one wait set, made once, holds the subscriptions, timers and services;
-ready subscriptions are taken and their callbacks called directly, while a ready timer or
-service is run by the executor itself (``spin_once``), as is the rest (guard conditions,
-clients, QoS events), polled every ``POLL_S``. (rclpy's EventsExecutor, which does this
-in C++, hangs with these nodes.)
+twice per callback: that cost per message, not DDS, bounds lockstep recording
+(bench/RESULTS.md has the figures). Here one wait set, made once, holds the subscriptions,
+timers and services; ready subscriptions are taken and their callbacks called directly,
+while a ready timer or service is run by the executor itself (``spin_once``), as is the
+rest (guard conditions, clients, QoS events), polled every ``POLL_S``. (rclpy's
+EventsExecutor, which does this in C++, hangs with these nodes.)
+
+The wait set comes from rclpy's private C binding (as rclpy's own ``wait_for_message``
+does). Where an rclpy lacks it, or with ``PUSHER_RL_SPIN=executor``, the public
+``executor.spin_until_future_complete`` runs instead: slower, the same behaviour.
 """
 
 from __future__ import annotations
 
+import os
 import time
 
 from rclpy.executors import Executor, ExternalShutdownException
-# rclpy's own wait_for_message builds its wait set from the same binding.
-from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
-from rclpy.signals import SignalHandlerGuardCondition
 from rclpy.task import Future
 
+try:  # private API: kept only while this rclpy has it
+    from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+    from rclpy.signals import SignalHandlerGuardCondition
+
+    _FAST_PATH = hasattr(_rclpy, "WaitSet") and hasattr(_rclpy.WaitSet, "get_ready_entities")
+except ImportError:
+    _FAST_PATH = False
+
 POLL_S = 0.1
+
+
+def fast_path_available() -> bool:
+    """Whether the private wait-set API is here and not switched off (``PUSHER_RL_SPIN=executor``)."""
+    return _FAST_PATH and os.environ.get("PUSHER_RL_SPIN", "fast") != "executor"
 
 
 def spin_until_future_complete(executor: Executor, future: Future) -> None:
@@ -30,6 +45,9 @@ def spin_until_future_complete(executor: Executor, future: Future) -> None:
     exist when it is called. Raises ExternalShutdownException when the context shuts down
     (Ctrl-C, SIGTERM), as the executor does.
     """
+    if not fast_path_available():
+        executor.spin_until_future_complete(future)
+        return
     context = executor.context
     nodes = executor.get_nodes()
     subscriptions = [sub for node in nodes for sub in node.subscriptions]
