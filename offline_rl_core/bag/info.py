@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from rosbags.rosbag2.storage_mcap import McapReader
 
 from ..errors import UserError
 from ..transitions import SOURCE_NAMES, Transitions
@@ -144,7 +145,7 @@ def bag_info(path: str | os.PathLike) -> BagInfo:
         storage_id = "mcap" if path.suffix.lower() == ".mcap" else "sqlite3"
         if path.is_dir():
             storages = getattr(reader.storage, "storages", [])
-            storage_id = "mcap" if storages and type(storages[0]).__name__ == "McapReader" else "sqlite3"
+            storage_id = "mcap" if storages and isinstance(storages[0], McapReader) else "sqlite3"
         distro = reader.ros_distro
         if distro is None and path.suffix.lower() == ".db3":
             distro = _sqlite_distro(reader)

@@ -16,12 +16,15 @@ from pathlib import Path
 import numpy as np
 from rosbags.rosbag2 import Reader
 from rosbags.rosbag2.reader import DirectoryReader
+from rosbags.rosbag2.storage_mcap import McapReader
 from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
 
 from ..errors import UserError
 from ..transitions import Transitions
 from .cdr import TRANSITION_MSGTYPE, TRANSITION_TOPIC, TransitionDecodeError, decode_transition_payloads
 from .paths import SUFFIX_STORAGE
+from .storage_mcap import has_footer
+from .storage_sqlite import WalSqlite3Reader, has_pending_wal
 from .writer import field_of_column
 
 RECORD_HINT = "record one with `offline-rl collect` or `ros2 run recorder node`"
@@ -61,16 +64,75 @@ def check_sqlite_size(path: Path) -> None:
         )
 
 
+def sqlite_storage(path: Path) -> Sqlite3Reader:
+    """rosbags' sqlite3 reader, WAL-aware when the file's WAL holds commits (a live
+    recording, or one killed inside a flush)."""
+    return WalSqlite3Reader(path) if has_pending_wal(Path(path)) else Sqlite3Reader(path)
+
+
+class CheckedMcapReader(McapReader):
+    """rosbags' MCAP reader; a file without its footer (its writer was killed mid-flush)
+    is refused with the way out rather than a parse error."""
+
+    def open(self) -> None:
+        path = Path(self.path)
+        if path.stat().st_size > 8 and not has_footer(path):
+            raise UserError(
+                f"{path}: the MCAP file ends without its summary (its recording was cut off); "
+                f"`offline-rl bag repair {path}` makes it whole"
+            )
+        super().open()
+
+
+class BagDirectoryReader(DirectoryReader):
+    """rosbags' reader of a bag directory, with the storages above; when metadata.yaml
+    lags its files (a recording killed between a flush and the metadata update), the
+    counts come from the files, which hold the messages."""
+
+    STORAGE_PLUGINS = {"mcap": CheckedMcapReader, "sqlite3": sqlite_storage}
+
+    def open(self) -> None:
+        super().open()
+        total = sum(s.metadata.message_count for s in self.storages)
+        if total == self.metadata.message_count:
+            return
+        counts: dict[tuple[str, str], int] = {}
+        extra = {}
+        for storage in self.storages:
+            for conn in storage.connections:
+                key = (conn.topic, conn.msgtype)
+                counts[key] = counts.get(key, 0) + conn.msgcount
+                extra.setdefault(key, conn)
+        known = {(c.topic, c.msgtype) for c in self.connections}
+        self.connections = [c._replace(msgcount=counts.get((c.topic, c.msgtype), 0)) for c in self.connections]
+        for key, conn in extra.items():
+            if key not in known:
+                self.connections.append(conn._replace(id=len(self.connections) + 1, msgcount=counts[key], owner=self))
+        starts = [s.metadata.start_time for s in self.storages if s.metadata.message_count]
+        ends = [s.metadata.end_time for s in self.storages if s.metadata.message_count]
+        start, end = (min(starts), max(ends)) if starts else (2**63 - 1, 0)
+        self.metadata = self.metadata._replace(
+            duration=end - start if starts else 0, start_time=start, end_time=end, message_count=total
+        )
+
+
+class BagReader(Reader):
+    """rosbags' Reader with the storages above."""
+
+    STORAGE_PLUGINS = {"dir": BagDirectoryReader, ".mcap": CheckedMcapReader, ".db3": sqlite_storage}
+
+
 @contextmanager
 def open_bag(path: str | os.PathLike) -> Iterator[Reader]:
-    """rosbags' Reader on a bag, opened and closed; rosbags and storage failures as UserError."""
+    """A rosbags Reader on a bag, opened and closed; rosbags and storage failures as UserError."""
     path = Path(path)
     check_bag_path(path)
     try:
-        reader = Reader(path)
+        reader = BagReader(path)
         reader.open()
         for storage in _sqlite_storages(reader) or ():
-            check_sqlite_size(Path(storage.path))
+            if not isinstance(storage, WalSqlite3Reader):  # SQLite reads a WAL'd file's size itself
+                check_sqlite_size(Path(storage.path))
     except UserError:
         raise
     except Exception as exc:  # rosbags, apsw, YAML and struct errors all mean "unreadable"
