@@ -104,8 +104,10 @@ class BagWriter:
             if not overwrite:
                 raise UserError(f"{path} exists already; not overwriting a recording")
             _remove_bag(path, self.target.single_file)
-        if self.target.single_file and wal_path(path).exists():
-            raise UserError(f"{wal_path(path)} is left from an earlier recording without {path.name}; move it away first")
+        if self.target.single_file and wal_path(path).exists():  # sqlite would apply it to the new file
+            if not overwrite:
+                raise UserError(f"{wal_path(path)} is left from an earlier recording without {path.name}; move it away first")
+            _remove_bag(path, True)
         self.flush_interval = float(flush_interval)
         self.max_bag_size = int(max_bag_size)
         self.max_bag_duration_ns = int(max_bag_duration * 1e9)

@@ -276,6 +276,7 @@ class McapScan:
     size: int
     complete: bool  # the scan reached DataEnd and the file has its footer
     problem: str = ""  # why the scan stopped before DataEnd
+    has_header: bool = True  # the Header record is whole
     reindex_last_chunk: list[tuple[int, int, bytes]] | None = None  # its MessageIndex was cut off
 
 
@@ -365,7 +366,7 @@ def scan_mcap(path: Path) -> McapScan:
             pos += 9 + length
             if not (op == OP_METADATA and cur.str() == "rosbag2"):  # the tail's, rewritten by repair
                 keep_end = pos
-        scan = McapScan(index, keep_end, size, reached_end and has_footer(path), problem)
+        scan = McapScan(index, keep_end, size, reached_end and has_footer(path), problem, keep_end > len(MAGIC))
         if last_chunk is not None:
             info, messages = last_chunk
             if {cid for cid, _, _ in messages} - indexed:  # its MessageIndex records were cut off
@@ -388,8 +389,8 @@ def repair_mcap(path: Path, metadata_text) -> list[str]:
     if scan.complete and scan.reindex_last_chunk is None:
         return []
     index = scan.index
-    done = [f"{path.name}: {scan.problem or 'no summary'}; kept {scan.keep_end} of {scan.size} bytes"]
-    body = b""
+    done = [f"{scan.problem or 'no summary'}; kept {scan.keep_end} of {scan.size} bytes of {path.name}"]
+    body = b"" if scan.has_header else record(OP_HEADER, _str("ros2") + _str(LIBRARY))
     if scan.reindex_last_chunk is not None:
         info = index.chunks[-1]
         entries: dict[int, list[tuple[int, int]]] = defaultdict(list)
@@ -399,7 +400,7 @@ def repair_mcap(path: Path, metadata_text) -> list[str]:
             info.index_offsets[cid] = scan.keep_end + len(body)
             pairs = b"".join(u64(stamp) + u64(at) for stamp, at in sorted(entries[cid]))
             body += record(OP_MESSAGE_INDEX, u16(cid) + u32(len(pairs)) + pairs)
-        info.index_length = len(body)
+        info.index_length = sum(len(record(OP_MESSAGE_INDEX, b"")) + 6 + 16 * len(e) for e in entries.values())
         done.append(f"rebuilt the message index of the last chunk ({len(scan.reindex_last_chunk)} messages)")
     text = metadata_text(index.topics(), index.stats(path.name))
     with path.open("r+b") as f:
