@@ -170,18 +170,22 @@ def test_repair_sqlite_folds_a_left_wal(tmp_path):
     readers that open it immutable (rosbags)."""
     rows = _small_rows()
     path = tmp_path / "w.db3"
-    _write(path, rows[:100]).close()
-    extra = encode_transition_rows(rows[100:150])
     code = f"""
-import os, sqlite3
-db = sqlite3.connect({str(path)!r}, isolation_level=None)
-db.execute("PRAGMA journal_mode=WAL"); db.execute("PRAGMA wal_autocheckpoint=0")
-db.execute("BEGIN")
-db.executemany("INSERT INTO messages (topic_id, timestamp, data) VALUES (1, ?, ?)", {[(5 * 10**9 + i, p) for i, p in enumerate(extra)]!r})
-db.execute("COMMIT")
-os._exit(0)  # no checkpoint, no close: as a kill leaves it
+import os
+from offline_rl_core.bag import BagWriter, encode_transition_rows, storage_sqlite
+from offline_rl_core.collect import collect_transitions
+payloads = encode_transition_rows(collect_transitions(3, 0.5, 4).to_rows()[:150])
+bag = BagWriter({str(path)!r}, flush_interval=3600)
+bag.add_topic("/pusher/transition", "std_msgs/msg/Float32MultiArray")
+for i, payload in enumerate(payloads):
+    bag.write("/pusher/transition", 10**9 + i, payload)
+    if i == 99:
+        bag.flush()
+        storage_sqlite.SqliteFileWriter._checkpoint = lambda self: None  # killed before it
+bag.flush()
+os._exit(0)  # no close: as a kill leaves it
 """
-    subprocess.run([sys.executable, "-c", code], check=True)
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=REPO)
     assert Path(f"{path}-wal").stat().st_size > 0
     assert np.array_equal(read_transition_rows(path), rows[:150])
     with Reader(path) as reader:
@@ -195,6 +199,27 @@ os._exit(0)  # no checkpoint, no close: as a kill leaves it
     meta = con.execute("SELECT metadata FROM metadata").fetchone()[0]
     con.close()
     assert "message_count: 150" in meta
+
+
+def test_sqlite_digest_catches_what_sqlite_cannot(tmp_path):
+    """A changed payload byte, stamp or topic id reads back as an error, not a new row."""
+    rows = _small_rows()[:60]
+    good = tmp_path / "good.db3"
+    _write(good, rows).close()
+    for n, statement in enumerate([
+        "UPDATE messages SET data = CAST(data AS BLOB) || x'00' WHERE id = 7",
+        "UPDATE messages SET timestamp = timestamp + 1 WHERE id = 9",
+        "UPDATE messages SET topic_id = 5 WHERE id = 11",
+    ]):
+        bad = tmp_path / f"bad{n}.db3"
+        bad.write_bytes(good.read_bytes())
+        con = sqlite3.connect(bad)
+        con.execute(statement)
+        con.commit()
+        con.close()
+        with pytest.raises(UserError, match="corrupt") as info:
+            read_transitions(bad)
+        assert str(bad) in str(info.value) and "\n" not in str(info.value)
 
 
 def test_repair_sqlite_without_metadata_table_and_dir_without_yaml(tmp_path):

@@ -23,8 +23,8 @@ from ..errors import UserError
 from ..transitions import Transitions
 from .cdr import TRANSITION_MSGTYPE, TRANSITION_TOPIC, TransitionDecodeError, decode_transition_payloads
 from .paths import SUFFIX_STORAGE
-from .storage_mcap import has_footer
-from .storage_sqlite import WalSqlite3Reader, has_pending_wal
+from .storage_mcap import has_footer, summary_problem
+from .storage_sqlite import MessageDigest, WalSqlite3Reader, has_pending_wal, stored_digest
 from .writer import field_of_column
 
 RECORD_HINT = "record one with `offline-rl collect` or `ros2 run recorder node`"
@@ -81,6 +81,8 @@ class CheckedMcapReader(McapReader):
                 f"{path}: the MCAP file ends without its summary (its recording was cut off); "
                 f"`offline-rl bag repair {path}` makes it whole"
             )
+        if problem := summary_problem(path):
+            raise UserError(f"{path}: the MCAP file is corrupt: {problem}")
         super().open()
 
 
@@ -182,11 +184,30 @@ def topic_payload_chunks(reader: Reader, topic: str, chunk: int = PAYLOAD_CHUNK)
         for storage in sqlite_files:
             ids = [c.id for c in storage.connections if c.topic == topic]
             if ids:
-                query = f"SELECT data FROM messages WHERE topic_id IN ({','.join('?' * len(ids))}) ORDER BY timestamp, id"
-                sources.append(row[0] for row in storage.dbconn.execute(query, ids))
+                sources.append(_sqlite_payloads(storage, ids, topic, chunk))
     for source in sources:
         while block := list(itertools.islice(source, chunk)):
             yield block
+
+
+def _sqlite_payloads(storage: Sqlite3Reader, ids: list[int], topic: str, chunk: int) -> Iterator[bytes]:
+    """A topic's payloads from one sqlite3 file, checked against the file's digest when it
+    keeps one (files written by this package's recorder do)."""
+    marks = ",".join("?" * len(ids))
+    expected = stored_digest(storage.dbconn, ids)
+    if expected is None:
+        query = f"SELECT data FROM messages WHERE topic_id IN ({marks}) ORDER BY timestamp, id"
+        yield from (row[0] for row in storage.dbconn.execute(query, ids))
+        return
+    got = MessageDigest()
+    rows = storage.dbconn.execute(f"SELECT timestamp, data FROM messages WHERE topic_id IN ({marks}) ORDER BY timestamp, id", ids)
+    while block := list(itertools.islice(rows, chunk)):
+        stamps, payloads = zip(*block)
+        got.add_many(stamps, payloads)
+        yield from payloads
+    if got != expected:
+        what = f"{got.messages} messages where it recorded {expected.messages}" if got.messages != expected.messages else "their content"
+        raise UserError(f"{storage.path}: {topic}: the file is corrupt: {what} do not match the digest stored with them")
 
 
 def topic_payloads(reader: Reader, topic: str) -> list[bytes]:

@@ -185,7 +185,10 @@ class McapIndex:
                 out += body
         summary_offset_start = data_end + len(out)
         out += b"".join(offsets)
-        out += record(OP_FOOTER, u64(summary_start) + u64(summary_offset_start) + u32(0)) + MAGIC
+        # The footer's CRC covers the summary: a flipped bit there is caught, not misread.
+        footer_head = bytes((OP_FOOTER,)) + u64(20) + u64(summary_start) + u64(summary_offset_start)
+        crc = crc32(footer_head, crc32(out[summary_start - data_end :]))
+        out += footer_head + u32(crc) + MAGIC
         return bytes(out)
 
 
@@ -265,6 +268,23 @@ def has_footer(path: Path) -> bool:
         f.seek(size - FOOTER_SIZE)
         tail = f.read(FOOTER_SIZE)
     return tail.endswith(MAGIC) and tail[0] == OP_FOOTER and tail[1:9] == u64(20)
+
+
+def summary_problem(path: Path) -> str | None:
+    """Why the summary of an MCAP file with a footer cannot be trusted (its CRC, when the
+    writer stored one, does not match), else None."""
+    size = path.stat().st_size
+    with path.open("rb") as f:
+        f.seek(size - FOOTER_SIZE)
+        footer = f.read(FOOTER_SIZE)
+        summary_start, _, crc = struct.unpack_from("<QQI", footer, 9)
+        if not crc:
+            return None
+        if not len(MAGIC) <= summary_start <= size - FOOTER_SIZE:
+            return f"the footer points its summary at byte {summary_start}, outside the file"
+        f.seek(summary_start)
+        covered = f.read(size - FOOTER_SIZE - summary_start) + footer[:25]
+    return None if crc32(covered) == crc else "the summary does not match its checksum"
 
 
 @dataclass

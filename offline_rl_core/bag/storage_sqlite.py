@@ -11,12 +11,20 @@ switches the file back to a rollback journal: a closed bag is one plain ``.db3``
 Reading: ``WalSqlite3Reader`` is rosbags' reader opened WAL-aware, for a file whose
 ``-wal`` sidecar holds commits (a live recording, or one killed mid-checkpoint).
 ``repair_sqlite`` folds the WAL in and rewrites the metadata row (``ros2 bag reindex``).
+
+Integrity: rosbag2's sqlite3 format has no checksums, so a flipped bit in a payload, a
+stamp or a topic id would read back as a silently different row. Files written here carry
+one more table, ``offline_rl_digest`` (ignored by rosbag2 and rosbags): per topic, the
+message count, the sum of the payloads' CRC32s and the sum of the stamps, updated in the
+same transaction as the messages. Readers here check it (``MessageDigest``).
 """
 
 from __future__ import annotations
 
 import os
 import sqlite3
+import zlib
+from dataclasses import dataclass
 from pathlib import Path
 
 import apsw
@@ -38,7 +46,46 @@ CREATE TABLE message_definitions(id INTEGER PRIMARY KEY, topic_type TEXT NOT NUL
   encoded_message_definition TEXT NOT NULL, type_description_hash TEXT NOT NULL);
 CREATE TABLE messages(id INTEGER PRIMARY KEY, topic_id INTEGER NOT NULL, timestamp INTEGER NOT NULL, data BLOB NOT NULL);
 CREATE INDEX timestamp_idx ON messages (timestamp ASC);
+CREATE TABLE offline_rl_digest(topic_id INTEGER PRIMARY KEY, messages INTEGER NOT NULL,
+  crc_sum INTEGER NOT NULL, stamp_sum INTEGER NOT NULL);
 """
+DIGEST_TABLE = "offline_rl_digest"
+_MOD = 1 << 63  # sums stay within sqlite's signed 64-bit integers
+
+
+@dataclass
+class MessageDigest:
+    """Order-independent digest of a topic's messages: any flipped bit in a payload or a
+    stamp, and any message lost or added, changes it."""
+
+    messages: int = 0
+    crc_sum: int = 0
+    stamp_sum: int = 0
+
+    def add(self, stamp: int, data: bytes) -> None:
+        self.messages += 1
+        self.crc_sum = (self.crc_sum + zlib.crc32(data)) % _MOD
+        self.stamp_sum = (self.stamp_sum + stamp) % _MOD
+
+    def add_many(self, stamps: list[int], payloads: list[bytes]) -> None:
+        self.messages += len(payloads)
+        self.crc_sum = (self.crc_sum + sum(map(zlib.crc32, payloads))) % _MOD
+        self.stamp_sum = (self.stamp_sum + sum(stamps)) % _MOD
+
+    def merged(self, other: "MessageDigest") -> "MessageDigest":
+        return MessageDigest(self.messages + other.messages, (self.crc_sum + other.crc_sum) % _MOD,
+                             (self.stamp_sum + other.stamp_sum) % _MOD)
+
+
+def stored_digest(db, topic_ids: list[int]) -> MessageDigest | None:
+    """The digest a file stores for these topics together; None if it keeps none."""
+    if not _columns(db, DIGEST_TABLE):
+        return None
+    total = MessageDigest()
+    rows = {tid: MessageDigest(n, c, s) for tid, n, c, s in db.execute(f"SELECT * FROM {DIGEST_TABLE}")}
+    for tid in topic_ids:
+        total = total.merged(rows.get(tid, MessageDigest()))
+    return total
 
 
 def wal_path(path: Path) -> Path:
@@ -69,6 +116,7 @@ class SqliteFileWriter:
         self.conn.executescript(SCHEMA)  # executescript commits the open transaction
         self.conn.execute("INSERT INTO schema VALUES (?, ?)", (SCHEMA_VERSION, distro))
         self._types: set[str] = set()
+        self._digests: dict[int, MessageDigest] = {}
         self._checkpoint()
 
     def flush(self, topics: list[Topic], messages: list[tuple[int, int, bytes]], metadata_text: str) -> None:
@@ -89,12 +137,19 @@ class SqliteFileWriter:
                     (t.id, t.name, t.msgtype, t.serialization_format, t.qos, t.rihs01),
                 )
             cur.executemany("INSERT INTO messages (topic_id, timestamp, data) VALUES (?, ?, ?)", messages)
+            changed = {}
+            for tid, stamp, data in messages:
+                digest = changed.get(tid) or changed.setdefault(tid, MessageDigest(**vars(self._digests.get(tid, MessageDigest()))))
+                digest.add(stamp, data)
+            cur.executemany(f"INSERT OR REPLACE INTO {DIGEST_TABLE} VALUES (?, ?, ?, ?)",
+                            [(tid, d.messages, d.crc_sum, d.stamp_sum) for tid, d in changed.items()])
             cur.execute("INSERT OR REPLACE INTO metadata VALUES (1, ?, ?)", (ROSBAG2_VERSION, metadata_text))
             cur.execute("COMMIT")
         except BaseException:
             if self.conn.in_transaction:
                 self.conn.rollback()
             raise
+        self._digests.update(changed)
         self._checkpoint()
 
     def _checkpoint(self) -> None:
