@@ -17,7 +17,7 @@ from rosbags.rosbag2.storage_mcap import McapReader
 from ..errors import UserError
 from ..transitions import SOURCE_NAMES, Transitions
 from .cdr import TRANSITION_TOPIC
-from .reader import open_bag, transition_rows_from_reader
+from .reader import open_bag, transition_rows_from_reader, transition_topic
 
 _SERVICE_EVENT_SUFFIX = "/_service_event"
 _INDENT = " " * 19  # aligns continuation lines under the values, as ros2 bag info does
@@ -167,7 +167,7 @@ def bag_info(path: str | os.PathLike) -> BagInfo:
                 info.services.append(TopicSummary(name[: -len(_SERVICE_EVENT_SUFFIX)], msgtype[: -len("_Event")], topic.msgcount, fmt))
             else:
                 info.topics.append(TopicSummary(name, msgtype, topic.msgcount, fmt))
-        if TRANSITION_TOPIC in reader.topics:
+        if transition_topic(reader) is not None:
             try:
                 transitions = Transitions.from_rows(transition_rows_from_reader(reader, path))
             except UserError as exc:

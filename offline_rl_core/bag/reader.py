@@ -223,29 +223,40 @@ def _finite_problem(path: Path, bad_rows: int, total: int, bad_columns: set[int]
     )
 
 
+def transition_topic(reader: Reader) -> str | None:
+    """The bag's transition topic: /pusher/transition, or the one namespaced copy of it
+    (``/arm2/pusher/transition``, recorded under ``__ns:=/arm2``)."""
+    names = {c.topic for c in reader.connections}
+    if TRANSITION_TOPIC in names:
+        return TRANSITION_TOPIC
+    namespaced = [n for n in names if n.endswith(TRANSITION_TOPIC)]
+    return namespaced[0] if len(namespaced) == 1 else None
+
+
 def _transition_connections(reader: Reader, path: Path) -> list:
     if reader.message_count == 0:
         raise UserError(f"{path} is an empty bag (no messages); {RECORD_HINT}")
-    connections = [c for c in reader.connections if c.topic == TRANSITION_TOPIC]
+    topic = transition_topic(reader)
+    connections = [c for c in reader.connections if c.topic == topic]
     if not connections:
         found = ", ".join(sorted({c.topic for c in reader.connections})) or "none"
         raise UserError(f"{path} has no {TRANSITION_TOPIC} topic (found: {found}); {RECORD_HINT}")
     types = sorted({c.msgtype for c in connections})
     if types != [TRANSITION_MSGTYPE]:
-        raise UserError(f"{path}: {TRANSITION_TOPIC} has type {', '.join(types)}; expected {TRANSITION_MSGTYPE}")
+        raise UserError(f"{path}: {topic} has type {', '.join(types)}; expected {TRANSITION_MSGTYPE}")
     return connections
 
 
 def _decode_into(reader: Reader, path: Path, put) -> int:
     """Decode /pusher/transition block by block, handing each (k, 25) block to
     ``put(start, rows)``; checks layout and finiteness; returns the row count."""
-    _transition_connections(reader, path)
+    topic = _transition_connections(reader, path)[0].topic
     total, bad_rows, bad_columns = 0, 0, set()
-    for payloads in topic_payload_chunks(reader, TRANSITION_TOPIC):
+    for payloads in topic_payload_chunks(reader, topic):
         try:
             rows = decode_transition_payloads(payloads)
         except TransitionDecodeError as exc:
-            raise UserError(f"{path}: {TRANSITION_TOPIC}: {exc}") from exc
+            raise UserError(f"{path}: {topic}: {exc}") from exc
         bad = ~np.isfinite(rows)
         if bad.any():
             bad_rows += int(bad.any(axis=1).sum())
@@ -253,7 +264,7 @@ def _decode_into(reader: Reader, path: Path, put) -> int:
         put(total, rows)
         total += len(rows)
     if total == 0:
-        raise UserError(f"{path}: {TRANSITION_TOPIC} has no messages; {RECORD_HINT}")
+        raise UserError(f"{path}: {topic} has no messages; {RECORD_HINT}")
     if bad_rows:
         raise _finite_problem(path, bad_rows, total, bad_columns)
     return total
