@@ -297,3 +297,14 @@ def test_leftover_wal_is_not_adopted(tmp_path):
     with BagWriter(tmp_path / "x.db3", overwrite=True) as bag:
         bag.add_topic(TRANSITION_TOPIC, TRANSITION_MSGTYPE)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["x.db3"]
+
+
+@pytest.mark.parametrize("name", ["whole.db3", "whole.mcap", "whole_dir"])
+def test_repair_leaves_a_whole_bag_alone(tmp_path, name):
+    """A bag that needs nothing (here from rosbags' writer) is not rewritten."""
+    path = tmp_path / name
+    write_transitions(path, _small_rows())
+    files = sorted(path.iterdir()) if path.is_dir() else [path]
+    before = [f.read_bytes() for f in files]
+    assert repair_bag(path) == []
+    assert [f.read_bytes() for f in files] == before

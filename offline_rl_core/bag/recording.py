@@ -193,11 +193,6 @@ class BagWriter:
             self._check_open()
             self._flush()
 
-    @property
-    def files(self) -> list[Path]:
-        """The storage files written so far."""
-        return [self._bag_dir / f.name for f in self._files]
-
     def close(self) -> None:
         """Write everything pending and finalize the bag. Safe to call more than once."""
         with self._lock:

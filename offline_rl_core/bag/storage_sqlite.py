@@ -32,6 +32,7 @@ from rosbags.interfaces import Connection, ConnectionExtRosbag2, MessageDefiniti
 from rosbags.rosbag2.errors import ReaderError
 from rosbags.rosbag2.metadata import ReaderMetadata, parse_qos
 from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
+from ruamel.yaml import YAML
 
 from ..errors import UserError
 from .metadata import ROSBAG2_VERSION, FileStats, Topic
@@ -112,9 +113,9 @@ class SqliteFileWriter:
         self.conn.execute("PRAGMA journal_mode=WAL")
         self.conn.execute("PRAGMA synchronous=NORMAL")  # fsync at each checkpoint
         self.conn.execute("PRAGMA wal_autocheckpoint=0")  # the flush checkpoints
-        self.conn.execute("BEGIN")
-        self.conn.executescript(SCHEMA)  # executescript commits the open transaction
+        self.conn.executescript("BEGIN;" + SCHEMA)  # the schema in one transaction
         self.conn.execute("INSERT INTO schema VALUES (?, ?)", (SCHEMA_VERSION, distro))
+        self.conn.execute("COMMIT")
         self._types: set[str] = set()
         self._digests: dict[int, MessageDigest] = {}
         self._checkpoint()
@@ -255,6 +256,14 @@ def scan_sqlite(path: Path) -> tuple[list[Topic], FileStats]:
         db.close()
 
 
+def _stored_count(text: str) -> int | None:
+    """The message count a metadata row states, or None if it states none."""
+    try:
+        return int(YAML(typ="safe").load(text)["message_count"])
+    except Exception:  # noqa: BLE001 - whatever the row holds, it is not a usable count
+        return None
+
+
 def repair_sqlite(path: Path, metadata_text) -> list[str]:
     """Fold a WAL left by a killed writer into ``path`` and rewrite its metadata row.
 
@@ -284,7 +293,7 @@ def repair_sqlite(path: Path, metadata_text) -> list[str]:
             db.execute("BEGIN")
             db.execute("CREATE TABLE IF NOT EXISTS metadata(id INTEGER PRIMARY KEY, metadata_version INTEGER NOT NULL, metadata TEXT NOT NULL)")
             old = db.execute("SELECT metadata FROM metadata ORDER BY id DESC LIMIT 1").fetchone()
-            if old is None or old[0] != text:
+            if old is None or done or _stored_count(old[0]) != stats.message_count:
                 db.execute("DELETE FROM metadata")
                 db.execute("INSERT INTO metadata VALUES (1, ?, ?)", (ROSBAG2_VERSION, text))
                 done.append(f"{'rewrote' if old else 'wrote'} the metadata of {path.name} ({stats.message_count} messages)")

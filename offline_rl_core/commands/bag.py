@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..bag import bag_info, repair_bag
+from ..bag import repair_bag
+from .bag_info import add_info_parser
 
 
 def register(subparsers) -> None:
@@ -15,9 +16,7 @@ def register(subparsers) -> None:
     )
     sub = parser.add_subparsers(dest="bag_command", metavar="SUBCOMMAND")
     sub.required = True
-    info = sub.add_parser("info", help="files, topics and counts, and the transitions per source (= bag-info)")
-    info.add_argument("path", type=Path, help="bag directory, or .db3/.mcap file")
-    info.set_defaults(func=lambda args: _info(args.path))
+    add_info_parser(sub, "info")
     repair = sub.add_parser(
         "repair",
         help="make a bag whose recorder was killed whole again, in place",
@@ -31,11 +30,6 @@ def register(subparsers) -> None:
     )
     repair.add_argument("path", type=Path, help="bag directory, or .db3/.mcap file")
     repair.set_defaults(func=lambda args: _repair(args.path))
-
-
-def _info(path: Path) -> int:
-    print(bag_info(path).format())
-    return 0
 
 
 def _repair(path: Path) -> int:
