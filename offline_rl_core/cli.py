@@ -16,6 +16,7 @@ from .errors import UserError
 COMMAND_MODULES = (
     "collect",
     "bag_info",
+    "dataset",
     "train",
     "eval",
     "experiment",
