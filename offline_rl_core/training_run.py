@@ -26,6 +26,7 @@ from .learners import ALGORITHMS, Progress, TrainConfig, train
 from .learners.resume import ResumePoints
 from .plots import plot_training_curve
 from .policy import load_checkpoint, save_checkpoint
+from .raw_topics import transitions_from_topics
 from .transitions import SOURCE_NAMES, Transitions
 
 DEFAULT_EVAL_SEED = 500000  # the chapter's held-out reset seeds start here
@@ -37,6 +38,9 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     d = TrainConfig()
     parser.add_argument("--bag", action="append", required=True, metavar="PATH",
                         help="rosbag2 bag (directory, .db3 or .mcap) with /pusher/transition; repeat to merge bags")
+    parser.add_argument("--from-topics", metavar="SPEC",
+                        help="build the transitions from each bag's raw robot topics as this YAML spec says "
+                             "(see `offline-rl dataset --help`, e.g. bags/pusher_topics.yaml)")
     parser.add_argument("--algo", choices=ALGORITHMS, default=d.algo, help="learner (default: %(default)s)")
     parser.add_argument("--steps", type=int, default=d.steps, help="gradient steps (default: %(default)s)")
     parser.add_argument("--seed", type=int, default=0, help="seed of init and batch sampling (default: %(default)s)")
@@ -72,16 +76,19 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
         raise UserError(str(exc)) from None
 
 
-def load_bags(paths: list[str]) -> tuple[Transitions, list[dict]]:
-    """Read and merge bags; episode ids are offset so they stay unique per bag."""
+def load_bags(paths: list[str], from_topics: str | None = None) -> tuple[Transitions, list[dict]]:
+    """Read and merge bags; episode ids are offset so they stay unique per bag.
+    ``from_topics``: a raw-topic spec; the transitions are built from each bag's raw topics."""
     parts, summary, offset = [], [], 0
     for path in paths:
-        data = read_transitions(path)
+        joined = transitions_from_topics(path, from_topics) if from_topics else None
+        data = joined[0] if joined else read_transitions(path)
         data.episode = data.episode - data.episode.min() + offset
         offset = int(data.episode.max()) + 1
         parts.append(data)
         counts = {SOURCE_NAMES.get(int(s), str(s)): int(n) for s, n in zip(*np.unique(data.source, return_counts=True))}
-        summary.append({"path": str(path), "transitions": len(data), "sources": counts})
+        summary.append({"path": str(path), "transitions": len(data), "sources": counts,
+                        **({"from_topics": joined[1].as_dict()} if joined else {})})
     return (parts[0] if len(parts) == 1 else Transitions.concatenate(parts)), summary
 
 
@@ -106,13 +113,14 @@ def run_training(
     log: Callable[[str], None] = lambda s: print(s, file=sys.stderr),
     resume: bool = False,
     resume_every: float = 1.0,
+    from_topics: str | None = None,
 ) -> Path:
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise UserError(f"{out}: exists and is not a directory; --out needs a directory")
     if eval_episodes < 0:
         raise UserError(f"--eval-episodes must be >= 0, got {eval_episodes}")
-    data, bag_summary = load_bags(bags)
+    data, bag_summary = load_bags(bags, from_topics)
     init_ckpt = None
     if init:
         init_ckpt = load_checkpoint(init)
@@ -164,7 +172,8 @@ def run_training_from_args(args: argparse.Namespace, progress: Callable[[Progres
     cfg = config_from_args(args)
     out = args.out or default_out_dir(args.algo, args.seed)
     return run_training(args.bag, cfg, args.seed, out, args.eval_episodes, args.eval_seed, args.init,
-                        progress=progress or console_progress(), resume=args.resume, resume_every=args.resume_every)
+                        progress=progress or console_progress(), resume=args.resume, resume_every=args.resume_every,
+                        from_topics=args.from_topics)
 
 
 def summary_line(out: Path) -> str:
