@@ -62,7 +62,7 @@ def run_online(offline: Transitions, prior: dict | None, cfg: OnlineRunConfig,
     actor = Actor(LoadedPolicy(learner.weights()), explore=cfg.explore, seed=cfg.seed,
                   paced_every=cfg.settings.publish_every)
     env = PusherReachEnv()
-    corrector = ScriptedCorrector(CorrectorParams(**{**asdict(cfg.corrector), "seed": 1000 * cfg.seed}))
+    corrector = ScriptedCorrector(CorrectorParams(**{**asdict(cfg.corrector), "seed": cfg.seed}))
     t0 = time.perf_counter()
     curve: list[dict] = []
     counts = {"steps": 0, "human": 0, "takeovers": 0, "episodes": 0, "successes": 0}
@@ -90,7 +90,7 @@ def run_online(offline: Transitions, prior: dict | None, cfg: OnlineRunConfig,
         while not done and n < cfg.env_steps:
             actor.see(n)
             assert actor.ready(), "the learner cut every version due before this step"
-            action, source = actor.act(obs), SOURCE_POLICY
+            action, source = actor.act(obs, n), SOURCE_POLICY
             correction = corrector.decide(env.qpos.copy(), env.qvel.copy(), env.target[:2]) if cfg.corrections else None
             if correction is not None:
                 action, source = correction, SOURCE_HUMAN
