@@ -39,6 +39,7 @@ from .transitions import SOURCE_HUMAN
 DEFAULT_BAG = "bags/mix.db3"
 THRESHOLDS = (0.5, 0.8, 0.9, 0.95)
 EPISODE_STEPS = 100
+MAX_LEARNER_RESTARTS = 3
 
 
 @dataclass
@@ -152,7 +153,8 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
         "mode": cfg.mode, "paced_every": cfg.publish_every if lockstep else 0, "publish_every": cfg.publish_every,
         "utd": cfg.utd, "seed": cfg.seed, "reset_seed": TRAIN_SEED_BASE + 10000 * cfg.seed, "episodes": episodes,
         "snapshot_every": cfg.eval_every, "corrector": cfg.corrector,
-        "with_corrector": "false" if cfg.corrector == "none" else "true",
+        # a person's corrector runs in the foreground, on this terminal (below)
+        "with_corrector": "true" if cfg.corrector == "scripted" else "false",
     }
     if len(cfg.bags) > 1:
         raise UserError("--online takes one offline bag (merge several with offline-rl dataset first)")
@@ -163,16 +165,24 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
     if lockstep:
         ready["mux"] = "mux lockstep"
     launched = loop.launch("online.launch.yaml", arguments, out / "logs", ready=ready, timeout=120.0)
+    person = _keyboard_corrector(loop, log) if cfg.corrector == "keyboard" else None
     started = time.monotonic()
-    shown = 0
+    shown, restarts = 0, 0
+    log(f"hil online: learner pid {launched['learner'].pid}")
     while launched.finished() is None:
         if time.monotonic() - started > cfg.timeout:
             raise UserError(f"the session did not finish within {cfg.timeout:.0f} s; see {out / 'logs'}")
+        if not launched["learner"].running() and restarts < MAX_LEARNER_RESTARTS:
+            restarts += 1
+            _restart_learner(cfg, loop, launched, learner_dir, out, restarts, log)
         for name in ("learner", "policy", "sim"):
             proc = launched[name]
             if not proc.running() and launched.finished() is None:
                 raise UserError(f"the {name} node stopped (exit {proc.poll()}); see {proc.log_path}:\n"
                                 + "\n".join(proc.output().rstrip().splitlines()[-12:]))
+        if person is not None and person.poll() is not None:
+            log("hil online: the person quit the keyboard corrector; ending the session")
+            break
         progress = _last_progress(learner_dir / "progress.jsonl")
         if progress and progress["trained_through"] >= shown + cfg.env_steps // 20:
             shown = progress["trained_through"]
@@ -181,9 +191,12 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
                 f"critic loss {progress.get('critic_loss', float('nan')):.4f}  "
                 f"Q {progress.get('q_policy', float('nan')):+.3f}")
         time.sleep(0.5)
-    rc = launched.finished().poll()
+    ended = launched.finished()
+    rc = 0 if ended is None else ended.poll()
     wall = time.monotonic() - started
     loop.stop_all()  # the learner saves its resume point and final weights on the way out
+    if person is not None:
+        _stop(person)
     if rc != 0:
         raise UserError(f"the recorder failed (exit {rc}); see {out / 'logs' / 'recorder.log'}")
     log(f"hil online: session done in {wall:.0f} s; scoring the learner's snapshots on {cfg.eval_episodes} "
@@ -196,7 +209,67 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
     counts = {"steps": len(session), "human": int(human.sum()),
               "takeovers": int(np.sum(human[1:] & ~human[:-1] & (session.episode[1:] == session.episode[:-1]))),
               "episodes": int(len(np.unique(session.episode)))}
+    counts["learner_restarts"] = restarts
     return {"curve": curve, "counts": counts, "learner_seconds": round(wall, 2), "where": "over ROS"}
+
+
+def _restart_learner(cfg, loop, launched, learner_dir: Path, out: Path, attempt: int, log) -> None:
+    """The learner died: start it again from its last resume point. The session waits for
+    it (the paced policy node holds the next state); what arrived while it was down is read
+    back from the session bag, once the recorder has flushed it."""
+    from .bag import read_transitions
+    from .rosproc import RosProcess
+
+    dead = launched["learner"]
+    saved = _last_progress(learner_dir / "progress.jsonl") or {"trained_through": 0}
+    log(f"hil online: the learner stopped (exit {dead.poll()}); restarting it from its resume point "
+        f"(attempt {attempt} of {MAX_LEARNER_RESTARTS})")
+    # in lockstep the sim stops at the state that needs the next version: wait until the
+    # recorder has flushed every transition before it (it flushes at least once a second)
+    needed = saved["trained_through"] + cfg.publish_every if cfg.mode == "lockstep" else 0
+    deadline = time.monotonic() + 30.0
+    while needed and time.monotonic() < deadline:
+        try:
+            if len(read_transitions(out / "session.db3")) >= needed:
+                break
+        except UserError:
+            pass  # not readable yet
+        time.sleep(0.2)
+    node = next(n for n in launched.nodes if n.label == "learner")
+    node.params["resume"] = True
+    proc = RosProcess(node.command(), loop.env, out / "logs" / f"learner.restart{attempt}.log", name="learner")
+    loop.procs.append(proc)
+    launched.processes["learner"] = proc
+    proc.start()
+    if not proc.wait_for_output("learning from", 120.0):
+        raise UserError(f"the restarted learner did not start; see {proc.log_path}:\n"
+                        + "\n".join(proc.output().rstrip().splitlines()[-12:]))
+    log(f"hil online: learner pid {proc.pid} resumed")
+
+
+def _keyboard_corrector(loop, log):
+    """A person's corrector, in the foreground on this terminal (its keys, its display);
+    stopped by its pid with the rest."""
+    import subprocess
+
+    from .rosproc import ros2_run
+
+    log("hil online: you are the corrector: take over with the keys below, space hands back, q quits")
+    return subprocess.Popen(ros2_run("corrections", "corrector", "--mode", "keyboard", "--ros-args", "-r",
+                                     "__node:=corrector"), env=loop.env)
+
+
+def _stop(proc) -> None:
+    import subprocess
+
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
+        if proc.poll() is not None:
+            return
+        proc.send_signal(sig)
+        try:
+            proc.wait(timeout=5.0)
+        except subprocess.TimeoutExpired:
+            continue
 
 
 def _last_progress(path: Path) -> dict | None:
