@@ -123,6 +123,7 @@ class LearnerService:
             self._resume()
         else:
             self._write_policy(self.learner.weights())
+            self.save()  # a resume point from the start: a learner killed at once restarts too
             if cfg.snapshot_every:
                 save_checkpoint(self.out / "snapshots" / "policy_000000.pt", {**self.learner.weights(), "wall_s": 0.0,
                                                                              "train_s": 0.0})
