@@ -16,6 +16,8 @@ from .errors import UserError
 COMMAND_MODULES = (
     "collect",
     "bag_info",
+    "bag",
+    "dataset",
     "train",
     "eval",
     "experiment",

@@ -138,20 +138,28 @@ def test_bag_info_unknown_types_and_service_events(tmp_path):
     assert "Transitions" not in text
 
 
-def test_bag_writer_partial_then_close(tmp_path, small):
-    """The recorder's writer: a bag closed after some messages holds exactly those."""
+@pytest.mark.parametrize("name", ["rec.db3", "rec.mcap", "rec_dir"])
+def test_bag_writer_is_a_bag_after_every_flush(tmp_path, small, name):
+    """The recorder's writer: the bag is at its path from the start, and after each flush
+    rosbags and read_transitions open it with exactly what was flushed."""
     rows = small.to_rows()
-    path = tmp_path / "rec.db3"
-    bag = BagWriter(path)
+    path = tmp_path / name
+    bag = BagWriter(path, flush_interval=3600)  # flushes only when asked here
     bag.add_topic(TRANSITION_TOPIC, TRANSITION_MSGTYPE)
     bag.add_topic("/pusher/state", "sensor_msgs/msg/JointState")
-    for i, payload in enumerate(encode_transition_rows(rows[:37])):
+    payloads = encode_transition_rows(rows[:37])
+    for i, payload in enumerate(payloads[:20]):
         bag.write(TRANSITION_TOPIC, 5_000 + i, payload)
-    assert not path.exists()  # published only when complete
+    bag.flush()
+    for i, payload in enumerate(payloads[20:], start=20):
+        bag.write(TRANSITION_TOPIC, 5_000 + i, payload)
+    assert np.array_equal(read_transitions(path).to_rows(), rows[:20])  # the unflushed 17 are pending
+    with Reader(path) as reader:
+        assert reader.message_count == 20
     bag.close()
     bag.close()  # idempotent
     assert np.array_equal(read_transitions(path).to_rows(), rows[:37])
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["rec.db3"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [name]  # no sidecars once closed
 
 
 @pytest.mark.parametrize("name", ["empty.mcap", "empty_dir"])

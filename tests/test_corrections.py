@@ -23,7 +23,7 @@ CORRECTIONS_SRC = REPO / "ros_ws" / "src" / "corrections"
 sys.path.insert(0, str(CORRECTIONS_SRC))  # the pure-Python parts, importable without the install
 
 from pusher_corrections.arbiter import HUMAN, POLICY, LockstepArbiter, RealtimeArbiter  # noqa: E402
-from pusher_corrections.scripted import CorrectorParams, ScriptedCorrector  # noqa: E402
+from offline_rl_core.corrector import CorrectorParams, ScriptedCorrector  # noqa: E402
 
 
 def require_corrections() -> None:

@@ -2,7 +2,9 @@
 
 - ``read_transitions(path)`` / ``write_transitions(path, transitions, storage=None)``: the
   ``/pusher/transition`` topic of a bag as Transitions, and back.
-- ``BagWriter``: streaming writer of already-serialized messages (the recorder node).
+- ``BagWriter``: crash-safe streaming writer of already-serialized messages (the recorder
+  node): at most the last flush interval is lost if its process is killed; splits files.
+- ``repair_bag(path)``: ``offline-rl bag repair``: makes a bag cut off by a kill whole again.
 - ``bag_info(path)``: ``ros2 bag info`` plus a dataset summary, for any rosbag2 bag.
 - ``encode_transition_rows`` / ``decode_transition_payloads``: vectorised CDR of
   std_msgs/Float32MultiArray transitions.
@@ -23,7 +25,10 @@ from .cdr import (
 )
 from .info import BagInfo, bag_info
 from .reader import open_bag, read_transition_rows, read_transitions, topic_payloads
-from .writer import TRANSITION_PERIOD_NS, TRANSITION_START_NS, BagWriter, typestore, write_transitions
+from .metadata import typestore
+from .recording import BagWriter
+from .repair import repair_bag
+from .writer import TRANSITION_PERIOD_NS, TRANSITION_START_NS, write_transitions
 
 __all__ = [
     "TRANSITION_CDR_HEADER",
@@ -41,6 +46,7 @@ __all__ = [
     "open_bag",
     "read_transition_rows",
     "read_transitions",
+    "repair_bag",
     "topic_payloads",
     "transition_layout_msg_fields",
     "typestore",

@@ -131,7 +131,7 @@ def _parse_header(payload: bytes) -> _Header:
     layout = []
     for _ in range(ndim):
         n = u32()
-        if n == 0 or pos + n > len(payload):
+        if n == 0 or pos + n > len(payload) or payload[pos + n - 1] != 0:  # CDR strings end in NUL
             raise TransitionDecodeError(f"bad label string of length {n} at byte {pos}")
         label = payload[pos : pos + n - 1].decode("utf-8", "replace")
         pos += n

@@ -12,11 +12,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from rosbags.rosbag2.storage_mcap import McapReader
 
 from ..errors import UserError
 from ..transitions import SOURCE_NAMES, Transitions
 from .cdr import TRANSITION_TOPIC
-from .reader import open_bag, transition_rows_from_reader
+from .reader import open_bag, transition_rows_from_reader, transition_topic
 
 _SERVICE_EVENT_SUFFIX = "/_service_event"
 _INDENT = " " * 19  # aligns continuation lines under the values, as ros2 bag info does
@@ -144,7 +145,7 @@ def bag_info(path: str | os.PathLike) -> BagInfo:
         storage_id = "mcap" if path.suffix.lower() == ".mcap" else "sqlite3"
         if path.is_dir():
             storages = getattr(reader.storage, "storages", [])
-            storage_id = "mcap" if storages and type(storages[0]).__name__ == "McapReader" else "sqlite3"
+            storage_id = "mcap" if storages and isinstance(storages[0], McapReader) else "sqlite3"
         distro = reader.ros_distro
         if distro is None and path.suffix.lower() == ".db3":
             distro = _sqlite_distro(reader)
@@ -166,7 +167,7 @@ def bag_info(path: str | os.PathLike) -> BagInfo:
                 info.services.append(TopicSummary(name[: -len(_SERVICE_EVENT_SUFFIX)], msgtype[: -len("_Event")], topic.msgcount, fmt))
             else:
                 info.topics.append(TopicSummary(name, msgtype, topic.msgcount, fmt))
-        if TRANSITION_TOPIC in reader.topics:
+        if transition_topic(reader) is not None:
             try:
                 transitions = Transitions.from_rows(transition_rows_from_reader(reader, path))
             except UserError as exc:

@@ -16,12 +16,15 @@ from pathlib import Path
 import numpy as np
 from rosbags.rosbag2 import Reader
 from rosbags.rosbag2.reader import DirectoryReader
+from rosbags.rosbag2.storage_mcap import McapReader
 from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
 
 from ..errors import UserError
 from ..transitions import Transitions
 from .cdr import TRANSITION_MSGTYPE, TRANSITION_TOPIC, TransitionDecodeError, decode_transition_payloads
 from .paths import SUFFIX_STORAGE
+from .storage_mcap import has_footer, summary_problem
+from .storage_sqlite import MessageDigest, WalSqlite3Reader, has_pending_wal, stored_digest
 from .writer import field_of_column
 
 RECORD_HINT = "record one with `offline-rl collect` or `ros2 run recorder node`"
@@ -61,16 +64,77 @@ def check_sqlite_size(path: Path) -> None:
         )
 
 
+def sqlite_storage(path: Path) -> Sqlite3Reader:
+    """rosbags' sqlite3 reader, WAL-aware when the file's WAL holds commits (a live
+    recording, or one killed inside a flush)."""
+    return WalSqlite3Reader(path) if has_pending_wal(Path(path)) else Sqlite3Reader(path)
+
+
+class CheckedMcapReader(McapReader):
+    """rosbags' MCAP reader; a file without its footer (its writer was killed mid-flush)
+    is refused with the way out rather than a parse error."""
+
+    def open(self) -> None:
+        path = Path(self.path)
+        if path.stat().st_size > 8 and not has_footer(path):
+            raise UserError(
+                f"{path}: the MCAP file ends without its summary (its recording was cut off); "
+                f"`offline-rl bag repair {path}` makes it whole"
+            )
+        if problem := summary_problem(path):
+            raise UserError(f"{path}: the MCAP file is corrupt: {problem}")
+        super().open()
+
+
+class BagDirectoryReader(DirectoryReader):
+    """rosbags' reader of a bag directory, with the storages above; when metadata.yaml
+    lags its files (a recording killed between a flush and the metadata update), the
+    counts come from the files, which hold the messages."""
+
+    STORAGE_PLUGINS = {"mcap": CheckedMcapReader, "sqlite3": sqlite_storage}
+
+    def open(self) -> None:
+        super().open()
+        total = sum(s.metadata.message_count for s in self.storages)
+        if total == self.metadata.message_count:
+            return
+        counts: dict[tuple[str, str], int] = {}
+        extra = {}
+        for storage in self.storages:
+            for conn in storage.connections:
+                key = (conn.topic, conn.msgtype)
+                counts[key] = counts.get(key, 0) + conn.msgcount
+                extra.setdefault(key, conn)
+        known = {(c.topic, c.msgtype) for c in self.connections}
+        self.connections = [c._replace(msgcount=counts.get((c.topic, c.msgtype), 0)) for c in self.connections]
+        for key, conn in extra.items():
+            if key not in known:
+                self.connections.append(conn._replace(id=len(self.connections) + 1, msgcount=counts[key], owner=self))
+        starts = [s.metadata.start_time for s in self.storages if s.metadata.message_count]
+        ends = [s.metadata.end_time for s in self.storages if s.metadata.message_count]
+        start, end = (min(starts), max(ends)) if starts else (2**63 - 1, 0)
+        self.metadata = self.metadata._replace(
+            duration=end - start if starts else 0, start_time=start, end_time=end, message_count=total
+        )
+
+
+class BagReader(Reader):
+    """rosbags' Reader with the storages above."""
+
+    STORAGE_PLUGINS = {"dir": BagDirectoryReader, ".mcap": CheckedMcapReader, ".db3": sqlite_storage}
+
+
 @contextmanager
 def open_bag(path: str | os.PathLike) -> Iterator[Reader]:
-    """rosbags' Reader on a bag, opened and closed; rosbags and storage failures as UserError."""
+    """A rosbags Reader on a bag, opened and closed; rosbags and storage failures as UserError."""
     path = Path(path)
     check_bag_path(path)
     try:
-        reader = Reader(path)
+        reader = BagReader(path)
         reader.open()
         for storage in _sqlite_storages(reader) or ():
-            check_sqlite_size(Path(storage.path))
+            if not isinstance(storage, WalSqlite3Reader):  # SQLite reads a WAL'd file's size itself
+                check_sqlite_size(Path(storage.path))
     except UserError:
         raise
     except Exception as exc:  # rosbags, apsw, YAML and struct errors all mean "unreadable"
@@ -120,11 +184,30 @@ def topic_payload_chunks(reader: Reader, topic: str, chunk: int = PAYLOAD_CHUNK)
         for storage in sqlite_files:
             ids = [c.id for c in storage.connections if c.topic == topic]
             if ids:
-                query = f"SELECT data FROM messages WHERE topic_id IN ({','.join('?' * len(ids))}) ORDER BY timestamp, id"
-                sources.append(row[0] for row in storage.dbconn.execute(query, ids))
+                sources.append(_sqlite_payloads(storage, ids, topic, chunk))
     for source in sources:
         while block := list(itertools.islice(source, chunk)):
             yield block
+
+
+def _sqlite_payloads(storage: Sqlite3Reader, ids: list[int], topic: str, chunk: int) -> Iterator[bytes]:
+    """A topic's payloads from one sqlite3 file, checked against the file's digest when it
+    keeps one (files written by this package's recorder do)."""
+    marks = ",".join("?" * len(ids))
+    expected = stored_digest(storage.dbconn, ids)
+    if expected is None:
+        query = f"SELECT data FROM messages WHERE topic_id IN ({marks}) ORDER BY timestamp, id"
+        yield from (row[0] for row in storage.dbconn.execute(query, ids))
+        return
+    got = MessageDigest()
+    rows = storage.dbconn.execute(f"SELECT timestamp, data FROM messages WHERE topic_id IN ({marks}) ORDER BY timestamp, id", ids)
+    while block := list(itertools.islice(rows, chunk)):
+        stamps, payloads = zip(*block)
+        got.add_many(stamps, payloads)
+        yield from payloads
+    if got != expected:
+        what = f"{got.messages} messages where it recorded {expected.messages}" if got.messages != expected.messages else "their content"
+        raise UserError(f"{storage.path}: {topic}: the file is corrupt: {what} do not match the digest stored with them")
 
 
 def topic_payloads(reader: Reader, topic: str) -> list[bytes]:
@@ -140,29 +223,40 @@ def _finite_problem(path: Path, bad_rows: int, total: int, bad_columns: set[int]
     )
 
 
+def transition_topic(reader: Reader) -> str | None:
+    """The bag's transition topic: /pusher/transition, or the one namespaced copy of it
+    (``/arm2/pusher/transition``, recorded under ``__ns:=/arm2``)."""
+    names = {c.topic for c in reader.connections}
+    if TRANSITION_TOPIC in names:
+        return TRANSITION_TOPIC
+    namespaced = [n for n in names if n.endswith(TRANSITION_TOPIC)]
+    return namespaced[0] if len(namespaced) == 1 else None
+
+
 def _transition_connections(reader: Reader, path: Path) -> list:
     if reader.message_count == 0:
         raise UserError(f"{path} is an empty bag (no messages); {RECORD_HINT}")
-    connections = [c for c in reader.connections if c.topic == TRANSITION_TOPIC]
+    topic = transition_topic(reader)
+    connections = [c for c in reader.connections if c.topic == topic]
     if not connections:
         found = ", ".join(sorted({c.topic for c in reader.connections})) or "none"
         raise UserError(f"{path} has no {TRANSITION_TOPIC} topic (found: {found}); {RECORD_HINT}")
     types = sorted({c.msgtype for c in connections})
     if types != [TRANSITION_MSGTYPE]:
-        raise UserError(f"{path}: {TRANSITION_TOPIC} has type {', '.join(types)}; expected {TRANSITION_MSGTYPE}")
+        raise UserError(f"{path}: {topic} has type {', '.join(types)}; expected {TRANSITION_MSGTYPE}")
     return connections
 
 
 def _decode_into(reader: Reader, path: Path, put) -> int:
     """Decode /pusher/transition block by block, handing each (k, 25) block to
     ``put(start, rows)``; checks layout and finiteness; returns the row count."""
-    _transition_connections(reader, path)
+    topic = _transition_connections(reader, path)[0].topic
     total, bad_rows, bad_columns = 0, 0, set()
-    for payloads in topic_payload_chunks(reader, TRANSITION_TOPIC):
+    for payloads in topic_payload_chunks(reader, topic):
         try:
             rows = decode_transition_payloads(payloads)
         except TransitionDecodeError as exc:
-            raise UserError(f"{path}: {TRANSITION_TOPIC}: {exc}") from exc
+            raise UserError(f"{path}: {topic}: {exc}") from exc
         bad = ~np.isfinite(rows)
         if bad.any():
             bad_rows += int(bad.any(axis=1).sum())
@@ -170,7 +264,7 @@ def _decode_into(reader: Reader, path: Path, put) -> int:
         put(total, rows)
         total += len(rows)
     if total == 0:
-        raise UserError(f"{path}: {TRANSITION_TOPIC} has no messages; {RECORD_HINT}")
+        raise UserError(f"{path}: {topic} has no messages; {RECORD_HINT}")
     if bad_rows:
         raise _finite_problem(path, bad_rows, total, bad_columns)
     return total

@@ -47,7 +47,7 @@ from pusher_common.node_main import run_node
 from pusher_common.params import Param, Settings
 from pusher_common.stamps import stamp_key
 
-from .scripted import CorrectorParams, ScriptedCorrector
+from offline_rl_core.corrector import CorrectorParams, ScriptedCorrector
 
 KEEP_ANSWERS = 64
 KEYS = {

@@ -11,7 +11,8 @@ Against a lockstep sim started with the same seed the bag's transitions equal
 
 ``--passive`` records whatever flows (e.g. a policy or a human driving) until Ctrl-C,
 or until ``--episodes`` episodes have ended when given. Ctrl-C or SIGTERM at any time
-closes the bag with every message received so far.
+closes the bag with every message received so far; a SIGKILL loses at most the last
+``--flush-interval`` (1 s) of messages (``offline_rl_core.bag.recording``).
 
 Protocol of the active loop: a command answers the latest state whose target (same stamp)
 has arrived, and only once the transition caused by the previous command is in, so
@@ -80,7 +81,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--seed", type=int, default=0, help="seed of the random-action generator (default 0)")
     parser.add_argument("--storage", choices=("sqlite3", "mcap"), default=None, help="storage (default: from --out, else sqlite3)")
     parser.add_argument("--passive", action="store_true", help="only record what flows, until Ctrl-C (or --episodes)")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing bag at --out")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing bag at --out (deleted at start)")
+    parser.add_argument("--flush-interval", type=float, default=1.0,
+                        help="seconds between writes to disk: a kill loses at most this much (default 1.0)")
+    parser.add_argument("--max-bag-size", type=int, default=0,
+                        help="start a new file of the bag directory past this many bytes (0: never)")
+    parser.add_argument("--max-bag-duration", type=float, default=0.0,
+                        help="start a new file of the bag directory after this many seconds (0: never)")
     return parser
 
 
@@ -237,13 +244,15 @@ def main(argv: list[str] | None = None) -> int:
     if not 0.0 <= args.expert_frac <= 1.0:
         build_parser().error(f"--expert-frac must be in [0, 1], got {args.expert_frac}")
     try:
-        bag = BagWriter(args.out, storage=args.storage, overwrite=args.overwrite)
+        bag = BagWriter(args.out, storage=args.storage, overwrite=args.overwrite, flush_interval=args.flush_interval,
+                        max_bag_size=args.max_bag_size, max_bag_duration=args.max_bag_duration)
     except UserError as exc:
         print(f"recorder: error: {exc}", file=sys.stderr)
         return 2
     rclpy.init(args=argv)
     node = None
     interrupted = False
+    rc = 0
     try:
         node = Recorder(bag, args)
         executor = SingleThreadedExecutor()
@@ -251,12 +260,19 @@ def main(argv: list[str] | None = None) -> int:
         spin_until_future_complete(executor, node.finished)
     except (KeyboardInterrupt, ExternalShutdownException):
         interrupted = True
+    except UserError as exc:  # the disk failed under the bag: what was flushed stays
+        print(f"recorder: error: {exc}", file=sys.stderr)
+        rc = 2
     except Exception as exc:
         if rclpy.ok() and not caused_by_interrupt(exc):
             raise
         interrupted = True  # a signal shut the context down mid-wait (rclpy may raise RCLError)
     finally:
-        bag.close()  # every message received is in the bag, however we got here
+        try:
+            bag.close()  # every message received is in the bag, however we got here
+        except UserError as exc:
+            print(f"recorder: error: {exc}", file=sys.stderr)
+            rc = 2
         if node is not None:
             interrupted = interrupted or not node.finished.done()  # SIGTERM: spin just returns
             elapsed = time.monotonic() - node.start_time
@@ -267,7 +283,7 @@ def main(argv: list[str] | None = None) -> int:
             )
             node.destroy_node()
         rclpy.try_shutdown()
-    return 0
+    return rc
 
 
 if __name__ == "__main__":

@@ -1,10 +1,11 @@
-"""The C++ form of the written-out AWAC update (``csrc/awac_step.cpp``).
+"""The C++ replayer of recorded training steps (``csrc/graph_runner.cpp``).
 
-Built with torch's JIT extension loader on first use and cached under
+Built with torch's extension loader on first use and cached under
 ``TORCH_EXTENSIONS_DIR`` (default ``~/.cache/torch_extensions``), one directory per
-source version; ``make setup`` builds it ahead so no run waits for it. Needs g++, ninja and the Python headers; where any is missing
-``unavailable_reason`` says which, and the Python step runs instead.
-``python -m offline_rl_core.learners.awac_cpp`` builds it and reports.
+source version and environment; ``make setup`` builds it ahead so no run waits for it.
+Needs g++, ninja and the Python headers; where any is missing ``unavailable_reason``
+says which, and recorded steps replay in Python instead (``learners/traced.py``).
+``python -m offline_rl_core.learners.graph_runner`` builds it and reports.
 """
 
 from __future__ import annotations
@@ -18,9 +19,7 @@ from pathlib import Path
 
 import torch
 
-from .written_out import adam_state
-
-SOURCE = Path(__file__).resolve().parent.parent / "csrc" / "awac_step.cpp"
+SOURCE = Path(__file__).resolve().parent.parent / "csrc" / "graph_runner.cpp"
 COMPILE_FLAGS = ["-O2"]
 
 
@@ -32,7 +31,7 @@ def _build_dir(source: bytes) -> Path:
     where = f"{torch.__version__} {Path(torch.__file__).parent} {sys.version} {COMPILE_FLAGS}"
     digest = hashlib.sha256(source + where.encode()).hexdigest()
     root = Path(os.environ.get("TORCH_EXTENSIONS_DIR") or Path.home() / ".cache" / "torch_extensions")
-    return root / f"pusher_rl_awac_step_{digest[:16]}"
+    return root / f"pusher_rl_graph_runner_{digest[:16]}"
 
 
 def _cached(build_dir: Path) -> bool:
@@ -41,7 +40,8 @@ def _cached(build_dir: Path) -> bool:
 
 def _clear_stale_lock(build_dir: Path, max_age_s: float = 300.0) -> None:
     """torch's loader waits forever on the lock file of a build that was interrupted
-    (Ctrl-C during the first compile); a compile takes ~20 s, so an old lock is stale."""
+    (Ctrl-C during the first compile); a compile takes well under a minute, so an old
+    lock is stale."""
     try:
         if time.time() - (build_dir / "lock").stat().st_mtime > max_age_s:
             (build_dir / "lock").unlink()
@@ -68,16 +68,16 @@ def _load():
         build_dir.mkdir(parents=True, exist_ok=True)
         # compiled from a copy inside the build directory: ninja's commands then name
         # the same path from every checkout, so a second checkout does not rebuild
-        copy = build_dir / "awac_step.cpp"
+        copy = build_dir / SOURCE.name
         if not copy.exists() or copy.read_bytes() != source:
-            tmp = build_dir / f".awac_step.cpp.{os.getpid()}"
+            tmp = build_dir / f".{SOURCE.name}.{os.getpid()}"
             tmp.write_bytes(source)
             tmp.replace(copy)
     except OSError as exc:
         return None, f"cannot write {build_dir}: {exc.strerror}"
     _clear_stale_lock(build_dir)
     if not _cached(build_dir):
-        print("pusher-rl: compiling the C++ AWAC step (once; about 20 s, then cached)", file=sys.stderr, flush=True)
+        print("pusher-rl: compiling the C++ step replayer (once; about 30 s, then cached)", file=sys.stderr, flush=True)
     try:
         module = load(name=name, sources=[str(copy)], extra_cflags=COMPILE_FLAGS, build_directory=str(build_dir),
                       verbose=False)
@@ -92,36 +92,18 @@ def unavailable_reason() -> str | None:
     return _load()[1]
 
 
-class CppStep:
-    """One AWAC update in one C++ call; byte-identical to ``written_out.AWACStep``."""
-
-    def __init__(self, learner):
-        self.ext = _load()[0]
-        layer = learner.policy.hidden_layer
-        bf16 = layer.dtype == torch.bfloat16
-        # everything but the batch, taken once: the optimisers' tensors are updated in place
-        pol, pol_m, pol_v, pol_s, pol_lr, (beta1, beta2), eps, wd = adam_state(learner.policy_opt)
-        q, q_m, q_v, q_s, q_lr, _, _, _ = adam_state(learner.critic.opt)
-        q_target = list(learner.critic.target.parameters())
-        cfg = learner.cfg
-        self.tensors = (pol, q, q_target, pol_m, pol_v, pol_s, q_m, q_v, q_s)
-        self.scalars = (cfg.gamma, cfg.beta, cfg.weight_clip, learner.critic.tau, pol_lr, q_lr, beta1, beta2, eps, wd,
-                        bf16, layer.onednn)
-
-    def __call__(self, batch) -> dict[str, torch.Tensor]:
-        critic_half, policy_loss = self.ext.awac_update(
-            *self.tensors, batch.obs, batch.action, batch.reward, batch.next_obs, batch.not_done, batch.actor_mask,
-            *self.scalars)
-        return {"critic_loss": critic_half, "policy_loss": policy_loss}
+def extension():
+    """The built module (``Program``); call ``unavailable_reason`` first."""
+    return _load()[0]
 
 
 def main() -> int:
     t0 = time.perf_counter()
     reason = unavailable_reason()
     if reason is not None:
-        print(f"C++ AWAC step not built: {reason}; training uses the Python step", file=sys.stderr)
+        print(f"C++ step replayer not built: {reason}; recorded steps replay in Python", file=sys.stderr)
         return 1
-    print(f"C++ AWAC step ready ({time.perf_counter() - t0:.1f} s)")
+    print(f"C++ step replayer ready ({time.perf_counter() - t0:.1f} s)")
     return 0
 
 

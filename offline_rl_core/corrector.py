@@ -1,4 +1,5 @@
-"""The scripted corrector's decision rule, free of ROS (the node and the tests use it).
+"""The scripted corrector's decision rule: a stand-in for the person in the HIL stage
+(the corrections node, the in-process online loop and the tests use it).
 
 A stand-in for a person watching the arm: it takes over with the scripted expert when
 the fingertip has not got closer to the target for ``patience`` steps, and hands back
