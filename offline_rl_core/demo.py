@@ -45,10 +45,9 @@ def say(msg: str) -> None:
 
 def wait_for(proc: RosProcess, timeout: float, what: str) -> int:
     """Exit status of ``proc``; a clear error (and the log to read) when it fails or hangs."""
-    try:
-        status = proc.wait(timeout=timeout)
-    except subprocess.TimeoutExpired:
-        raise UserError(f"{what} did not finish within {timeout:.0f} s; see {proc.log_path}") from None
+    status = proc.wait(timeout=timeout)
+    if status is None:
+        raise UserError(f"{what} did not finish within {timeout:.0f} s; see {proc.log_path}")
     if status != 0:
         raise UserError(f"{what} failed (exit {status}); see {proc.log_path}")
     return status

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -122,3 +123,13 @@ def test_colcon_builds_the_workspace(tmp_path):
     for package, _, config in CONFIGS:
         assert (ws / "install" / package / "share" / package / "config" / f"{config}.yaml").is_file()
     assert not (ws / "install" / "ros2_shim").exists()  # tools/ carries COLCON_IGNORE
+    assert (ws / "install" / "pusher_bringup" / "share" / "pusher_bringup" / "launch" / "serve.launch.yaml").is_file()
+
+    # colcon test runs each package's ament template tests (flake8, pep257), and they pass
+    tested = subprocess.run([str(colcon), "--log-base", "log", "test", "--base-paths", "src", "tools",
+                             "--event-handlers", "console_direct-"], cwd=ws, capture_output=True, text=True, timeout=400)
+    assert tested.returncode == 0, tested.stdout[-2000:] + tested.stderr[-2000:]
+    result = subprocess.run([str(colcon), "test-result", "--test-result-base", "build", "--verbose"], cwd=ws,
+                            capture_output=True, text=True, timeout=60)
+    summary = re.search(r"Summary: (\d+) tests, (\d+) errors, (\d+) failures", result.stdout)
+    assert summary and int(summary.group(1)) >= 12 and summary.group(2, 3) == ("0", "0"), result.stdout[-2000:]

@@ -4,7 +4,8 @@ Every ``pusher/state`` (with its ``pusher/target``) is answered on ``policy/acti
 a JointState whose effort is the action in [-1, 1], stamped with the state's stamp; and,
 on ``effort_topic`` (default ``effort_controller/commands``), the same action as joint
 torques in N·m (std_msgs/Float64MultiArray), what a ros2_control effort controller
-takes. A malformed or non-finite state gets no action and a throttled warning. The checkpoint (``--checkpoint`` or ``-p checkpoint:=``)
+takes. A malformed or non-finite state gets no action and a throttled warning.
+The checkpoint (``--checkpoint`` or ``-p checkpoint:=``)
 is polled every ``poll_period`` seconds and hot-swapped when it changes; a file that
 fails to load leaves the previous policy serving, with an error logged. A missing or
 broken checkpoint at start is one error line and exit status 2.
@@ -33,23 +34,23 @@ import sys
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
-from geometry_msgs.msg import PointStamped
-from rclpy.clock import Clock, ClockType
-from rclpy.node import Node
-from sensor_msgs.msg import JointState
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from std_msgs.msg import Float64MultiArray, String, UInt8MultiArray
+from geometry_msgs.msg import PointStamped  # noqa: E402
+from rclpy.clock import Clock, ClockType  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
+from sensor_msgs.msg import JointState  # noqa: E402
+from std_msgs.msg import Float64MultiArray, String, UInt8MultiArray  # noqa: E402
 
-from offline_rl_core.actor import Actor
-from offline_rl_core.env import JOINT_NAMES, observation_from_joints
-from offline_rl_core.joint_messages import joints_from_state, torques_from_action
-from offline_rl_core.pairing import Paired, StatePairing
-from offline_rl_core.errors import UserError
-from offline_rl_core.online_service import WEIGHTS_LABEL, decode_weights
-from offline_rl_core.policy import LoadedPolicy, load_policy
-from pusher_common.node_main import run_node
-from pusher_common.params import Param, Settings
-from pusher_common.stamps import stamp_key
+from offline_rl_core.actor import Actor  # noqa: E402
+from offline_rl_core.env import JOINT_NAMES, observation_from_joints  # noqa: E402
+from offline_rl_core.errors import UserError  # noqa: E402
+from offline_rl_core.joint_messages import joints_from_state, torques_from_action  # noqa: E402
+from offline_rl_core.online_service import WEIGHTS_LABEL, decode_weights  # noqa: E402
+from offline_rl_core.pairing import Paired, StatePairing  # noqa: E402
+from offline_rl_core.policy import LoadedPolicy, load_policy  # noqa: E402
+from pusher_common.node_main import run_node  # noqa: E402
+from pusher_common.params import Param, Settings  # noqa: E402
+from pusher_common.stamps import stamp_key  # noqa: E402
 
 WARN_THROTTLE_S = 2.0
 # The learner publishes reliable and transient local: a late joiner gets the latest version.
@@ -57,7 +58,7 @@ WEIGHTS_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durabi
 
 
 def file_signature(path: str):
-    """What changes when a checkpoint is rewritten (also by an atomic rename)."""
+    """Return what changes when a checkpoint is rewritten (also by an atomic rename)."""
     try:
         st = os.stat(path)
     except OSError:
@@ -83,7 +84,7 @@ PARAMS = (
 
 
 def checkpoint_file(path: str) -> str:
-    """A run directory means the policy.pt in it (the file the trainer replaces)."""
+    """Return the checkpoint file: a run directory means its policy.pt (the file the trainer replaces)."""
     return os.path.join(path, "policy.pt") if os.path.isdir(path) else path
 
 
