@@ -20,7 +20,7 @@ help:
 # The C++ AWAC step (offline_rl_core/csrc) compiles once into torch's extension cache;
 # later runs only check it (about a second). Without a compiler the Python step runs.
 setup: $(STAMP)
-	@$(PY) -m offline_rl_core.learners.awac_cpp || echo "(training uses the Python step)"
+	@$(PY) -m offline_rl_core.learners.graph_runner || echo "(recorded training steps replay in Python)"
 
 # Re-runs only when the project's packaging changes; torch goes in first so that
 # nothing else can make pip pick a newer (CUDA) torch.

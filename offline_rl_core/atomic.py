@@ -26,3 +26,18 @@ def atomic_path(path: str | os.PathLike, suffix: str = ".tmp") -> Iterator[Path]
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
+    """Write ``text`` (UTF-8) to ``path`` atomically; returns the path."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+    return Path(path)
+
+
+def write_json_atomic(path: str | os.PathLike, payload) -> Path:
+    """``json.dumps(indent=2, sort_keys=True)`` + newline, atomically: a reader never
+    sees half a file, and equal payloads give equal bytes."""
+    import json
+
+    return write_text_atomic(path, json.dumps(payload, indent=2, sort_keys=True) + "\n")

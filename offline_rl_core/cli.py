@@ -17,6 +17,7 @@ COMMAND_MODULES = (
     "collect",
     "bag_info",
     "bag",
+    "dataset",
     "train",
     "eval",
     "experiment",

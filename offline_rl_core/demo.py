@@ -1,9 +1,10 @@
 """`make demo`: the whole pipeline over ROS 2, on the shipped bag, in a few minutes.
 
-1. record a small bag: sim node (lockstep) + recorder node, over real DDS;
+1. record a small bag: sim node (lockstep) + recorder node, over real DDS
+   (``pusher_bringup/launch/record.launch.yaml``);
 2. train BC and AWAC from ``bags/mix.db3`` with the trainer node (both at once);
 3. serve AWAC with the policy node and run the sim closed loop on the chapter's
-   100 held-out reset seeds;
+   100 held-out reset seeds (``serve.launch.yaml``);
 4. print the comparison: BC vs AWAC with Wilson intervals and the Newcombe
    difference interval, and AWAC over ROS next to AWAC in-process.
 
@@ -23,6 +24,7 @@ from pathlib import Path
 
 from .errors import UserError
 from .evaluation import write_json_atomic
+from .launch import LaunchedProcesses, find_launch_file, load_launch
 from .rosproc import RosProcess, isolated_ros_env, ros2_run, venv_bin
 from .stats import newcombe_diff_ci
 
@@ -73,12 +75,11 @@ def run_demo(out: Path, bag: Path, steps: int, record_episodes: int, seed: int) 
     if recorded.exists():
         recorded.unlink()
     say(f"\n[1/4] recording {record_episodes} episodes over ROS: sim (lockstep) + recorder -> {recorded}")
-    sim = RosProcess(ros2_run("sim", "node", "--ros-args", "-p", "mode:=lockstep", "-p", f"seed:={seed}"),
-                     env, logs / "record_sim.log")
-    recorder = RosProcess(ros2_run("recorder", "node", "--out", recorded, "--episodes", record_episodes,
-                                   "--expert-frac", "0.3", "--seed", seed), env, logs / "recorder.log")
-    with sim, recorder:
-        wait_for(recorder, 300, "the recorder node")
+    record = load_launch(find_launch_file("pusher_bringup", "record.launch.yaml"),
+                         {"out": str(recorded), "episodes": str(record_episodes), "expert_frac": "0.3", "seed": str(seed)})
+    with LaunchedProcesses(record, env, logs / "record").start() as launched:
+        if launched.wait(timeout=300) != 0:
+            raise UserError(f"the recorder node failed; see {launched['recorder'].log_path}")
     info = subprocess.run([ros2, "bag", "info", str(recorded)], env=env, capture_output=True, text=True, timeout=60)
     say(info.stdout.rstrip() or info.stderr.rstrip())
 
@@ -108,14 +109,14 @@ def run_demo(out: Path, bag: Path, steps: int, record_episodes: int, seed: int) 
         f"({EVAL_SEED + seed}..{EVAL_SEED + seed + EVAL_EPISODES - 1})")
     if closed_loop.exists():
         closed_loop.unlink()
-    policy = RosProcess(ros2_run("policy", "node", "--checkpoint", out / "awac" / "policy.pt"), env, logs / "policy.log")
-    sim = RosProcess(ros2_run("sim", "node", "--ros-args", "-p", "mode:=lockstep", "-p", f"seed:={EVAL_SEED + seed}",
-                              "-p", f"episodes:={EVAL_EPISODES}", "-p", f"summary:={closed_loop}",
-                              "-r", "/pusher/command:=/policy/action"), env, logs / "closed_loop_sim.log")
-    with policy, sim:
-        wait_for(sim, 600, "the closed-loop sim")
+    serve = load_launch(find_launch_file("pusher_bringup", "serve.launch.yaml"),
+                        {"checkpoint": str(out / "awac" / "policy.pt"), "seed": str(EVAL_SEED + seed),
+                         "episodes": str(EVAL_EPISODES), "summary": str(closed_loop)})
+    with LaunchedProcesses(serve, env, logs / "serve").start() as launched:
+        if launched.wait(timeout=600) != 0:
+            raise UserError(f"the closed-loop sim failed; see {launched['sim'].log_path}")
     if not closed_loop.exists():
-        raise UserError(f"the closed-loop sim wrote no summary {closed_loop}; see {sim.log_path}")
+        raise UserError(f"the closed-loop sim wrote no summary {closed_loop}; see {launched['sim'].log_path}")
     ros_summary = json.loads(closed_loop.read_text())
 
     # 4. the table

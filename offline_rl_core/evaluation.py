@@ -29,7 +29,7 @@ import mujoco
 import mujoco.batch
 import numpy as np
 
-from .atomic import atomic_path
+from .atomic import write_json_atomic  # noqa: F401 - TODO(lead): drop once demo.py and hil.py import it from atomic
 from .env import (  # batch_observations is re-exported: part of this module's API
     ACT_DIM,
     FRAME_SKIP,
@@ -334,18 +334,6 @@ def evaluate_policy(policy, episodes: int, seed: int, batched: bool = True, chec
         "mean_final_dist": round6(result.mean_final_dist),
         "mean_return": round6(result.returns.mean()),
     }
-
-
-def write_json_atomic(path, payload) -> "os.PathLike":
-    """``json.dumps(indent=2, sort_keys=True)`` + newline, via a temp file and rename,
-    so a reader never sees half a file and equal payloads give equal bytes."""
-    import json
-    from pathlib import Path
-
-    text = json.dumps(payload, indent=2, sort_keys=True) + "\n"
-    with atomic_path(path) as tmp:
-        tmp.write_text(text, encoding="utf-8")
-    return Path(path)
 
 
 def format_rate(successes: int, episodes: int) -> str:

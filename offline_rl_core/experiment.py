@@ -18,7 +18,8 @@ from pathlib import Path
 from typing import Callable
 
 from .collect import collect_transitions
-from .evaluation import RolloutResult, format_rate, round6, rollout, write_json_atomic
+from .atomic import write_json_atomic
+from .evaluation import RolloutResult, format_rate, round6, rollout
 from .learners import Progress, TrainConfig
 from .learners.parallel import TrainJob, available_cores, run_jobs
 from .policy import save_checkpoint

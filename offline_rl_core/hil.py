@@ -3,11 +3,11 @@
 Each round, on a private DDS domain (``rosproc.isolated_ros_env``):
 
 1. serve the current prior: one ``policy`` node for the whole run, watching
-   ``DIR/policy.pt`` (hot reload; it is never restarted);
+   ``DIR/policy.pt`` (hot reload; it is never restarted) (``serve.launch.yaml``);
 2. run E episodes in lockstep: ``sim`` (lockstep, training reset seeds) + ``corrections
    corrector`` (scripted expert stand-in for the person) + ``corrections mux`` (one
    command per stamp, tagged policy/human) + ``recorder --passive`` ->
-   ``DIR/round_<r>/corrections.db3``;
+   ``DIR/round_<r>/corrections.db3`` (``corrections.launch.yaml``);
 3. retrain with the ``trainer`` node: AWAC on the offline bag(s) plus every
    correction bag so far, warm-started from the served checkpoint (``--init``), with
    correction-run transitions at ``--correction-ratio`` of each batch; the policy's
@@ -39,6 +39,7 @@ from .bag import read_transitions
 from .errors import UserError
 from .evaluation import evaluate_policy, write_json_atomic
 from .policy import load_checkpoint, load_policy
+from .launch import LaunchedProcesses, find_launch_file, load_launch
 from .rosproc import RosProcess, isolated_ros_env, ros2_run
 from .stats import newcombe_diff_ci, wilson_ci
 from .transitions import SOURCE_HUMAN, SOURCE_POLICY
@@ -112,6 +113,14 @@ class Loop:
                             + _tail(proc.output()))
         return proc
 
+    def launch(self, file_name: str, arguments: dict, log_dir: Path, ready: dict[str, str] | None = None,
+               timeout: float = 60.0) -> LaunchedProcesses:
+        """Start the nodes of one of pusher_bringup's launch files, in order, as processes of this loop."""
+        nodes = load_launch(find_launch_file("pusher_bringup", file_name), {k: str(v) for k, v in arguments.items()})
+        launched = LaunchedProcesses(nodes, self.env, log_dir)
+        self.procs.extend(launched.processes.values())  # stopped by stop_all, whatever happens
+        return launched.start(ready=ready, timeout=timeout)
+
     def stop(self, proc: RosProcess) -> None:
         proc.stop(timeout=5.0)
         if proc in self.procs:
@@ -171,22 +180,15 @@ class Loop:
         cfg = self.cfg
         bag = round_dir / "corrections.db3"
         reset_seed = TRAIN_SEED_BASE + 10000 * cfg.seed + (r - 1) * cfg.episodes
-        mux = self.start("mux", ros2_run("corrections", "mux", "--ros-args", "-p", "mode:=lockstep",
-                                         "-p", "require_teleop:=true"), round_dir / "mux.log", ready="mux lockstep")
-        corrector = self.start(
-            "corrector",
-            ros2_run("corrections", "corrector", "--mode", "scripted", "--patience", cfg.patience,
-                     "--hold-steps", cfg.hold_steps, "--grace-steps", cfg.grace_steps, "--noise", cfg.noise, "--reaction-delay", cfg.reaction_delay,
-                     "--seed", 1000 * cfg.seed + r),
-            round_dir / "corrector.log", ready="answering /pusher/state")
-        recorder = self.start("recorder", ros2_run("recorder", "node", "--passive", "--episodes", cfg.episodes,
-                                                   "--out", bag, "--overwrite"),
-                              round_dir / "recorder.log", ready="recording")
-        # wait_for_subscribers: the sim holds the first state until the recorder is matched
-        sim = self.start("sim", ros2_run("sim", "node", "--ros-args", "-p", "mode:=lockstep", "-p", f"seed:={reset_seed}",
-                                         "-p", "wait_for_subscribers:=1",
-                                         "-p", f"episodes:={cfg.episodes}", "-p", f"summary:={round_dir / 'sim.json'}"),
-                         round_dir / "sim.log")
+        # mux, corrector, recorder, then the sim, which holds its first state until the
+        # recorder is matched (corrections.launch.yaml; the policy node already serves)
+        launched = self.launch("corrections.launch.yaml", {
+            "with_policy": "false", "out": bag, "episodes": cfg.episodes, "seed": reset_seed,
+            "summary": round_dir / "sim.json", "patience": cfg.patience, "hold_steps": cfg.hold_steps,
+            "grace_steps": cfg.grace_steps, "noise": float(cfg.noise), "reaction_delay": cfg.reaction_delay,
+            "corrector_seed": 1000 * cfg.seed + r,
+        }, round_dir, ready={"mux": "mux lockstep", "corrector": "answering", "recorder": "recording"})
+        mux, corrector, recorder, sim = (launched[n] for n in ("mux", "corrector", "recorder", "sim"))
         started = time.monotonic()
 
         def show(line: str) -> str | None:
@@ -319,9 +321,8 @@ def run_hil(cfg: HilConfig, log: Callable[[str], None] = lambda s: print(s, file
         with atomic_path(served) as tmp:
             shutil.copyfile(prior_path, tmp)
 
-        policy_node = loop.start("policy", ros2_run("policy", "node", "--checkpoint", served, "--ros-args",
-                                                    "-p", "poll_period:=0.2"),
-                                 out / "policy_node.log", ready="serving")
+        policy_node = loop.launch("serve.launch.yaml", {"checkpoint": served, "poll_period": 0.2,
+                                                        "closed_loop": "false"}, out, ready={"policy": "serving"})["policy"]
         rows: list[dict] = []
         correction_bags: list[str] = []
         prior_eval = None

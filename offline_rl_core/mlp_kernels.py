@@ -1,86 +1,46 @@
 """The ensemble MLP's forward and backward, written by hand for speed on CPU.
 
 ``in -> relu(256) -> relu(256) -> out`` per member. Almost all of a training step's
-arithmetic is the 256x256 hidden layer, so that is the layer this module is about:
+arithmetic is the 256x256 hidden layer, so that is the layer this module is about: its
+three products run on the kernels ``kernel_choice`` measured fastest on this CPU (oneDNN
+or the default BLAS, fp32 or bf16). In bf16 the input and output layers stay fp32: they
+cost almost nothing, and bf16 Q values (8 mantissa bits) would quantise AWAC's advantage
+weights. Members are multiplied one by one (which also keeps each member's numbers
+independent of how many members train beside it).
 
-* fp32: torch sends fp32 matmuls to MKL, and on AMD CPUs MKL runs its AVX2 kernels;
-  oneDNN chooses by ISA flags and runs AVX-512. On a 256x256x256 product here that is
-  230 against 110 GFLOP/s. oneDNN has no batched-weight linear, so members are
-  multiplied one by one (which also keeps each member's numbers independent of how
-  many members train beside it).
-* bf16 (the default on CPUs with native bf16): the hidden layer's matmuls run in bf16
-  on oneDNN too (its weight gradient through ``mm``, which is faster there). The
-  input and output layers stay fp32: they cost almost nothing, and bf16 Q values
-  (8 mantissa bits) would quantise AWAC's advantage weights.
-
-``mlp_forward`` and ``mlp_backward`` are the whole network, forward and backward. The
-autograd ``Function`` below wraps them (one autograd node per network call instead of
-one per op), and the training steps of ``learners/written_out.py`` call them without
-autograd at all: the step is short enough (a few ms) that per-op overhead is a third
-of it. On a GPU, ``networks.py`` does not use this module.
-
-The oneDNN op is detected, never assumed: without it the hidden layer uses ``addmm``
-and ``mm``, the same maths in the default BLAS's order.
+``mlp_forward`` and ``mlp_backward`` are the whole network, forward and backward; the
+autograd ``Function`` below wraps them, so a network call is one autograd node instead
+of one per op. On a GPU, ``networks.py`` does not use this module.
 """
 
 from __future__ import annotations
 
-import functools
-
 import torch
+
+from .kernel_choice import Kernels, product
 
 _relu_grad = torch.ops.aten.threshold_backward
 
 
-@functools.lru_cache(maxsize=1)
-def onednn_linear_available() -> bool:
-    """True when torch's oneDNN linear (``mkldnn._linear_pointwise``) runs here."""
-    try:
-        if not torch.backends.mkldnn.is_available():
-            return False
-        out = torch.ops.mkldnn._linear_pointwise(torch.ones(2, 3), torch.ones(4, 3), None, "none", [], "")
-        return bool(torch.equal(out, torch.full((2, 4), 3.0)))
-    except (AttributeError, RuntimeError):
-        return False
-
-
-def _onednn(x: torch.Tensor, weight_out_in: torch.Tensor, bias: torch.Tensor | None, relu: bool) -> torch.Tensor:
-    """x @ weight_out_in.T (+ bias) (then relu), on oneDNN; the weight may be a transposed view."""
-    return torch.ops.mkldnn._linear_pointwise(x, weight_out_in, bias, "relu" if relu else "none", [], "")
-
-
 class HiddenLayer:
-    """The 256x256 layer's three products for one member (2-D tensors), all in ``dtype``
-    (fp32 or bf16); ``cast`` brings an fp32 tensor to it."""
+    """The hidden layer's three products for one member (2-D tensors), on the chosen
+    kernels; ``cast`` brings an fp32 tensor to their dtype."""
 
-    def __init__(self, dtype: torch.dtype):
-        self.dtype = dtype
-        self.onednn = onednn_linear_available()
+    def __init__(self, kernels: Kernels | None = None):
+        self.kernels = kernels or Kernels()
+        self.dtype = self.kernels.torch_dtype
+        self.forward_relu = product("forward", self.kernels.forward)  # relu(x @ w + b)
+        self.grad_weight = product("grad_weight", self.kernels.grad_weight)  # x.T @ g
+        self.grad_input = product("grad_input", self.kernels.grad_input)  # g @ w.T
 
     def cast(self, t: torch.Tensor) -> torch.Tensor:
         return t.to(self.dtype)
-
-    def forward_relu(self, x_c, w_c, b_c):  # relu(x @ w + b)
-        if self.onednn:
-            return _onednn(x_c, w_c.t(), b_c, True)
-        return torch.addmm(b_c, x_c, w_c).relu_()
-
-    def grad_weight(self, x_c, g_c):  # x.T @ g
-        if self.onednn and self.dtype == torch.float32:
-            return _onednn(x_c.t(), g_c.t(), None, False)
-        return x_c.t().mm(g_c)
-
-    def grad_input(self, g_c, w_c):  # g @ w.T
-        if self.onednn:
-            return _onednn(g_c, w_c, None, False)
-        return g_c.mm(w_c.t())
 
 
 def mlp_forward(x, w1, b1, w2, b2, w3, b3, tanh_output: bool, hidden: HiddenLayer, w2c=None, b2c=None):
     """(E, B, in) -> (y, w2c, activations): the three layers member by member. ``w2c``
     / ``b2c``, the hidden weights already cast, may be passed in by a caller that runs
-    one network twice between updates. Used by the autograd Function below and by the
-    written-out training steps (``learners/written_out.py``)."""
+    one network twice between updates."""
     members = w1.shape[0]
     y = x.new_empty(members, x.shape[1], w3.shape[2])
     if w2c is None:
@@ -99,29 +59,38 @@ def mlp_forward(x, w1, b1, w2, b2, w3, b3, tanh_output: bool, hidden: HiddenLaye
     return y, w2c, acts
 
 
-def mlp_backward(grad_y, x, w1, w2c, w3, y, acts, tanh_output: bool, hidden: HiddenLayer, input_grad: bool):
-    """Gradients (x or None, w1, b1, w2, b2, w3, b3) of ``mlp_forward``'s output."""
+def mlp_backward(grad_y, x, w1, w2c, w3, y, acts, tanh_output: bool, hidden: HiddenLayer, input_grad: bool,
+                 weight_grads: bool = True):
+    """Gradients (x or None, w1, b1, w2, b2, w3, b3) of ``mlp_forward``'s output; the
+    weights' are None without ``weight_grads`` (a loss that moves another network
+    through this one's output, as an actor's through a critic, needs only x's)."""
     g3_all = grad_y * (1.0 - y * y) if tanh_output else grad_y
-    grad_w1, grad_w3 = torch.empty_like(w1), torch.empty_like(w3)
-    grad_w2 = w1.new_empty(w2c.shape)  # fp32, like the parameter
-    grad_b1 = x.new_empty(w1.shape[0], 1, w1.shape[2])
-    grad_b2 = x.new_empty(w2c.shape[0], 1, w2c.shape[2])
-    grad_b3 = g3_all.sum(1, keepdim=True)
+    grads = [None] * 6
+    if weight_grads:
+        grad_w1, grad_w3 = torch.empty_like(w1), torch.empty_like(w3)
+        grad_w2 = w1.new_empty(w2c.shape)  # fp32, like the parameter
+        grad_b1 = x.new_empty(w1.shape[0], 1, w1.shape[2])
+        grad_b2 = x.new_empty(w2c.shape[0], 1, w2c.shape[2])
+        grad_b3 = g3_all.sum(1, keepdim=True)
+        grads = [grad_w1, grad_b1, grad_w2, grad_b2, grad_w3, grad_b3]
     grad_x = torch.empty_like(x) if input_grad else None
     for m in range(w1.shape[0]):
         h1, h1c, h2 = acts[m]
         g3 = g3_all[m]
-        grad_w3[m].copy_(g3.t().mm(h2).t())
+        if weight_grads:
+            grad_w3[m].copy_(g3.t().mm(h2).t())
         g2 = _relu_grad(g3.mm(w3[m].t()), h2, 0)
-        torch.sum(g2, 0, keepdim=True, out=grad_b2[m])
         g2c = hidden.cast(g2)
-        grad_w2[m].copy_(hidden.grad_weight(h1c, g2c))
+        if weight_grads:
+            torch.sum(g2, 0, keepdim=True, out=grad_b2[m])
+            grad_w2[m].copy_(hidden.grad_weight(h1c, g2c))
         g1 = _relu_grad(hidden.grad_input(g2c, w2c[m]).float(), h1, 0)
-        torch.mm(x[m].t(), g1, out=grad_w1[m])
-        torch.sum(g1, 0, keepdim=True, out=grad_b1[m])
+        if weight_grads:
+            torch.mm(x[m].t(), g1, out=grad_w1[m])
+            torch.sum(g1, 0, keepdim=True, out=grad_b1[m])
         if grad_x is not None:
             torch.mm(g1, w1[m].t(), out=grad_x[m])
-    return grad_x, grad_w1, grad_b1, grad_w2, grad_b2, grad_w3, grad_b3
+    return (grad_x, *grads)
 
 
 class _EnsembleMLPFunction(torch.autograd.Function):
@@ -140,7 +109,8 @@ class _EnsembleMLPFunction(torch.autograd.Function):
     def backward(ctx, grad_y):
         x, w1, w2c, w3, y, *flat = ctx.saved_tensors
         acts = [tuple(flat[i: i + 3]) for i in range(0, len(flat), 3)]
-        grads = mlp_backward(grad_y, x, w1, w2c, w3, y, acts, ctx.tanh_output, ctx.hidden, ctx.needs_input_grad[0])
+        grads = mlp_backward(grad_y, x, w1, w2c, w3, y, acts, ctx.tanh_output, ctx.hidden, ctx.needs_input_grad[0],
+                             weight_grads=any(ctx.needs_input_grad[1:7]))
         return (*grads, None, None)
 
 

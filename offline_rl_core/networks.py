@@ -16,6 +16,7 @@ import math
 import torch
 from torch import nn
 
+from .kernel_choice import Kernels
 from .mlp_kernels import HiddenLayer, ensemble_mlp
 
 
@@ -28,13 +29,13 @@ class EnsembleMLP(nn.Module):
         out_dim: int,
         generators: list[torch.Generator] | None = None,
         tanh_output: bool = False,
-        compute_dtype: torch.dtype = torch.float32,
+        kernels: Kernels | None = None,
     ):
         super().__init__()
         self.members, self.in_dim, self.hidden, self.out_dim = members, in_dim, hidden, out_dim
         self.tanh_output = tanh_output
-        # the matmuls' dtype: fp32, or bf16 in fast mode (parameters stay fp32)
-        self.hidden_layer = HiddenLayer(compute_dtype)
+        # the hidden layer's products on the CPU (parameters stay fp32 whatever their dtype)
+        self.hidden_layer = HiddenLayer(kernels)
         dims = [in_dim, hidden, hidden, out_dim]
         self.weights = nn.ParameterList()
         self.biases = nn.ParameterList()

@@ -15,6 +15,7 @@ policy node watching the file never reads half a checkpoint.
 
 from __future__ import annotations
 
+import io
 import os
 from pathlib import Path
 
@@ -39,6 +40,26 @@ def save_checkpoint(path: str | os.PathLike, checkpoint: dict) -> Path:
     return Path(path)
 
 
+def checkpoint_to_bytes(checkpoint: dict) -> bytes:
+    """A checkpoint as bytes (the ``torch.save`` format), e.g. for a weights message."""
+    buf = io.BytesIO()
+    torch.save(checkpoint, buf)
+    return buf.getvalue()
+
+
+def checkpoint_from_bytes(data: bytes, source: str) -> dict:
+    """``checkpoint_to_bytes`` reversed and validated like a file; ``source`` names it in errors."""
+    return _validated(_torch_load(io.BytesIO(bytes(data)), source), source)
+
+
+def _torch_load(f, source) -> dict:
+    try:
+        return torch.load(f, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises many types for corrupt files
+        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise UserError(f"{source}: not a readable pusher-rl checkpoint ({reason[:160]})") from None
+
+
 def load_checkpoint(path: str | os.PathLike) -> dict:
     """Read and validate a checkpoint; a clear ``UserError`` for anything wrong."""
     path = Path(path)
@@ -49,11 +70,10 @@ def load_checkpoint(path: str | os.PathLike) -> dict:
         if not candidate.exists():
             raise UserError(f"{path}: is a directory without policy.pt; expected a checkpoint file")
         path = candidate
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises many types for corrupt files
-        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise UserError(f"{path}: not a readable pusher-rl checkpoint ({reason[:160]})") from None
+    return _validated(_torch_load(path, path), path)
+
+
+def _validated(ckpt, path) -> dict:
     if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
         raise UserError(f"{path}: not a pusher-rl checkpoint (expected format '{CHECKPOINT_FORMAT}')")
     if ckpt.get("version") != CHECKPOINT_VERSION:
@@ -71,6 +91,13 @@ def load_checkpoint(path: str | os.PathLike) -> dict:
         if name not in state or tuple(state[name].shape) != shape:
             got = tuple(state[name].shape) if name in state else "missing"
             raise UserError(f"{path}: policy weight '{name}' has shape {got}, expected {shape}")
+    for name, tensor in state.items():
+        if not torch.is_tensor(tensor) or not bool(torch.isfinite(tensor).all()):
+            raise UserError(f"{path}: policy weight '{name}' is not a finite tensor")
+    log_std = ckpt.get("exploration_log_std")
+    if log_std is not None and (not torch.is_tensor(log_std) or log_std.numel() != int(ckpt["act_dim"])
+                                or not bool(torch.isfinite(log_std).all())):
+        raise UserError(f"{path}: exploration_log_std must be {ckpt['act_dim']} finite values")
     return ckpt
 
 
@@ -92,6 +119,10 @@ class LoadedPolicy:
         # Stored transposed once so a row of observations multiplies directly.
         self._w = [state[f"{i}.weight"].detach().float().numpy().T.copy() for i in (0, 2, 4)]
         self._b = [state[f"{i}.bias"].detach().float().numpy().copy() for i in (0, 2, 4)]
+        # the online learner's Gaussian: exploration samples tanh(mean + std * eps)
+        log_std = checkpoint.get("exploration_log_std")
+        self.exploration_log_std = None if log_std is None else np.asarray(log_std, np.float32).reshape(-1)
+        self.weights_version = int(checkpoint.get("weights_version", 0) or 0)
         mean = checkpoint.get("obs_mean")
         std = checkpoint.get("obs_std")
         self._obs_mean = None if mean is None else np.asarray(mean, dtype=np.float32)
@@ -99,6 +130,20 @@ class LoadedPolicy:
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         """obs (obs_dim,) or (N, obs_dim) -> float32 actions of the same leading shape."""
+        return np.tanh(self.pre_tanh(obs)).astype(np.float32, copy=False)
+
+    def sample(self, obs: np.ndarray, rng: np.random.Generator, log_std: np.ndarray | float | None = None) -> np.ndarray:
+        """An exploration action: tanh(mean + std * eps), eps ~ N(0, 1) from ``rng``, with
+        the checkpoint's learnt std (or ``log_std``); in [-1, 1] like ``act``."""
+        log_std = self.exploration_log_std if log_std is None else log_std
+        mean = self.pre_tanh(obs)
+        if log_std is None:
+            return np.tanh(mean).astype(np.float32, copy=False)
+        eps = rng.standard_normal(mean.shape).astype(np.float32)
+        return np.tanh(mean + np.exp(np.asarray(log_std, np.float32)) * eps).astype(np.float32, copy=False)
+
+    def pre_tanh(self, obs: np.ndarray) -> np.ndarray:
+        """The network's output before the tanh: float32, shaped like ``act``'s."""
         x = np.asarray(obs, dtype=np.float32)
         single = x.ndim == 1
         if single:
@@ -109,8 +154,8 @@ class LoadedPolicy:
             x = (x - self._obs_mean) / self._obs_std
         h = np.maximum(x @ self._w[0] + self._b[0], 0.0)
         h = np.maximum(h @ self._w[1] + self._b[1], 0.0)
-        a = np.tanh(h @ self._w[2] + self._b[2]).astype(np.float32, copy=False)
-        return a[0] if single else a
+        y = (h @ self._w[2] + self._b[2]).astype(np.float32, copy=False)
+        return y[0] if single else y
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
         return self.act(obs)

@@ -7,7 +7,8 @@ so an install here is what ``colcon build --merge-install --symlink-install`` wo
 lay down, without colcon's per-package setuptools runs:
 
 - ``share/ament_index/resource_index/packages/<pkg>`` (the index marker)
-- ``share/<pkg>/package.xml`` (symlink)
+- ``share/<pkg>/package.xml`` (symlink), and ``share/<pkg>/config`` and ``share/<pkg>/launch``
+  (symlinks to the package's parameter files and launch files, where it has them)
 - ``site-packages/<module>`` -> ``ros_ws/src/<pkg>/<module>`` (symlink: code edits are live)
 - ``lib/<pkg>/<exe>`` for each ``console_scripts`` entry of the package (a package may
   declare several, e.g. ``corrections``: ``mux`` and ``corrector``), a small script run
@@ -35,6 +36,7 @@ from pathlib import Path
 from .errors import UserError
 
 INDEX_DIR = Path("share", "ament_index", "resource_index", "packages")
+SHARE_DIRS = ("config", "launch")  # installed to share/<pkg>/ as setup.py's data_files do
 SHIM_DIST = "ros2_shim"  # normalised distribution name of ros_ws/tools/ros2_shim
 
 EXECUTABLE_TEMPLATE = """#!{python}
@@ -157,13 +159,27 @@ def _write_if_changed(path: Path, text: str, mode: int | None = None) -> None:
         path.chmod(mode)
 
 
+def _drop_stale_module_links(site: Path, package: RosPackage) -> None:
+    """Remove links into the package's source whose module it no longer has (a renamed module)."""
+    for link in site.iterdir():
+        if not link.is_symlink() or link.name in package.modules:
+            continue
+        target = Path(os.readlink(link))
+        if target.parent == package.path and not (target / "__init__.py").is_file():
+            link.unlink()
+
+
 def install_package(package: RosPackage, venv: Path, python: Path) -> None:
     venv = venv.absolute()
     _write_if_changed(venv / INDEX_DIR / package.name, "")
     _symlink(venv / "share" / package.name / "package.xml", package.path / "package.xml")
+    for name in SHARE_DIRS:
+        if (package.path / name).is_dir():
+            _symlink(venv / "share" / package.name / name, package.path / name)
     site = site_packages(venv)
     for module in package.modules:
         _symlink(site / module, package.path / module)
+    _drop_stale_module_links(site, package)
     lib_dir = venv / "lib" / package.name
     wanted = set()
     for exe, module, function in package.console_scripts:

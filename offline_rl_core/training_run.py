@@ -20,10 +20,13 @@ import numpy as np
 
 from .bag import read_transitions
 from .errors import UserError
-from .evaluation import evaluate_policy, write_json_atomic
+from .atomic import write_json_atomic
+from .evaluation import evaluate_policy
 from .learners import ALGORITHMS, Progress, TrainConfig, train
+from .learners.resume import ResumePoints
 from .plots import plot_training_curve
 from .policy import load_checkpoint, save_checkpoint
+from .raw_topics import transitions_from_topics
 from .transitions import SOURCE_NAMES, Transitions
 
 DEFAULT_EVAL_SEED = 500000  # the chapter's held-out reset seeds start here
@@ -35,6 +38,9 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     d = TrainConfig()
     parser.add_argument("--bag", action="append", required=True, metavar="PATH",
                         help="rosbag2 bag (directory, .db3 or .mcap) with /pusher/transition; repeat to merge bags")
+    parser.add_argument("--from-topics", metavar="SPEC",
+                        help="build the transitions from each bag's raw robot topics as this YAML spec says "
+                             "(see `offline-rl dataset --help`, e.g. bags/pusher_topics.yaml)")
     parser.add_argument("--algo", choices=ALGORITHMS, default=d.algo, help="learner (default: %(default)s)")
     parser.add_argument("--steps", type=int, default=d.steps, help="gradient steps (default: %(default)s)")
     parser.add_argument("--seed", type=int, default=0, help="seed of init and batch sampling (default: %(default)s)")
@@ -45,29 +51,21 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--eval-seed", type=int, default=DEFAULT_EVAL_SEED,
                         help="first reset seed of the evaluation rollouts (default: %(default)s)")
     parser.add_argument("--init", metavar="CHECKPOINT", help="warm-start policy (and critics if stored) from a checkpoint")
-    hp = parser.add_argument_group("hyper-parameters (defaults are the chapter's)")
-    hp.add_argument("--batch-size", type=int, default=d.batch_size)
-    hp.add_argument("--hidden", type=int, default=d.hidden)
-    hp.add_argument("--lr", type=float, default=d.lr)
-    hp.add_argument("--gamma", type=float, default=d.gamma)
-    hp.add_argument("--tau", type=float, default=d.tau, help="Polyak rate of the target critics")
-    hp.add_argument("--beta", type=float, default=d.beta, help="AWAC temperature")
-    hp.add_argument("--weight-clip", type=float, default=d.weight_clip, help="AWAC weight clip")
-    hp.add_argument("--expectile", type=float, default=d.expectile, help="IQL expectile")
-    hp.add_argument("--temperature", type=float, default=d.temperature, help="IQL inverse temperature")
-    hp.add_argument("--max-weight", type=float, default=d.max_weight, help="IQL weight clip")
-    hp.add_argument("--filter-top-frac", type=float, default=d.filter_top_frac, help="filtered BC: share of best episodes")
-    hp.add_argument("--correction-ratio", type=float, default=d.correction_ratio,
-                    help="share of each batch drawn from correction runs (policy/human transitions); default: uniform")
-    hp.add_argument("--threads", type=int, default=d.threads, help="torch threads while training (default: %(default)s)")
-    hp.add_argument("--log-every", type=int, default=d.log_every, help="steps between progress reports")
-    hp.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=d.deterministic,
-                    help="fp32 everywhere; the default runs the hidden layer in bf16 where the CPU has native bf16 "
-                         "(AMX / AVX512-BF16). Both are byte-identical run to run for a seed")
-    hp.add_argument("--device", default=d.device,
-                    help="cpu (default), or cuda / cuda:N to train on an NVIDIA GPU; evaluation stays on the CPU")
-    hp.add_argument("--cuda-graph", action=argparse.BooleanOptionalAction, default=d.cuda_graph,
-                    help="on CUDA, replay each step as one recorded CUDA graph (default: on)")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue from DIR/resume.pt, the resume point a killed run left (same result, same bytes)")
+    parser.add_argument("--resume-every", type=float, default=1.0, metavar="S",
+                        help="seconds between resume points (default: %(default)s)")
+    groups = {"run": parser, "hyper-parameters": parser.add_argument_group("hyper-parameters (defaults are the chapter's)")}
+    for f in fields(TrainConfig):
+        if f.name in ("algo", "steps"):
+            continue  # above, with their own choices and help
+        flag, default = "--" + f.name.replace("_", "-"), getattr(d, f.name)
+        options = dict(default=default, help=f.metadata["help"] + (" (default: %(default)s)" if default is not None else ""))
+        if isinstance(default, bool):
+            options["action"] = argparse.BooleanOptionalAction
+        else:
+            options["type"] = type(default) if default is not None else float
+        groups[f.metadata["group"]].add_argument(flag, **options)
 
 
 def config_from_args(args: argparse.Namespace) -> TrainConfig:
@@ -78,16 +76,19 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
         raise UserError(str(exc)) from None
 
 
-def load_bags(paths: list[str]) -> tuple[Transitions, list[dict]]:
-    """Read and merge bags; episode ids are offset so they stay unique per bag."""
+def load_bags(paths: list[str], from_topics: str | None = None) -> tuple[Transitions, list[dict]]:
+    """Read and merge bags; episode ids are offset so they stay unique per bag.
+    ``from_topics``: a raw-topic spec; the transitions are built from each bag's raw topics."""
     parts, summary, offset = [], [], 0
     for path in paths:
-        data = read_transitions(path)
+        joined = transitions_from_topics(path, from_topics) if from_topics else None
+        data = joined[0] if joined else read_transitions(path)
         data.episode = data.episode - data.episode.min() + offset
         offset = int(data.episode.max()) + 1
         parts.append(data)
         counts = {SOURCE_NAMES.get(int(s), str(s)): int(n) for s, n in zip(*np.unique(data.source, return_counts=True))}
-        summary.append({"path": str(path), "transitions": len(data), "sources": counts})
+        summary.append({"path": str(path), "transitions": len(data), "sources": counts,
+                        **({"from_topics": joined[1].as_dict()} if joined else {})})
     return (parts[0] if len(parts) == 1 else Transitions.concatenate(parts)), summary
 
 
@@ -110,13 +111,16 @@ def run_training(
     init: str | None = None,
     progress: Callable[[Progress], None] | None = None,
     log: Callable[[str], None] = lambda s: print(s, file=sys.stderr),
+    resume: bool = False,
+    resume_every: float = 1.0,
+    from_topics: str | None = None,
 ) -> Path:
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise UserError(f"{out}: exists and is not a directory; --out needs a directory")
     if eval_episodes < 0:
         raise UserError(f"--eval-episodes must be >= 0, got {eval_episodes}")
-    data, bag_summary = load_bags(bags)
+    data, bag_summary = load_bags(bags, from_topics)
     init_ckpt = None
     if init:
         init_ckpt = load_checkpoint(init)
@@ -125,8 +129,16 @@ def run_training(
                             f"the bag's ({data.obs.shape[1]}, {data.action.shape[1]})")
         if int(init_ckpt["hidden"]) != cfg.hidden:
             raise UserError(f"{init}: checkpoint hidden size {init_ckpt['hidden']} differs from --hidden {cfg.hidden}")
+    if resume_every <= 0:
+        raise UserError(f"--resume-every must be > 0, got {resume_every}")
+    points = ResumePoints(out / "resume.pt", resume_every, resume)
+    if resume:
+        log(f"resuming from {points.path}" if points.path.exists() else f"no resume point at {points.path}; starting")
     log(f"training {cfg.algo} on {len(data)} transitions from {len(bags)} bag(s), {cfg.steps} steps, seed {seed}")
-    result = train(data, cfg, seed, progress=progress, init=init_ckpt)
+    try:
+        result = train(data, cfg, seed, progress=progress, init=init_ckpt, resume=points)
+    except ValueError as exc:  # an unreadable or foreign resume point
+        raise UserError(str(exc)) from None
 
     metrics: dict = {
         "algorithm": cfg.algo,
@@ -148,6 +160,7 @@ def run_training(
     save_checkpoint(out / "policy.pt", result.checkpoint)
     write_json_atomic(out / "metrics.json", metrics)
     plot_training_curve(result.history, out / "training_curve.png", title=f"{cfg.algo} seed {seed}")
+    points.done()  # the run is complete: its resume point is spent
     return out
 
 
@@ -159,7 +172,8 @@ def run_training_from_args(args: argparse.Namespace, progress: Callable[[Progres
     cfg = config_from_args(args)
     out = args.out or default_out_dir(args.algo, args.seed)
     return run_training(args.bag, cfg, args.seed, out, args.eval_episodes, args.eval_seed, args.init,
-                        progress=progress or console_progress())
+                        progress=progress or console_progress(), resume=args.resume, resume_every=args.resume_every,
+                        from_topics=args.from_topics)
 
 
 def summary_line(out: Path) -> str:

@@ -22,8 +22,8 @@ from ros_helpers import INDEX, REPO, probe_node, require_ros, ros_env, spawn  # 
 CORRECTIONS_SRC = REPO / "ros_ws" / "src" / "corrections"
 sys.path.insert(0, str(CORRECTIONS_SRC))  # the pure-Python parts, importable without the install
 
-from corrections.arbiter import HUMAN, POLICY, LockstepArbiter, RealtimeArbiter  # noqa: E402
-from corrections.scripted import CorrectorParams, ScriptedCorrector  # noqa: E402
+from pusher_corrections.arbiter import HUMAN, POLICY, LockstepArbiter, RealtimeArbiter  # noqa: E402
+from offline_rl_core.corrector import CorrectorParams, ScriptedCorrector  # noqa: E402
 
 
 def require_corrections() -> None:
@@ -39,8 +39,9 @@ B = np.array([-0.25, 0.75], np.float32)
 # ---------------------------------------------------------------- packaging
 def test_corrections_package_declares_two_executables():
     package = ros_install.read_package(CORRECTIONS_SRC)
-    assert package.name == "corrections" and package.modules == ["corrections"]
-    assert package.console_scripts == [("mux", "corrections.mux", "main"), ("corrector", "corrections.corrector", "main")]
+    assert package.name == "corrections" and package.modules == ["pusher_corrections"]
+    assert package.console_scripts == [("mux", "pusher_corrections.mux", "main"),
+                                       ("corrector", "pusher_corrections.corrector", "main")]
     assert "install_scripts=$base/lib/corrections" in (CORRECTIONS_SRC / "setup.cfg").read_text()
 
 
@@ -219,11 +220,12 @@ def test_mux_over_ros_lockstep_and_realtime(spawn, ros_env):
 
     from offline_rl_core.rosproc import ros2_run
 
+    # who acted is the topic a command goes to: pusher/command/policy or pusher/command/human
     lock = spawn(ros2_run("corrections", "mux", "--ros-args", "-p", "mode:=lockstep", "-p", "require_teleop:=true",
-                          "-r", "/pusher/command:=/lock/command", "-r", "/corrections/intervening:=/lock/intervening"),
+                          "-r", "__ns:=/lock", "-r", "policy/action:=/policy/action", "-r", "teleop/action:=/teleop/action"),
                  "mux_lockstep")
     real = spawn(ros2_run("corrections", "mux", "--ros-args", "-p", "mode:=realtime", "-p", "hold_ms:=300",
-                          "-r", "__node:=mux_realtime", "-r", "/pusher/command:=/real/command", "-r", "/corrections/intervening:=/real/intervening"),
+                          "-r", "__ns:=/real", "-r", "policy/action:=/policy/action", "-r", "teleop/action:=/teleop/action"),
                  "mux_realtime")
     assert lock.wait_for_output("mux lockstep", 60) and real.wait_for_output("mux realtime", 60)
     with probe_node("mux_probe") as node:
@@ -231,10 +233,12 @@ def test_mux_over_ros_lockstep_and_realtime(spawn, ros_env):
         from rclpy.qos import DurabilityPolicy, QoSProfile
 
         latched = QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        node.create_subscription(JointState, "/lock/command", lambda m: got["lock"].append(m), 10)
-        node.create_subscription(JointState, "/real/command", lambda m: got["real"].append(m), 10)
-        node.create_subscription(Bool, "/lock/intervening", lambda m: got["lock_int"].append(m.data), latched)
-        node.create_subscription(Bool, "/real/intervening", lambda m: got["real_int"].append(m.data), latched)
+        for mux in ("lock", "real"):
+            for source in ("policy", "human"):
+                node.create_subscription(JointState, f"/{mux}/pusher/command/{source}",
+                                         lambda m, mux=mux, source=source: got[mux].append((source, m)), 10)
+        node.create_subscription(Bool, "/lock/corrections/intervening", lambda m: got["lock_int"].append(m.data), latched)
+        node.create_subscription(Bool, "/real/corrections/intervening", lambda m: got["real_int"].append(m.data), latched)
         policy = node.create_publisher(JointState, "/policy/action", 10)
         teleop = node.create_publisher(JointState, "/teleop/action", 10)
         assert node.spin_until(lambda: policy.get_subscription_count() >= 2 and teleop.get_subscription_count() >= 2
@@ -250,7 +254,7 @@ def test_mux_over_ros_lockstep_and_realtime(spawn, ros_env):
         policy.publish(joint_msg(A, 2, "policy"))
         assert node.spin_until(lambda: len(got["lock"]) >= 2, 10)
         node.spin_for(0.3)
-        lock_cmds = [(m.header.stamp.nanosec, m.header.frame_id, list(m.effort)) for m in got["lock"]]
+        lock_cmds = [(m.header.stamp.nanosec, source, list(m.effort)) for source, m in got["lock"]]
         assert lock_cmds == [(1, "human", list(map(float, B))), (2, "policy", list(map(float, A)))], lock_cmds
         assert node.spin_until(lambda: got["lock_int"][-3:] == [False, True, False], 5), got["lock_int"]
 
@@ -260,11 +264,11 @@ def test_mux_over_ros_lockstep_and_realtime(spawn, ros_env):
         assert node.spin_until(lambda: len(got["real"]) >= 1, 10)
         policy.publish(joint_msg(A, 11, "policy"))
         node.spin_for(0.1)
-        assert [m.header.frame_id for m in got["real"]] == ["human"]
+        assert [source for source, _ in got["real"]] == ["human"]
         assert node.spin_until(lambda: got["real_int"][-1] is False and True in got["real_int"], 5)
         policy.publish(joint_msg(A, 12, "policy"))  # hold over: the policy drives again
         assert node.spin_until(lambda: len(got["real"]) >= 2, 10)
-        assert got["real"][-1].header.frame_id == "policy"
+        assert got["real"][-1][0] == "policy"
 
 
 @pytest.fixture(scope="module")
@@ -310,7 +314,7 @@ def test_hil_loop_records_sources_hot_reloads_and_improves(ros_env, weak_prior, 
             # never before the grace period plus k states without progress
             assert len(first) == 0 or first[0] >= cfg.grace_steps + cfg.patience - 1
     # hot reload during the run: the policy node (one process) served round 2 with round 1's checkpoint
-    assert (out / "policy_node.log").read_text().count("reloaded ") == 2
+    assert (out / "policy.log").read_text().count("reloaded ") == 2
     round2 = read_transitions(rows[1]["bag"])
     pol = round2.source == SOURCE_POLICY
     new, old = load_policy(rows[0]["checkpoint"]), load_policy(weak_prior)

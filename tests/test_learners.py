@@ -33,7 +33,7 @@ def tiny_batch():
     reward = torch.tensor([[[-0.5], [1.0]]])
     next_obs = obs.flip(1)
     not_done = torch.tensor([[[1.0], [0.0]]])
-    return Batch(obs, action, reward, next_obs, not_done, torch.ones(1, 2, 1))
+    return Batch(obs, action, reward, next_obs, not_done, torch.ones(1, 2, 1), torch.zeros(1, 2, 1))
 
 
 def zero_net(net, out_bias=0.0):

@@ -12,7 +12,7 @@ import pytest
 
 from offline_rl_core import ros_install
 
-from ros_helpers import PACKAGES, REPO
+from ros_helpers import MODULES, PACKAGES, REPO, require_ros
 
 SRC = REPO / "ros_ws" / "src"
 
@@ -29,30 +29,72 @@ def test_every_package_declares_node_and_real_dependencies():
     for name in PACKAGES:
         package = ros_install.read_package(SRC / name)
         assert package.name == name
-        assert package.console_scripts == [("node", f"{name}.node", "main")]
-        assert package.modules == [name]
+        assert package.console_scripts == [("node", f"{MODULES[name]}.node", "main")]
+        assert package.modules == [MODULES[name]]
         xml = (SRC / name / "package.xml").read_text()
         assert "<build_type>ament_python</build_type>" in xml and "<exec_depend>rclpy</exec_depend>" in xml
         assert (SRC / name / "resource" / name).exists()
         assert f"install_scripts=$base/lib/{name}" in (SRC / name / "setup.cfg").read_text()
 
 
+# (package, module with PARAMS, config file): each node's every setting, installed with its package
+CONFIGS = [("sim", "pusher_sim.node", "sim"), ("policy", "pusher_policy.node", "policy"),
+           ("trainer", "pusher_trainer.node", "trainer"), ("corrections", "pusher_corrections.mux", "mux"),
+           ("corrections", "pusher_corrections.corrector", "corrector")]
+
+
+def test_config_files_hold_every_setting_with_its_default():
+    require_ros()
+    import importlib
+
+    import yaml
+
+    for package, module, name in CONFIGS:
+        params = importlib.import_module(module).PARAMS
+        text = (SRC / package / "config" / f"{name}.yaml").read_text()
+        values = yaml.safe_load(text)["/**"]["ros__parameters"]
+        assert values == {p.name: p.default for p in params if p.default not in (None, [])}, name
+        assert all(f"# {p.name}: (unset)" in text for p in params if p.default in (None, [])), name
+
+
 def test_ros_install_lays_out_an_ament_prefix_and_is_idempotent(tmp_path, capsys):
     venv = fake_venv(tmp_path)
-    args = ["--venv", str(venv), "--no-shim", *[str(SRC / p) for p in PACKAGES]]
+    args = ["--venv", str(venv), "--no-shim", *[str(SRC / p) for p in (*PACKAGES, "corrections", "pusher_common")]]
     for _ in range(2):
         assert ros_install.main(args) == 0
     site = ros_install.site_packages(venv)
+    for package, _, config in CONFIGS:
+        assert (venv / "share" / package / "config" / f"{config}.yaml").is_file()
     for name in PACKAGES:
         assert (venv / "share" / "ament_index" / "resource_index" / "packages" / name).is_file()
         assert (venv / "share" / name / "package.xml").resolve() == (SRC / name / "package.xml").resolve()
-        assert (site / name).resolve() == (SRC / name / name).resolve()  # symlink: edits are live
+        module = MODULES[name]
+        assert (site / module).resolve() == (SRC / name / module).resolve()  # symlink: edits are live
         exe = venv / "lib" / name / "node"
         assert os.access(exe, os.X_OK)
         text = exe.read_text()
-        assert text.startswith(f"#!{venv.absolute()}/bin/python\n") and f"from {name}.node import main" in text
+        assert text.startswith(f"#!{venv.absolute()}/bin/python\n") and f"from {module}.node import main" in text
+    # the shared plumbing: a library package, importable, with no executables
+    assert (site / "pusher_common").resolve() == (SRC / "pusher_common" / "pusher_common").resolve()
+    assert not (venv / "lib" / "pusher_common").exists()
     assert not (venv / "bin" / "node").exists()  # never shadows Node.js
     assert "installed into" in capsys.readouterr().out
+
+
+def test_ros_install_drops_the_link_of_a_renamed_module(tmp_path):
+    venv = fake_venv(tmp_path)
+    pkg = tmp_path / "src" / "demo"
+    (pkg / "demo").mkdir(parents=True)
+    (pkg / "demo" / "__init__.py").write_text("")
+    (pkg / "package.xml").write_text("<package format='3'><name>demo</name></package>")
+    (pkg / "setup.py").write_text("from setuptools import setup\nsetup()\n")
+    assert ros_install.main(["--venv", str(venv), "--no-shim", str(pkg)]) == 0
+    site = ros_install.site_packages(venv)
+    assert (site / "demo").is_symlink()
+    (pkg / "demo").rename(pkg / "pusher_demo")
+    assert ros_install.main(["--venv", str(venv), "--no-shim", str(pkg)]) == 0
+    assert (site / "pusher_demo").resolve() == (pkg / "pusher_demo").resolve()
+    assert not (site / "demo").is_symlink()  # no dangling link to the old module name
 
 
 def test_ros_install_refuses_a_non_package(tmp_path, capsys):
@@ -77,4 +119,6 @@ def test_colcon_builds_the_workspace(tmp_path):
     for name in PACKAGES:
         assert (ws / "install" / name / "lib" / name / "node").is_file(), name
         assert (ws / "install" / name / "share" / "ament_index" / "resource_index" / "packages" / name).exists()
+    for package, _, config in CONFIGS:
+        assert (ws / "install" / package / "share" / package / "config" / f"{config}.yaml").is_file()
     assert not (ws / "install" / "ros2_shim").exists()  # tools/ carries COLCON_IGNORE

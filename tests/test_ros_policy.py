@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import subprocess
 import time
 
 import numpy as np
@@ -53,14 +54,16 @@ def test_missing_checkpoint_is_one_line_and_exit_2(spawn, tmp_path):
 def test_policy_answers_rejects_and_hot_reloads(spawn, data, tmp_path):
     from geometry_msgs.msg import PointStamped
     from sensor_msgs.msg import JointState
+    from std_msgs.msg import Float64MultiArray
 
     served = tmp_path / "policy.pt"
     shutil.copy(data["a"], served)
     policy_a, policy_b = load_policy(data["a"]), load_policy(data["b"])
     node_proc = spawn(ros2("run", "policy", "node", "--ros-args", "-p", f"checkpoint:={served}"), "policy")
-    actions = []
+    actions, torques = [], []
     with probe_node() as node:
         node.create_subscription(JointState, "/policy/action", actions.append, 10)
+        node.create_subscription(Float64MultiArray, "/effort_controller/commands", torques.append, 10)
         state_pub = node.create_publisher(JointState, "/pusher/state", 10)
         target_pub = node.create_publisher(PointStamped, "/pusher/target", 10)
         assert node.spin_until(
@@ -93,13 +96,16 @@ def test_policy_answers_rejects_and_hot_reloads(spawn, data, tmp_path):
         reply, deadline = None, time.monotonic() + 15
         while reply is None and time.monotonic() < deadline:
             reply = answer_to(send(q, qd), timeout=1.0)
-        assert reply is not None and reply.header.frame_id == "policy", node_proc.output()
+        assert reply is not None and reply.header.frame_id == "", node_proc.output()  # frame_id names no source
         assert np.array_equal(np.array(reply.effort, np.float32), policy_a.act(obs))
+        # the same action as torques in N·m for an effort controller (motor gear 0.5)
+        assert node.spin_until(lambda: torques, 5)
+        assert np.allclose(torques[-1].data, 0.5 * np.array(reply.effort), atol=1e-12)
 
         bad = [send([float("nan"), 0.0], qd), send([0.1], [0.2]), send(q, [float("inf"), 0.0])]
         node.spin_for(0.5)
         assert not any(a.header.stamp.sec in bad for a in actions)
-        assert "no action for /pusher/state" in node_proc.output()
+        assert "no action for pusher/state" in node_proc.output()
 
         replace_atomically(data["b"].read_bytes(), served)
         want_b = policy_b.act(obs)
@@ -118,6 +124,21 @@ def test_policy_answers_rejects_and_hot_reloads(spawn, data, tmp_path):
         assert node.spin_until(lambda: "cannot reload" in node_proc.output(), 10), node_proc.output()
         reply = answer_to(send(q, qd))
         assert reply is not None and np.array_equal(np.array(reply.effort, np.float32), want_b)  # old one serves
+
+        # The checkpoint is a parameter too: setting it switches the policy at once; one that
+        # does not load is refused with the reason, and the policy serving goes on.
+        def param_set(value):
+            return subprocess.run(ros2("param", "set", "/policy", "checkpoint", value), capture_output=True,
+                                  text=True, timeout=60)
+
+        switched = param_set(data["a"])
+        assert switched.stdout.strip() == "Set parameter successful", switched.stderr
+        reply = answer_to(send(q, qd))
+        assert reply is not None and np.array_equal(np.array(reply.effort, np.float32), policy_a.act(obs))
+        refused = param_set(tmp_path / "none.pt")
+        assert refused.stderr.startswith("Setting parameter failed: parameter checkpoint: ") and "none.pt" in refused.stderr
+        reply = answer_to(send(q, qd))
+        assert reply is not None and np.array_equal(np.array(reply.effort, np.float32), policy_a.act(obs))
 
 
 @pytest.mark.slow
@@ -144,7 +165,10 @@ def test_trainer_node_from_the_card_command_publishes_progress(spawn, data, tmp_
 
 
 @pytest.mark.slow
-def test_closed_loop_matches_in_process_evaluation(spawn, data, tmp_path):
+@pytest.mark.parametrize("spin", ["fast", "executor"])
+def test_closed_loop_matches_in_process_evaluation(spawn, data, tmp_path, spin):
+    """Also both ways the sim can spin: the private wait-set fast path, and rclpy's public
+    executor (what runs where an rclpy lacks that API)."""
     from offline_rl_core.evaluation import evaluate_policy
 
     episodes, seed = 6, 500000
@@ -152,8 +176,8 @@ def test_closed_loop_matches_in_process_evaluation(spawn, data, tmp_path):
     spawn(ros2("run", "policy", "node", "--checkpoint", data["a"]), "policy")
     sim = spawn(
         ros2("run", "sim", "node", "--ros-args", "-p", "mode:=lockstep", "-p", f"seed:={seed}",
-             "-p", f"episodes:={episodes}", "-p", f"summary:={summary}", "-r", "/pusher/command:=/policy/action"),
-        "sim",
+             "-p", f"episodes:={episodes}", "-p", f"summary:={summary}", "-r", "pusher/command:=policy/action"),
+        "sim", env={**os.environ, "PUSHER_RL_SPIN": spin},
     )
     assert sim.wait(timeout=120) == 0, sim.output()
     over_ros = json.loads(summary.read_text())
@@ -163,3 +187,31 @@ def test_closed_loop_matches_in_process_evaluation(spawn, data, tmp_path):
     # 1-row vs N-row float32 rounding of the policy output separates the two.
     assert round(over_ros["success_rate"], 6) == in_process["success_rate"]
     assert abs(over_ros["mean_final_dist"] - in_process["mean_final_dist"]) < 1e-4
+
+
+@pytest.mark.slow
+def test_two_namespaced_pipelines_on_one_domain_stay_apart(spawn, data, tmp_path):
+    """serve.launch.yaml with ``namespace:=/armN`` (``-r __ns:=`` on every node): two closed
+    loops on one domain, each with its own policy, and no cross-talk.
+
+    Both lockstep sims stamp their states alike, so a policy heard across namespaces
+    would answer the other sim's states and its results would no longer be its own."""
+    from offline_rl_core.evaluation import evaluate_policy
+
+    episodes = 3
+    runs = {"arm1": (data["a"], 500000), "arm2": (data["b"], 600000)}
+    launches = {}
+    for ns, (checkpoint, seed) in runs.items():
+        launches[ns] = spawn(ros2("launch", "pusher_bringup", "serve.launch.yaml", f"checkpoint:={checkpoint}",
+                                  f"namespace:=/{ns}", f"seed:={seed}", f"episodes:={episodes}",
+                                  f"summary:={tmp_path / ns}.json"), f"launch_{ns}",
+                             env={**os.environ, "ROS_LOG_DIR": str(tmp_path / "logs")})
+    for ns, launch in launches.items():
+        assert launch.wait(timeout=120) == 0, launch.output()  # ends when its sim has run its episodes
+        assert f"[node-2] [INFO]" in launch.output() and "process has finished cleanly" in launch.output()
+    for ns, (checkpoint, seed) in runs.items():
+        over_ros = json.loads((tmp_path / f"{ns}.json").read_text())
+        in_process = evaluate_policy(load_policy(checkpoint), episodes, seed)
+        assert over_ros["episodes"] == episodes
+        assert round(over_ros["success_rate"], 6) == in_process["success_rate"], ns
+        assert abs(over_ros["mean_final_dist"] - in_process["mean_final_dist"]) < 1e-4, ns

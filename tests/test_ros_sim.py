@@ -14,45 +14,57 @@ from ros_helpers import probe_node, ros2, ros_env, spawn  # noqa: F401 - fixture
 pytestmark = pytest.mark.ros
 
 TICK = 20_000_000  # ns
+START = 1_700_000_000  # s: the sim time of the first state (start_time)
 
 
 def stamp_ns(msg) -> int:
     return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
 
 
+def stamp_ns_of_clock(msg) -> int:
+    return msg.clock.sec * 1_000_000_000 + msg.clock.nanosec
+
+
 def test_lockstep_validates_commands_tags_sources_and_resets(spawn, tmp_path):
     from geometry_msgs.msg import PointStamped
+    from rosgraph_msgs.msg import Clock
     from sensor_msgs.msg import JointState
     from std_msgs.msg import Float32MultiArray
     from std_srvs.srv import Trigger
 
     summary = tmp_path / "summary.json"
-    sim = spawn(
-        ros2("run", "sim", "node", "--ros-args", "-p", "mode:=lockstep", "-p", "seed:=11", "-p", f"summary:={summary}"),
-        "sim",
-    )
-    states, targets, transitions = [], [], []
+    params = tmp_path / "sim.yaml"  # settings from a params file, as a launch file passes them
+    params.write_text(f"/**:\n  ros__parameters:\n    mode: lockstep\n    seed: 11\n    summary: '{summary}'\n"
+                      f"    start_time: {START}.0\n")
+    sim = spawn(ros2("run", "sim", "node", "--ros-args", "--params-file", params), "sim")
+    states, targets, transitions, clocks, joint_states = [], [], [], [], []
     with probe_node() as node:
         node.create_subscription(JointState, "/pusher/state", states.append, 10)
+        node.create_subscription(JointState, "/joint_states", joint_states.append, 10)
+        node.create_subscription(Clock, "/clock", clocks.append, 10)
         node.create_subscription(PointStamped, "/pusher/target", targets.append, 10)
         node.create_subscription(Float32MultiArray, "/pusher/transition", transitions.append, 100)
         command_pub = node.create_publisher(JointState, "/pusher/command", 10)
+        human_pub = node.create_publisher(JointState, "/pusher/command/human", 10)
         reset = node.create_client(Trigger, "/pusher/reset")
 
         # The first state is republished until answered, so a late subscriber gets it.
-        assert node.spin_until(lambda: states and targets and command_pub.get_subscription_count(), 30), sim.output()
+        assert node.spin_until(lambda: states and targets and command_pub.get_subscription_count()
+                               and human_pub.get_subscription_count(), 30), sim.output()
         first = states[-1]
-        assert stamp_ns(first) == 0 and list(first.name) == ["shoulder", "elbow"]
+        t0 = START * 1_000_000_000
+        assert stamp_ns(first) == t0 and list(first.name) == ["shoulder", "elbow"]
         env = PusherReachEnv()
         env.reset(seed=11)
         assert np.array_equal(np.array(first.position), env.qpos) and np.array_equal(np.array(first.velocity), env.qvel)
-        assert stamp_ns(targets[-1]) == 0 and targets[-1].point.x == env.target[0]
+        assert stamp_ns(targets[-1]) == t0 and targets[-1].point.x == env.target[0]
+        assert targets[-1].header.frame_id == "world"
 
-        def command(effort, stamp_of=first, tag=""):
+        def command(effort, stamp_of=first, tag="", publisher=command_pub):
             msg = JointState(name=["shoulder", "elbow"], effort=effort)
             msg.header.stamp = stamp_of.header.stamp
             msg.header.frame_id = tag
-            command_pub.publish(msg)
+            publisher.publish(msg)
 
         command([float("nan"), 0.0])
         command([0.5])
@@ -60,8 +72,8 @@ def test_lockstep_validates_commands_tags_sources_and_resets(spawn, tmp_path):
         assert not transitions  # rejected: nothing stepped
         assert "effort is not finite" in sim.output() or "effort has 1 values" in sim.output()
 
-        command([3.0, -0.25], tag="human")  # clipped to [-1, 1]
-        assert node.spin_until(lambda: len(transitions) == 1 and any(stamp_ns(s) == TICK for s in states), 10)
+        command([3.0, -0.25], publisher=human_pub)  # clipped to [-1, 1]; who acted: the topic
+        assert node.spin_until(lambda: len(transitions) == 1 and any(stamp_ns(s) == t0 + TICK for s in states), 10)
         row = np.array(transitions[0].data, np.float32)
         assert [d.label for d in transitions[0].layout.dim][:3] == ["obs", "action", "reward"]
         obs, reward = env.observation(), None
@@ -69,15 +81,56 @@ def test_lockstep_validates_commands_tags_sources_and_resets(spawn, tmp_path):
         assert row[8] == 1.0 and row[9] == -0.25 and row[10] == np.float32(reward)
         assert row[24] == 3.0 and row[22] == 0 and row[23] == 0  # source human, episode 0, step 0
         assert np.allclose(row[:8], obs)
+        # /clock is the sim time of the newest state; joint_states carries the same state
+        assert node.spin_until(lambda: clocks and stamp_ns(joint_states[-1]) == t0 + TICK, 10)
+        assert stamp_ns_of_clock(clocks[-1]) == t0 + TICK  # (the first one may predate discovery)
 
-        command([0.0, 0.0], tag="human")  # answers the old stamp: stale, ignored
+        command([0.0, 0.0], publisher=human_pub)  # answers the old stamp: stale, ignored
         node.spin_for(0.3)
         assert len(transitions) == 1
+        second = next(s for s in states if stamp_ns(s) == t0 + TICK)
+        command([0.5, 0.5], stamp_of=second)  # plain pusher/command: the policy
+        command([0.5, 0.5], stamp_of=second, tag="expert")  # the same stamp again: stale
+        assert node.spin_until(lambda: len(transitions) == 2, 10)
+        assert transitions[1].data[24] == 2.0
+        third = None
+        assert node.spin_until(lambda: any(stamp_ns(s) == t0 + 2 * TICK for s in states), 10)
+        third = next(s for s in states if stamp_ns(s) == t0 + 2 * TICK)
+        command([0.5, 0.5], stamp_of=third, tag="expert")  # an older publisher's frame_id tag still counts
+        assert node.spin_until(lambda: len(transitions) == 3, 10), (len(transitions), sim.output())
+        assert transitions[2].data[24] == 0.0 and "deprecated" in sim.output()
 
         future = reset.call_async(Trigger.Request())
         assert node.spin_until(future.done, 10) and future.result().success
-        assert node.spin_until(lambda: any(stamp_ns(s) == 100 * TICK for s in states), 10)  # episode 1, step 0
+        assert node.spin_until(lambda: any(stamp_ns(s) == t0 + 100 * TICK for s in states), 10)  # episode 1, step 0
 
     assert sim.stop() == 0
     data = json.loads(summary.read_text())
     assert data == {"episodes": 0, "success_rate": 0.0, "mean_final_dist": None, "mean_return": None}
+
+
+def test_a_bad_parameter_is_one_line_and_exit_2(spawn):
+    sim = spawn(ros2("run", "sim", "node", "--ros-args", "-p", "mode:=fast"), "sim")
+    assert sim.wait(timeout=60) == 2
+    lines = sim.output().strip().splitlines()
+    assert lines == ["sim: error: parameter mode: must be one of realtime, lockstep; got 'fast'"], lines
+
+
+def test_realtime_sim_takes_torques_as_an_effort_controller_does(spawn):
+    """``effort_topic``: Float64MultiArray torques in N·m, the action times the motor gear (0.5)."""
+    from std_msgs.msg import Float32MultiArray, Float64MultiArray
+
+    sim = spawn(ros2("run", "sim", "node", "--ros-args", "-p", "effort_topic:=effort_controller/commands"), "sim")
+    transitions = []
+    with probe_node() as node:
+        node.create_subscription(Float32MultiArray, "/pusher/transition", transitions.append, 100)
+        torques = node.create_publisher(Float64MultiArray, "/effort_controller/commands", 10)
+        assert node.spin_until(lambda: torques.get_subscription_count() and transitions, 30), sim.output()
+
+        def held(row):
+            return list(row.data[8:10]) == [0.5, -1.0] and row.data[24] == 2.0  # action clipped, source policy
+
+        # held like a zero-order hold until replaced: every tick after it steps with it
+        assert node.spin_until(lambda: torques.publish(Float64MultiArray(data=[0.25, -3.0])) or
+                               sum(held(t) for t in transitions) >= 3, 20), sim.output()
+    assert sim.stop() == 0

@@ -158,7 +158,7 @@ def machine_info() -> dict:
     import numpy as np
     import torch
 
-    from ..learners.precision import cpu_bf16_flags, native_bf16
+    from .. import kernel_choice
 
     model = platform.processor() or ""
     try:
@@ -173,10 +173,10 @@ def machine_info() -> dict:
     return {
         "cpu_model": model,
         "cpu_count": os.cpu_count(),
-        "bf16_flags": sorted(cpu_bf16_flags()),
-        "amx": any(f.startswith("amx") for f in cpu_bf16_flags()),
-        "avx512_bf16": "avx512_bf16" in cpu_bf16_flags(),
-        "native_bf16": native_bf16(),
+        "isa_flags": kernel_choice.isa_flags(),
+        "amx": "amx_bf16" in kernel_choice.isa_flags(),
+        "avx512_bf16": "avx512_bf16" in kernel_choice.isa_flags(),
+        "native_bf16": kernel_choice.native_bf16(),
         "torch": torch.__version__,
         "torch_threads": torch.get_num_threads(),
         "numpy": np.__version__,

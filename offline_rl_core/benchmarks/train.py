@@ -18,7 +18,7 @@ import torch
 
 from ..collect import collect_transitions
 from ..learners import TrainConfig, train_seeds
-from ..learners.precision import native_bf16
+from ..kernel_choice import native_bf16
 from . import d3rlpy_ref
 from . import reference_chapter as chapter
 from .harness import BenchSettings, figure, interleave, median, pending

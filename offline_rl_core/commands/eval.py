@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 
 from ..errors import UserError
-from ..evaluation import evaluate_policy, format_rate, write_json_atomic
+from ..atomic import write_json_atomic
+from ..evaluation import evaluate_policy, format_rate
 from ..policy import load_policy
 
 

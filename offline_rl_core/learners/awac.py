@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import torch
 
-from .written_out import written_out_step
 from .base import Learner, TwinCritic, per_member_mean, regression_error
 
 
@@ -20,10 +19,6 @@ class AWAC(Learner):
     def __init__(self, cfg, members, generators, obs_dim, act_dim):
         super().__init__(cfg, members, generators, obs_dim, act_dim)
         self.critic = TwinCritic(cfg, members, generators, obs_dim, act_dim)
-        # The same update with the backward written out (C++ or Python, same bytes),
-        # where it applies: this class's own losses, on the CPU (see written_out).
-        own = all(getattr(type(self), f) is getattr(AWAC, f) for f in ("update", "critic_update", "actor_loss"))
-        self._written_out = written_out_step(self, "awac") if own else None
 
     def critic_update(self, batch) -> torch.Tensor:
         with torch.no_grad():
@@ -41,8 +36,6 @@ class AWAC(Learner):
         return per_member_mean(weight * regression_error(pred, batch.action) * batch.actor_mask)
 
     def update(self, batch):
-        if self._written_out is not None:
-            return self._written_out(batch)
         critic_loss = self.critic_update(batch)
         policy_loss = self.actor_loss(batch)
         self.step_policy(policy_loss)

@@ -11,7 +11,7 @@ import torch
 from ..networks import EnsembleMLP
 from .config import TrainConfig
 from .data import Batch, MemberData
-from .precision import compute_dtype
+from ..kernel_choice import choose as choose_kernels
 
 
 def make_adam(params, lr: float, device: str = "cpu") -> torch.optim.Adam:
@@ -26,8 +26,8 @@ def make_network(cfg: TrainConfig, members: int, in_dim: int, out_dim: int, gene
     """An ensemble MLP of the config's width and precision, on the config's device.
     Weights are drawn on the CPU from the members' generators first, so a seed gives
     the same initial network on every device."""
-    net = EnsembleMLP(members, in_dim, cfg.hidden, out_dim, generators, tanh_output=tanh_output,
-                      compute_dtype=compute_dtype(cfg.deterministic))
+    kernels = choose_kernels(cfg.deterministic, cfg.hidden, cfg.batch_size, cfg.threads) if cfg.device == "cpu" else None
+    net = EnsembleMLP(members, in_dim, cfg.hidden, out_dim, generators, tanh_output=tanh_output, kernels=kernels)
     return net.to(cfg.device)
 
 
@@ -42,12 +42,13 @@ class Learner:
 
     name = "base"
     uses_critic = False
+    policy_tanh = True  # the policy network ends in tanh (False: it outputs a pre-squash mean)
 
     def __init__(self, cfg: TrainConfig, members: int, generators: list[torch.Generator], obs_dim: int, act_dim: int):
         self.cfg = cfg
         self.members = members
         self.obs_dim, self.act_dim = obs_dim, act_dim
-        self.policy = make_network(cfg, members, obs_dim, act_dim, generators, tanh_output=True)
+        self.policy = make_network(cfg, members, obs_dim, act_dim, generators, tanh_output=self.policy_tanh)
         self.policy_opt = make_adam(self.policy.parameters(), cfg.lr, cfg.device)
 
     def update(self, batch: Batch) -> dict[str, torch.Tensor]:

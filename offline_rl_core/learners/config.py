@@ -1,54 +1,55 @@
-"""Training configuration: one dataclass whose fields are the `offline-rl train` flags.
+"""Training configuration: one dataclass whose fields are the `offline-rl train` flags
+(each field's help text is its flag's, see ``training_run.add_train_arguments``).
 
 Defaults are the chapter's hyper-parameters (and Kostrikov et al.'s for IQL).
 """
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
-ALGORITHMS = ("bc", "filtered_bc", "awac", "iql", "naive")
+ALGORITHMS = ("bc", "filtered_bc", "awac", "iql", "naive", "sac")
+
+
+def _opt(default, help: str, group: str = "hyper-parameters"):
+    """A field that is also an ``offline-rl train`` flag (``--name-with-dashes``)."""
+    return field(default=default, metadata={"help": help, "group": group})
 
 
 @dataclass
 class TrainConfig:
-    algo: str = "awac"
-    steps: int = 8000
-    batch_size: int = 256
-    hidden: int = 256
-    lr: float = 3e-4
-    gamma: float = 0.99
-    tau: float = 0.005  # Polyak rate of the target critics
-    # AWAC
-    beta: float = 0.3
-    weight_clip: float = 20.0
-    # IQL
-    expectile: float = 0.7
-    temperature: float = 3.0
-    max_weight: float = 100.0
-    # filtered BC: keep the top fraction of episodes by return
-    filter_top_frac: float = 0.1
-    # corrections: share of each batch drawn from correction transitions (None = uniform)
-    correction_ratio: float | None = None
-    # how often (steps) losses are read back and progress is reported
-    log_every: int = 100
-    # torch intra-op threads while training. Chapter-size MLPs gain little from more,
-    # and when other processes share the cores (ROS nodes, tests) OpenMP's spinning
-    # threads can slow a step fifty-fold. Use the cores with whole runs instead
-    # (``learners/parallel.py``, ``offline-rl experiment --workers``).
-    threads: int = 1
-    # False (default): the 256x256 hidden layer's matmuls in bf16 where the CPU has native
-    # bf16 (AMX / AVX512-BF16), about 1.4x faster for AWAC here; fp32 elsewhere.
-    # True: fp32 everywhere, the same numbers whatever the CPU's bf16 support.
-    # Both are byte-identical run to run for a seed on one machine.
-    deterministic: bool = False
-    # "cpu", or "cuda" / "cuda:N" for an NVIDIA GPU (fp32; the hidden-layer bf16 above is
-    # the CPU's). Nothing requires a GPU.
-    device: str = "cpu"
-    # On CUDA, record the whole update once as a CUDA graph and replay it each step:
-    # chapter-size networks are launch-bound on a GPU (a step is a few hundred tiny
-    # kernels), and one replay replaces all of those launches.
-    cuda_graph: bool = True
+    algo: str = _opt("awac", "learner", "run")
+    steps: int = _opt(8000, "gradient steps", "run")
+    batch_size: int = _opt(256, "batch size")
+    hidden: int = _opt(256, "hidden layer width")
+    lr: float = _opt(3e-4, "Adam learning rate")
+    gamma: float = _opt(0.99, "discount")
+    tau: float = _opt(0.005, "Polyak rate of the target critics")
+    beta: float = _opt(0.3, "AWAC temperature")
+    weight_clip: float = _opt(20.0, "AWAC weight clip")
+    expectile: float = _opt(0.7, "IQL expectile")
+    temperature: float = _opt(3.0, "IQL inverse temperature")
+    max_weight: float = _opt(100.0, "IQL weight clip")
+    # SAC is the online (HIL-SERL) learner; it trains offline too
+    alpha: float = _opt(0.01, "SAC entropy weight (fixed unless --target-entropy is set)")
+    target_entropy: float | None = _opt(None, "SAC: tune the entropy weight toward this entropy")
+    init_log_std: float = _opt(-1.0, "SAC: the Gaussian policy's initial log-std")
+    bc_weight: float = _opt(1.0, "SAC: weight of the squared error to a person's (source human) actions")
+    filter_top_frac: float = _opt(0.1, "filtered BC: share of best episodes by return")
+    correction_ratio: float | None = _opt(
+        None, "share of each batch drawn from correction runs (policy/human transitions); default: uniform")
+    log_every: int = _opt(100, "steps between progress reports (and loss read-backs)", "run")
+    # Chapter-size MLPs gain little from more threads, and when other processes share the
+    # cores (ROS nodes, tests) OpenMP's spinning threads can slow a step fifty-fold. Use
+    # the cores with whole runs instead (``offline-rl experiment --workers``).
+    threads: int = _opt(1, "torch threads while training", "run")
+    deterministic: bool = _opt(
+        False, "fp32 everywhere; the default may run the hidden layer in bf16 where that measured faster on this CPU "
+               "(see kernel_choice). Both are byte-identical run to run for a seed", "run")
+    device: str = _opt("cpu", "cpu, or cuda / cuda:N to train on an NVIDIA GPU; evaluation stays on the CPU", "run")
+    # A chapter-size step is a few hundred tiny kernels: on a GPU, one replayed graph
+    # replaces all of those launches.
+    cuda_graph: bool = _opt(True, "on CUDA, replay each step as one recorded CUDA graph", "run")
 
     def __post_init__(self) -> None:
         if self.algo not in ALGORITHMS:
@@ -58,6 +59,10 @@ class TrainConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not 0.0 < self.filter_top_frac <= 1.0:
             raise ValueError(f"filter_top_frac must be in (0, 1], got {self.filter_top_frac}")
+        if self.alpha <= 0:
+            raise ValueError(f"alpha must be > 0, got {self.alpha}")
+        if self.bc_weight < 0:
+            raise ValueError(f"bc_weight must be >= 0, got {self.bc_weight}")
         if self.correction_ratio is not None and not 0.0 <= self.correction_ratio <= 1.0:
             raise ValueError(f"correction_ratio must be in [0, 1], got {self.correction_ratio}")
         check_device(self.device)

@@ -28,6 +28,7 @@ class Batch:
     next_obs: torch.Tensor
     not_done: torch.Tensor  # (M, B, 1): 1 - terminated; truncation still bootstraps
     actor_mask: torch.Tensor  # (M, B, 1): 0 where the action must not be imitated
+    human: torch.Tensor  # (M, B, 1): 1 where a person (source "human") chose the action
 
 
 class MemberData:
@@ -37,33 +38,58 @@ class MemberData:
     not copied (a view with a member axis of size 1 broadcast in gather).
     """
 
-    def __init__(self, datasets: list[Transitions], device: str = "cpu"):
+    FIELDS = ("obs", "action", "reward", "next_obs", "not_done", "actor_mask", "human")
+
+    def __init__(self, datasets: list[Transitions], device: str = "cpu", capacity: int | None = None):
+        """``capacity``: rows to allocate (one shared dataset only), so ``append`` can add
+        transitions in place (the online learner's buffer) without new tensors."""
         self.members = len(datasets)
         self.shared = all(d is datasets[0] for d in datasets)
         sources = [datasets[0]] if self.shared else datasets
         self.sizes = [len(d) for d in datasets]
         n_max = max(len(d) for d in sources)
+        if capacity is not None:
+            if not self.shared or capacity < n_max:
+                raise ValueError("capacity needs one shared dataset and at least its rows")
+            n_max = capacity
+        self.capacity = n_max
+        columns = [self.columns(d) for d in sources]
+        for name in self.FIELDS:
+            if len(columns) == 1 and capacity is None:  # the arrays themselves, no copy
+                out = torch.from_numpy(columns[0][name]).unsqueeze(0)
+            else:
+                out = torch.zeros(len(sources), n_max, columns[0][name].shape[1])
+                for i, cols in enumerate(columns):
+                    out[i, : len(cols[name])] = torch.from_numpy(cols[name])
+            setattr(self, name, out.to(device) if torch.device(device).type != "cpu" else out)
 
-        def stack(name: str, width: int, fn=lambda a: a) -> torch.Tensor:
-            if len(sources) == 1:
-                arr = fn(getattr(sources[0], name)).reshape(len(sources[0]), width)
-                return torch.from_numpy(np.ascontiguousarray(arr, dtype=np.float32)).unsqueeze(0)
-            out = torch.zeros(len(sources), n_max, width)
-            for i, d in enumerate(sources):
-                out[i, : len(d)] = torch.from_numpy(np.ascontiguousarray(fn(getattr(d, name)), dtype=np.float32).reshape(len(d), width))
-            return out
+    @staticmethod
+    def columns(d: Transitions) -> dict[str, np.ndarray]:
+        """The training tensors' columns of ``d``, float32 (N, width)."""
+        n = len(d)
+        f32 = lambda a, w: np.ascontiguousarray(a, dtype=np.float32).reshape(n, w)  # noqa: E731
+        return {
+            "obs": f32(d.obs, d.obs.shape[1]),
+            "action": f32(d.action, d.action.shape[1]),
+            "reward": f32(d.reward, 1),
+            "next_obs": f32(d.next_obs, d.obs.shape[1]),
+            "not_done": f32(1.0 - d.terminated.astype(np.float32), 1),
+            # Actions that must not be imitated: the policy's last steps before a human
+            # takeover (see ``intervention_actor_mask``); the critic still learns from them.
+            "actor_mask": f32(intervention_actor_mask(d), 1),
+            "human": f32(d.source == SOURCE_HUMAN, 1),
+        }
 
-        self.obs = stack("obs", datasets[0].obs.shape[1])
-        self.action = stack("action", datasets[0].action.shape[1])
-        self.reward = stack("reward", 1)
-        self.next_obs = stack("next_obs", datasets[0].obs.shape[1])
-        self.not_done = stack("terminated", 1, lambda t: 1.0 - t.astype(np.float32))
-        # Actions that must not be imitated: the policy's last steps before a human
-        # takeover (see ``intervention_actor_mask``); the critic still learns from them.
-        self.actor_mask = torch.cat([stack_one(intervention_actor_mask(d), n_max) for d in sources])
-        if torch.device(device).type != "cpu":  # the whole dataset lives beside the networks
-            for name in ("obs", "action", "reward", "next_obs", "not_done", "actor_mask"):
-                setattr(self, name, getattr(self, name).to(device))
+    def append(self, rows: Transitions) -> None:
+        """Write ``rows`` after the current rows, in place (one shared dataset)."""
+        start, n = self.sizes[0], len(rows)
+        if start + n > self.capacity:
+            raise ValueError(f"buffer full: {start} + {n} rows > capacity {self.capacity}")
+        cols = self.columns(rows)
+        cols["actor_mask"][:] = 1.0  # takeovers are judged offline, over whole episodes
+        for name in self.FIELDS:
+            getattr(self, name)[0, start: start + n] = torch.from_numpy(cols[name]).to(self.obs.device)
+        self.sizes = [start + n] * self.members
 
     def gather(self, idx: torch.Tensor) -> Batch:
         """idx: (M, B) row indices, one row of indices per member."""
@@ -74,8 +100,7 @@ class MemberData:
         else:
             rows = torch.arange(idx.shape[0], device=idx.device).unsqueeze(1)
             take = lambda t: t[rows, idx]  # noqa: E731
-        return Batch(take(self.obs), take(self.action), take(self.reward), take(self.next_obs), take(self.not_done),
-                     take(self.actor_mask))
+        return Batch(*(take(getattr(self, name)) for name in self.FIELDS))
 
 
 class IndexSampler:
@@ -115,6 +140,15 @@ class IndexSampler:
             parts.append(extra[pick])
         return torch.cat(parts, dim=1)
 
+    def state(self) -> dict:
+        return {"generators": [g.get_state() for g in self.generators], "chunk": self._chunk, "pos": self._pos}
+
+    def load_state(self, state: dict) -> None:
+        for g, s in zip(self.generators, state["generators"]):
+            g.set_state(s)
+        self._chunk = None if state["chunk"] is None else state["chunk"].to(self.device)
+        self._pos = int(state["pos"])
+
     def next(self) -> torch.Tensor:
         """(M, B) indices for the next step."""
         if self._chunk is None or self._pos == self._chunk.shape[1]:
@@ -135,12 +169,6 @@ def top_episode_rows(data: Transitions, top_frac: float) -> np.ndarray:
     # stable sort on -return: ties keep episode order, so the choice is reproducible
     best = ids[np.argsort(-returns, kind="stable")[:keep]]
     return np.flatnonzero(np.isin(data.episode, best))
-
-
-def stack_one(values: np.ndarray, n_max: int) -> torch.Tensor:
-    out = torch.zeros(1, n_max, 1)
-    out[0, : len(values), 0] = torch.from_numpy(values.astype(np.float32))
-    return out
 
 
 # How many policy steps before a takeover count as the failure the person corrected.

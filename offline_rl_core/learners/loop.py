@@ -16,6 +16,7 @@ from typing import Callable
 import numpy as np
 import torch
 
+from ..errors import UserError
 from ..policy import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, LoadedPolicy
 from ..transitions import Transitions
 from .awac import AWAC
@@ -25,9 +26,11 @@ from .data import IndexSampler, MemberData, correction_pools, top_episode_rows
 from .filtered_bc import FilteredBC
 from .iql import IQL
 from .naive import NaiveMaxQ
+from .sac import SAC
+from .resume import ResumePoints, learner_training_state, load_learner_training_state
 from .stepper import make_step
 
-LEARNERS = {"bc": BC, "filtered_bc": FilteredBC, "awac": AWAC, "iql": IQL, "naive": NaiveMaxQ}
+LEARNERS = {"bc": BC, "filtered_bc": FilteredBC, "awac": AWAC, "iql": IQL, "naive": NaiveMaxQ, "sac": SAC}
 
 
 @dataclass
@@ -45,6 +48,7 @@ class TrainResult:
     checkpoint: dict
     history: dict[str, list[float]] = field(default_factory=dict)
     mean_abs_q: float | None = None
+    step_kind: str = "eager"  # how the steps ran: "cpp" / "python" replay of the recorded update, or "eager"
 
 
 @contextlib.contextmanager
@@ -85,9 +89,13 @@ def train_seeds(
     seeds: list[int],
     progress: Callable[[Progress], None] | None = None,
     init: dict | None = None,
+    resume: ResumePoints | None = None,
 ) -> list[TrainResult]:
     """Train ``cfg.algo`` once per seed; ``datasets`` is one Transitions for all seeds
-    or one per seed. ``init`` (a checkpoint dict) warm-starts every run from it."""
+    or one per seed. ``init`` (a checkpoint dict) warm-starts every run from it.
+    ``resume``: write a resume point every ``resume.every_s`` seconds, and with
+    ``resume.resume`` start from the one there (the result is the same bytes as a run
+    that was never stopped)."""
     seeds = [int(s) for s in seeds]
     if not seeds:
         raise ValueError("no seeds to train")
@@ -113,9 +121,19 @@ def train_seeds(
     step_once = make_step(learner.update, data, (len(seeds), cfg.batch_size), cfg.device, cfg.cuda_graph)
 
     histories: list[dict[str, list[float]]] = [{"step": []} for _ in seeds]
-    start = time.perf_counter()
+    first_step, before = 1, 0.0
+    identity = {"config": cfg.to_dict(), "seeds": seeds, "datasets": [d.content_hash() for d in datasets],
+                "init": None if init is None else init.get("dataset_hash")} if resume is not None else None
+    saved = resume.read() if resume is not None else None
+    if saved is not None:
+        if saved["identity"] != identity:
+            raise UserError(f"{resume.path}: that resume point is of another run (settings, seeds or data differ)")
+        load_learner_training_state(learner, saved["learner"])
+        sampler.load_state(saved["sampler"])
+        histories, first_step, before = saved["histories"], int(saved["step"]) + 1, float(saved["elapsed_s"])
+    start = time.perf_counter() - before
     with torch_threads(cfg.threads), on_device(cfg.device):
-        for step in range(1, cfg.steps + 1):
+        for step in range(first_step, cfg.steps + 1):
             losses = step_once(sampler.next())
             if step % cfg.log_every == 0 or step == cfg.steps:
                 values = {k: v.float().tolist() for k, v in losses.items()}  # the only host sync
@@ -126,7 +144,12 @@ def train_seeds(
                 if progress is not None:
                     scalars = {k: float(np.mean(v)) for k, v in values.items()}
                     progress(Progress(step, cfg.steps, time.perf_counter() - start, scalars))
+            if resume is not None and step < cfg.steps and resume.due():
+                resume.write({"identity": identity, "step": step, "histories": histories,
+                              "elapsed_s": time.perf_counter() - start, "sampler": sampler.state(),
+                              "learner": learner_training_state(learner)})
         mean_abs_q = learner.mean_abs_q(data)
+    step_kind = getattr(step_once, "kind", "eager")
 
     hashes: dict[int, str] = {}
     results = []
@@ -151,12 +174,15 @@ def train_seeds(
             "transitions": len(datasets[m]),
             "mean_abs_q": None if mean_abs_q is None else float(mean_abs_q[m]),
             "train_seconds": round(time.perf_counter() - start, 3),
+            "train_step": step_kind,
+            "kernels": learner.policy.hidden_layer.kernels.describe() if cfg.device == "cpu" else cfg.device,
         }
         results.append(TrainResult(seed, LoadedPolicy(checkpoint), checkpoint, histories[m],
-                                   None if mean_abs_q is None else float(mean_abs_q[m])))
+                                   None if mean_abs_q is None else float(mean_abs_q[m]), step_kind))
     return results
 
 
-def train(dataset: Transitions, cfg: TrainConfig, seed: int, progress=None, init=None) -> TrainResult:
+def train(dataset: Transitions, cfg: TrainConfig, seed: int, progress=None, init=None,
+          resume: ResumePoints | None = None) -> TrainResult:
     """One run: ``train_seeds`` with a single seed."""
-    return train_seeds(dataset, cfg, [seed], progress, init)[0]
+    return train_seeds(dataset, cfg, [seed], progress, init, resume)[0]

@@ -15,6 +15,7 @@ from typing import Callable
 import torch
 
 from .data import MemberData
+from .traced import RecordedStep, step_mode
 
 # Eager steps before the capture: Adam creates its state and cuBLAS its workspaces
 # on first use, and neither may happen inside a capture. They are real training
@@ -71,10 +72,16 @@ class CudaGraphStep:
 
 def make_step(update: Callable, data: MemberData, idx_shape: tuple[int, int], device: str, cuda_graph: bool):
     """The step runner for ``device``: a CUDA graph on CUDA (unless ``cuda_graph`` is
-    False), else the plain call."""
+    False); on the CPU the update recorded once and replayed (``traced``), unless
+    ``PUSHER_RL_STEP=autograd``."""
     dev = torch.device(device)
-    if dev.type == "cuda" and cuda_graph:
+    if dev.type == "cuda":
+        if not cuda_graph:
+            return EagerStep(update, data)
         if dev.index is None:
             dev = torch.device("cuda", torch.cuda.current_device())
         return CudaGraphStep(update, data, idx_shape, dev)
-    return EagerStep(update, data)
+    mode = step_mode()
+    if mode == "autograd":
+        return EagerStep(update, data)
+    return RecordedStep(update, data, mode)

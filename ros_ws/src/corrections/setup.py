@@ -1,3 +1,5 @@
+from glob import glob
+
 from setuptools import setup
 
 package_name = "corrections"
@@ -5,10 +7,11 @@ package_name = "corrections"
 setup(
     name=package_name,
     version="0.1.0",
-    packages=[package_name],
+    packages=["pusher_corrections"],  # the Python module: PyPI has a package called corrections
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
+        ("share/" + package_name + "/config", glob("config/*.yaml")),
     ],
     install_requires=["setuptools"],
     zip_safe=True,
@@ -19,8 +22,8 @@ setup(
     # Kept a literal list: offline_rl_core.ros_install reads it to generate lib/corrections/<exe>.
     entry_points={
         "console_scripts": [
-            "mux = corrections.mux:main",
-            "corrector = corrections.corrector:main",
+            "mux = pusher_corrections.mux:main",
+            "corrector = pusher_corrections.corrector:main",
         ]
     },
 )

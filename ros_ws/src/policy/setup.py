@@ -1,3 +1,5 @@
+from glob import glob
+
 from setuptools import setup
 
 package_name = "policy"
@@ -5,10 +7,11 @@ package_name = "policy"
 setup(
     name=package_name,
     version="0.1.0",
-    packages=[package_name],
+    packages=["pusher_policy"],  # the Python module: PyPI has a package called policy
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
+        ("share/" + package_name + "/config", glob("config/*.yaml")),
     ],
     install_requires=["setuptools"],
     zip_safe=True,
@@ -17,5 +20,5 @@ setup(
     description="Serves a trained checkpoint: answers every /pusher/state with /policy/action; hot-reloads the checkpoint file.",
     license="Apache-2.0",
     # Kept a literal list: offline_rl_core.ros_install reads it to generate lib/policy/<exe>.
-    entry_points={"console_scripts": ["node = policy.node:main"]},
+    entry_points={"console_scripts": ["node = pusher_policy.node:main"]},
 )

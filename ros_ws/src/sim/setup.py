@@ -1,3 +1,5 @@
+from glob import glob
+
 from setuptools import setup
 
 package_name = "sim"
@@ -5,10 +7,11 @@ package_name = "sim"
 setup(
     name=package_name,
     version="0.1.0",
-    packages=[package_name],
+    packages=["pusher_sim"],  # the Python module: PyPI has a package called sim
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
+        ("share/" + package_name + "/config", glob("config/*.yaml")),
     ],
     install_requires=["setuptools"],
     zip_safe=True,
@@ -17,5 +20,5 @@ setup(
     description="The pusher-reach MuJoCo arm as a ROS 2 node: publishes state, target and transitions, obeys commands (realtime or lockstep).",
     license="Apache-2.0",
     # Kept a literal list: offline_rl_core.ros_install reads it to generate lib/sim/<exe>.
-    entry_points={"console_scripts": ["node = sim.node:main"]},
+    entry_points={"console_scripts": ["node = pusher_sim.node:main"]},
 )

@@ -1,3 +1,5 @@
+from glob import glob
+
 from setuptools import setup
 
 package_name = "trainer"
@@ -5,10 +7,11 @@ package_name = "trainer"
 setup(
     name=package_name,
     version="0.1.0",
-    packages=[package_name],
+    packages=["pusher_trainer"],  # the Python module: PyPI has a package called trainer
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
+        ("share/" + package_name + "/config", glob("config/*.yaml")),
     ],
     install_requires=["setuptools"],
     zip_safe=True,
@@ -17,5 +20,5 @@ setup(
     description="Trains an offline RL policy (BC, filtered BC, AWAC, IQL, naive) from rosbag2 bags and publishes progress.",
     license="Apache-2.0",
     # Kept a literal list: offline_rl_core.ros_install reads it to generate lib/trainer/<exe>.
-    entry_points={"console_scripts": ["node = trainer.node:main"]},
+    entry_points={"console_scripts": ["node = pusher_trainer.node:main"]},
 )

@@ -44,7 +44,7 @@ from offline_rl_core.env import ACT_DIM, JOINT_NAMES
 from offline_rl_core.errors import UserError, caused_by_interrupt
 from offline_rl_core.expert import expert_action
 from offline_rl_core.transitions import LAYOUT_SLICES, SOURCE_NAMES, SOURCE_EXPERT, SOURCE_RANDOM
-from sim.spin import spin_until_future_complete
+from pusher_common.spin import spin_until_future_complete
 
 TOPICS = {
     "/pusher/transition": ("std_msgs/msg/Float32MultiArray", Float32MultiArray),

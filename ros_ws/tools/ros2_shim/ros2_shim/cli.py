@@ -4,6 +4,9 @@ Implemented here (same output shape as ros2cli):
   ros2 run [--prefix P] PKG [EXE] [args ...]   (EXE may be left out when PKG has one)
   ros2 pkg executables [PKG] [--full-path] | list | prefix PKG
   ros2 topic list [-t] | echo TOPIC [TYPE] [--once] ... | hz TOPIC [--window N]
+  ros2 launch PKG FILE.launch.yaml [name:=value ...]
+  ros2 node list [-a]
+  ros2 param list [NODE] | get NODE NAME | set NODE NAME VALUE | describe NODE NAME ...
   ros2 bag info BAG
 ``ros2 run`` replaces this process with the executable (``exec``), so the pid the
 user started is the node's pid and signals reach the node directly.
@@ -54,17 +57,25 @@ def main(argv: list[str] | None = None) -> int:
             from .topic import topic_command
 
             return topic_command(rest)
+        if verb == "launch":
+            from .launch import launch_command
+
+            return launch_command(rest)
+        if verb in ("node", "param"):
+            from .node_param import node_command, param_command
+
+            return (node_command if verb == "node" else param_command)(rest)
         if verb == "bag":
             return bag_command(rest)
     except KeyboardInterrupt:
         return 0
     print(_usage(), file=sys.stderr)
-    print(f"{PROG}: error: unknown command '{verb}' (this shim implements run, pkg, topic, bag)", file=sys.stderr)
+    print(f"{PROG}: error: unknown command '{verb}' (this shim implements run, launch, pkg, topic, node, param, bag)", file=sys.stderr)
     return 2
 
 
 def _usage() -> str:
-    return f"usage: {PROG} {{run,pkg,topic,bag}} ..."
+    return f"usage: {PROG} {{run,launch,pkg,topic,node,param,bag}} ..."
 
 
 # ---------------------------------------------------------------- run

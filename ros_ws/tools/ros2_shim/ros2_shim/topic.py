@@ -5,12 +5,11 @@ from __future__ import annotations
 import argparse
 import importlib
 import math
-import os
 import sys
 import time
 from collections import OrderedDict, deque
 
-DISCOVERY_SPIN_S = 0.5  # ros2cli's default --spin-time without a daemon
+from .graph import DISCOVERY_SPIN_S, cli_node, hidden, spin_for_discovery
 
 
 def topic_command(args: list[str]) -> int:
@@ -43,58 +42,26 @@ def topic_command(args: list[str]) -> int:
         parser.print_help()
         return 2
 
-    import rclpy
     from rclpy.executors import ExternalShutdownException
 
-    rclpy.init(args=[])
-    node = rclpy.create_node(f"_ros2cli_shim_{os.getpid()}", start_parameter_services=False)
     try:
-        if opts.verb == "list":
-            return _list(node, opts)
-        if opts.verb == "echo":
-            return _echo(node, opts)
-        return _hz(node, opts)
+        with cli_node() as node:
+            if opts.verb == "list":
+                return _list(node, opts)
+            if opts.verb == "echo":
+                return _echo(node, opts)
+            return _hz(node, opts)
     except (KeyboardInterrupt, ExternalShutdownException):
         return 0
-    finally:
-        node.destroy_node()
-        if rclpy.ok():
-            rclpy.shutdown()
 
 
-# ---------------------------------------------------------------- discovery
-def _spin_for_discovery(node, spin_time: float) -> list[tuple[str, list[str]]]:
-    """Spin at least ``spin_time``, then until other nodes are known and the graph is quiet.
-
-    Without a daemon every call starts discovery from scratch; on a busy machine the
-    first remote endpoints can take over a second to show, so a lone graph (only this
-    node) keeps waiting up to ``max(6 * spin_time, 3 s)``. Another node shows as a second
-    /rosout publisher (endpoint discovery; node names arrive later).
-    """
-    import rclpy
-
-    start = time.monotonic()
-    limit = max(6 * spin_time, 3.0)
-    last = None
-    last_change = start
-    while True:
-        rclpy.spin_once(node, timeout_sec=0.05)
-        now = time.monotonic()
-        current = sorted((name, tuple(types)) for name, types in node.get_topic_names_and_types())
-        if current != last:
-            last, last_change = current, now
-        others = node.count_publishers("/rosout") > 1
-        if now - start >= limit or (now - start >= spin_time and others and now - last_change >= 0.5):
-            return [(name, list(types)) for name, types in current]
-
-
-def _hidden(name: str) -> bool:
-    return any(part.startswith("_") for part in name.split("/") if part)
-
-
+# ---------------------------------------------------------------- list
 def _list(node, opts) -> int:
-    for name, types in _spin_for_discovery(node, opts.spin_time):
-        if _hidden(name) and not opts.include_hidden_topics:
+    def topics():
+        return sorted((name, tuple(types)) for name, types in node.get_topic_names_and_types())
+
+    for name, types in spin_for_discovery(node, opts.spin_time, topics):
+        if hidden(name) and not opts.include_hidden_topics:
             continue
         print(f"{name} [{', '.join(types)}]" if opts.show_types else name)
     return 0

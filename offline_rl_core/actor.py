@@ -1,0 +1,65 @@
+"""The acting side of the HIL-SERL stage, without ROS: which weights act, how they explore,
+and when a state must wait for newer weights.
+
+The policy node holds one :class:`Actor`. Weights arrive as checkpoints (a file it
+watches, or the online learner's weights messages); :meth:`Actor.offer` keeps the newest
+version. By default the actor is deterministic (``tanh(mean)``, what evaluation scores);
+with ``explore`` it samples the learner's Gaussian, ``tanh(mean + std * eps)``, from its
+own seeded generator, so the same states give the same actions.
+
+Paced (``paced_every`` = the learner's ``publish_every``): state n of the session (counted
+by distinct stamps) is answered only with weights version ``n // paced_every`` or newer,
+the version the learner cuts once it has trained on every transition before it. The
+learner can never be further ahead than that (it has not seen later transitions), so a
+paced actor acts on exactly that version: in lockstep the sim cannot outrun the learner,
+and a run is reproducible whatever the speed of either.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .policy import LoadedPolicy
+
+
+class Actor:
+    def __init__(self, policy: LoadedPolicy, explore: bool = False, seed: int = 0, paced_every: int = 0):
+        self.policy = policy
+        self.explore = explore
+        self.rng = np.random.default_rng(np.random.SeedSequence([int(seed), 11]))
+        self.paced_every = int(paced_every)
+        self.states = 0  # distinct states seen this session
+        self.last_stamp: int | None = None
+
+    @property
+    def version(self) -> int:
+        return self.policy.weights_version
+
+    def offer(self, policy: LoadedPolicy) -> bool:
+        """Take ``policy`` if it is a newer weights version (or unversioned, e.g. a file
+        replaced by hand); returns whether it now acts."""
+        if policy.weights_version and policy.weights_version <= self.version:
+            return False
+        self.policy = policy
+        return True
+
+    def see(self, stamp: int) -> None:
+        """Count a state (once per stamp: a republished state is the same state)."""
+        if stamp != self.last_stamp:
+            if self.last_stamp is not None:
+                self.states += 1
+            self.last_stamp = stamp
+
+    def required_version(self) -> int:
+        return self.states // self.paced_every if self.paced_every else 0
+
+    def ready(self) -> bool:
+        """Whether the current state may be answered with the weights held."""
+        return self.version >= self.required_version()
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        """The action for ``obs``: in [-1, 1], finite (a non-finite one is returned as is
+        for the caller to refuse; it is never clipped into range silently)."""
+        if self.explore:
+            return self.policy.sample(obs, self.rng)
+        return self.policy.act(obs)

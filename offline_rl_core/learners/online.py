@@ -1,0 +1,198 @@
+"""The online learner of the HIL-SERL stage: the prior fine-tuned from a live stream.
+
+Transitions arrive one by one (the arm's own steps and a person's takeovers) and are
+appended to an online buffer that sits beside the offline bag; every gradient step
+draws ``offline_ratio`` of its batch from the offline rows and the rest from the online
+ones (RLPD / HIL-SERL's symmetric sampling), and ``utd`` steps are owed per arrived
+transition. New weights are cut every ``publish_every`` transitions.
+
+Everything is scheduled by counts, not by clocks: update j samples only among the
+first ``j // utd + 1`` online transitions, and weights version v is cut after exactly
+``utd * v * publish_every`` updates. So a run that receives the same transitions gives
+the same weights however fast or slow the learner was, and an actor that waits for
+version v (lockstep over ROS) makes the whole procedure reproducible.
+
+``state()`` / ``OnlineLearner.restore`` hold everything (networks, optimisers, random
+generators, counters and the online buffer), so a learner killed mid-run resumes where
+it last saved.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass
+
+import torch
+
+from ..policy import CHECKPOINT_FORMAT, CHECKPOINT_VERSION
+from ..transitions import Transitions
+from .config import TrainConfig
+from .data import MemberData
+from .loop import LEARNERS, seed_generators, torch_threads
+from .resume import learner_training_state, load_learner_training_state
+from .stepper import make_step
+
+
+@dataclass
+class OnlineSettings:
+    utd: int = 1  # gradient steps per environment step
+    offline_ratio: float = 0.5  # share of each batch drawn from the offline data
+    publish_every: int = 50  # environment steps between weights versions (1 s at 50 Hz)
+    capacity: int = 200_000  # online transitions kept
+
+    def __post_init__(self) -> None:
+        if self.utd < 1 or self.publish_every < 1 or self.capacity < 1:
+            raise ValueError("utd, publish_every and capacity must be >= 1")
+        if not 0.0 <= self.offline_ratio <= 1.0:
+            raise ValueError(f"offline_ratio must be in [0, 1], got {self.offline_ratio}")
+
+
+class OnlineSampler:
+    """(1, B) row indices: ``offline_ratio`` of them uniform over the offline rows, the
+    rest uniform over the first ``bound`` online rows (all offline while there are none)."""
+
+    def __init__(self, n_offline: int, batch_size: int, offline_ratio: float, generator: torch.Generator):
+        self.n_offline, self.batch_size, self.gen = n_offline, batch_size, generator
+        self.n_online_rows = batch_size - int(round(offline_ratio * batch_size))
+        if n_offline == 0:
+            self.n_online_rows = batch_size
+
+    def next(self, bound: int) -> torch.Tensor:
+        n_on = self.n_online_rows if bound > 0 else 0
+        parts = []
+        if n_on < self.batch_size:
+            parts.append(torch.randint(0, self.n_offline, (self.batch_size - n_on,), generator=self.gen))
+        if n_on:
+            parts.append(torch.randint(0, bound, (n_on,), generator=self.gen) + self.n_offline)
+        return torch.cat(parts).unsqueeze(0)
+
+
+class OnlineLearner:
+    """One learner (``cfg.algo``, SAC by default) trained on offline + live transitions."""
+
+    def __init__(self, offline: Transitions, cfg: TrainConfig, settings: OnlineSettings, seed: int,
+                 prior: dict | None = None):
+        if len(offline) == 0 and settings.offline_ratio > 0:
+            raise ValueError("no offline transitions to sample from (set offline_ratio 0 to learn from scratch)")
+        self.cfg, self.settings, self.seed = cfg, settings, int(seed)
+        obs_dim, act_dim = offline.obs.shape[1], offline.action.shape[1]
+        init_gen, sample_gen = seed_generators(seed)
+        with torch_threads(cfg.threads):
+            self.learner = LEARNERS[cfg.algo](cfg, 1, [init_gen], obs_dim, act_dim)
+            if prior is not None:
+                self.learner.policy.load_member_state(0, prior["policy_state"])
+                self.learner.load_learner_state(0, prior.get("learner_state") or {})
+        self.prior_algorithm = None if prior is None else prior.get("algorithm")
+        self.data = MemberData([offline], capacity=len(offline) + settings.capacity)
+        self.n_offline = len(offline)
+        self.sample_gen = sample_gen
+        self.sampler = OnlineSampler(self.n_offline, cfg.batch_size, settings.offline_ratio, sample_gen)
+        self.step_once = make_step(self.learner.update, self.data, (1, cfg.batch_size), cfg.device, cfg.cuda_graph)
+        self.n_online = 0
+        self.updates = 0
+        self.version = 0
+        self.losses: dict[str, float] = {}
+        self.train_seconds = 0.0
+
+    # ------------------------------------------------------------------ data
+    def add(self, rows: Transitions) -> None:
+        """Append live transitions (already checked: finite, known layout)."""
+        if len(rows):
+            self.data.append(rows)
+            self.n_online += len(rows)
+
+    @property
+    def updates_owed(self) -> int:
+        return self.settings.utd * self.n_online - self.updates
+
+    # ------------------------------------------------------------------ training
+    def train(self, max_updates: int | None = None, until_version: bool = True) -> int:
+        """Take the updates owed (at most ``max_updates``), stopping where a weights
+        version is due (``until_version``) so the caller can cut it. Returns how many."""
+        todo = self.updates_owed if max_updates is None else min(self.updates_owed, max_updates)
+        if until_version:
+            todo = min(todo, self.next_version_updates() - self.updates)
+        if todo <= 0:
+            return 0
+        t0 = time.perf_counter()
+        with torch_threads(self.cfg.threads):
+            for _ in range(todo):
+                bound = self.updates // self.settings.utd + 1
+                losses = self.step_once(self.sampler.next(bound))
+                self.updates += 1
+            self.losses = {k: float(v.float().mean()) for k, v in losses.items()}
+        self.train_seconds += time.perf_counter() - t0
+        return todo
+
+    def next_version_updates(self) -> int:
+        """Updates after which the next weights version is cut."""
+        return self.settings.utd * (self.version + 1) * self.settings.publish_every
+
+    def version_due(self) -> bool:
+        return self.updates >= self.next_version_updates()
+
+    def cut_version(self) -> dict:
+        """The next weights version (call when ``version_due``): a servable checkpoint."""
+        self.version += 1
+        return self.weights()
+
+    def weights(self) -> dict:
+        """The current policy as a checkpoint the policy node serves (``policy.py``),
+        with the exploration std and which version this is."""
+        learner = self.learner
+        state = learner.learner_state(0)
+        return {
+            "format": CHECKPOINT_FORMAT,
+            "version": CHECKPOINT_VERSION,
+            "algorithm": learner.name,
+            "obs_dim": learner.obs_dim,
+            "act_dim": learner.act_dim,
+            "hidden": self.cfg.hidden,
+            "policy_state": learner.policy.member_state(0),
+            "obs_mean": None,
+            "obs_std": None,
+            "learner_state": state,
+            "exploration_log_std": state.get("log_std"),
+            "weights_version": self.version,
+            "trained_through": self.n_online_at_version(self.version),
+            "updates": self.updates,
+            "config": self.cfg.to_dict(),
+            "online": asdict(self.settings),
+            "seed": self.seed,
+            "prior_algorithm": self.prior_algorithm,
+        }
+
+    def n_online_at_version(self, version: int) -> int:
+        return version * self.settings.publish_every
+
+    # ------------------------------------------------------------------ resume
+    def state(self) -> dict:
+        """Everything needed to resume: tensors, generators, counters, the online rows."""
+        return {
+            "format": "pusher-rl/online-learner",
+            "version": 1,
+            "seed": self.seed,
+            "config": self.cfg.to_dict(),
+            "online": asdict(self.settings),
+            "learner": learner_training_state(self.learner),
+            "sample_generator": self.sample_gen.get_state(),
+            "n_online": self.n_online,
+            "updates": self.updates,
+            "train_version": self.version,
+            "online_rows": {name: getattr(self.data, name)[0, self.n_offline: self.n_offline + self.n_online].clone()
+                            for name in MemberData.FIELDS},
+        }
+
+    def restore(self, state: dict) -> None:
+        """Load ``state()`` into this freshly built learner (before its first update)."""
+        if state.get("format") != "pusher-rl/online-learner":
+            raise ValueError("not an online learner state")
+        if self.updates:
+            raise ValueError("restore into a learner that has not trained yet")
+        load_learner_training_state(self.learner, state["learner"])
+        self.sample_gen.set_state(state["sample_generator"])
+        n = int(state["n_online"])
+        for name in MemberData.FIELDS:
+            getattr(self.data, name)[0, self.n_offline: self.n_offline + n] = state["online_rows"][name]
+        self.data.sizes = [self.n_offline + n]
+        self.n_online, self.updates, self.version = n, int(state["updates"]), int(state["train_version"])

@@ -1,0 +1,319 @@
+"""The fast CPU path, derived from each learner's own ``update``: recorded once, replayed.
+
+A learner is written once, as plain torch (``bc.py``, ``awac.py``, ...): forwards,
+``loss.backward()``, ``optimizer.step()``. On a CPU, the Python around the arithmetic
+(autograd's engine, ``torch.optim``'s bookkeeping, per-op dispatch from Python) is a
+third of a chapter-size step. So the training loop records one real step of the
+learner's ``update`` as the exact list of operator calls it made (``make_fx`` in real
+mode: the step runs for real while it is recorded, its backward and optimiser calls
+included), and then replays that list for every later step: in C++
+(``csrc/graph_runner.cpp``) where it is built, else as generated Python. The same
+operators run on the same arguments, so replay gives the same bytes as running
+``update`` itself (``tests/test_traced.py``), and an edit to a learner's loss is an
+edit to what is replayed.
+
+What a recordable ``update`` may not do: let a Python ``if`` or a number it reads
+back from a tensor (``.item()``, ``float(t)``) depend on the data, or change a
+hyper-parameter between steps; a recording that reads a tensor back is refused and
+the learner runs eagerly instead, with a notice. Random draws are fine when they come
+from a ``torch.Generator`` the learner owns: replay draws from it as the eager step
+would.
+
+``PUSHER_RL_STEP`` picks: ``auto`` (default: C++ replay where it builds, else Python
+replay), ``cpp``, ``python``, or ``autograd`` (no recording: ``update`` every step).
+"""
+
+from __future__ import annotations
+
+import operator
+import os
+import sys
+from typing import Callable
+
+import torch
+from torch.fx.experimental.proxy_tensor import make_fx
+
+from ..errors import UserError
+from .data import Batch, MemberData
+
+STEP_ENV = "PUSHER_RL_STEP"
+STEP_MODES = ("auto", "cpp", "python", "autograd")
+# Eager steps before the recording: optimisers create their state on first use, and a
+# creation recorded would re-create it at every replay.
+WARMUP_STEPS = 1
+# Bookkeeping calls that change no tensor (the optimiser's profiler markers, detach)
+_DROPPED = {"profiler._record_function_enter_new.default", "profiler._record_function_exit._RecordFunction",
+            "profiler._record_function_enter.default", "profiler._record_function_exit.default"}
+
+_notified: set[str] = set()
+
+
+def _notice(line: str) -> None:
+    if line not in _notified:
+        print(f"pusher-rl: {line}", file=sys.stderr, flush=True)
+        _notified.add(line)
+
+
+def step_mode() -> str:
+    mode = os.environ.get(STEP_ENV, "auto").strip().lower() or "auto"
+    if mode not in STEP_MODES:
+        raise UserError(f"{STEP_ENV}={mode}: expected one of {', '.join(STEP_MODES)}")
+    return mode
+
+
+class NotRecordable(Exception):
+    """The update did something a replay could not repeat faithfully."""
+
+
+def record(fn: Callable[..., list[torch.Tensor]], inputs: list[torch.Tensor]):
+    """Run ``fn(*inputs)`` once for real while recording its operator calls.
+
+    Returns (graph module, the real outputs of this run). Raises ``NotRecordable`` part-way
+    through when ``fn`` reads a tensor back into Python."""
+    outputs: list[list[torch.Tensor]] = []
+
+    def capture(*args):
+        out = fn(*args)
+        outputs.append(out)
+        return out
+
+    try:
+        gm = make_fx(capture, tracing_mode="real")(*inputs)
+    except RuntimeError as exc:
+        if "_local_scalar_dense" in str(exc) or "data-dependent" in str(exc):
+            raise NotRecordable("the update reads a tensor back into Python (.item(), float(t) or a branch on one)") \
+                from None
+        raise
+    graph = gm.graph
+    for node in reversed(list(graph.nodes)):  # exits before their enters
+        if node.op == "call_function" and str(node.target) in _DROPPED and not node.users:
+            graph.erase_node(node)
+    for node in list(graph.nodes):
+        if node.op == "call_function" and node.target is torch.ops.aten.detach.default:
+            node.replace_all_uses_with(node.args[0])
+            graph.erase_node(node)
+    graph.lint()
+    gm.recompile()
+    return gm, [t.detach() for t in outputs[0]]
+
+
+class PythonReplay:
+    """The recording as generated Python (one torch op call per recorded call)."""
+
+    def __init__(self, gm):
+        self.gm = gm
+
+    def __call__(self, inputs: list[torch.Tensor]) -> list[torch.Tensor]:
+        with torch.inference_mode():
+            return self.gm(*inputs)
+
+
+class CppReplay:
+    """The recording replayed by ``csrc/graph_runner.cpp``."""
+
+    def __init__(self, gm, extension):
+        self.program = _to_program(gm, extension)
+
+    def __call__(self, inputs: list[torch.Tensor]) -> list[torch.Tensor]:
+        return self.program.run(inputs)
+
+
+def _to_program(gm, extension):
+    """Translate the recorded graph into the C++ Program's calls and value slots."""
+    nodes = list(gm.graph.nodes)
+    slots: dict = {}  # node -> slot, or list of slots for several returns
+    count = 0
+
+    def new_slot() -> int:
+        nonlocal count
+        count += 1
+        return count - 1
+
+    inputs, outputs, constants, keep = [], [], {}, set()
+    calls = []  # ("call", op, specs, out_slots, reads) | ("elem", src, index, out, reads)
+    for node in nodes:
+        if node.op == "placeholder":
+            slots[node] = new_slot()
+            inputs.append(slots[node])
+            keep.add(slots[node])
+        elif node.op == "get_attr":
+            slots[node] = new_slot()
+            constants[slots[node]] = getattr(gm, node.target)
+            keep.add(slots[node])
+        elif node.op == "output":
+            outputs = [slots[n] for n in node.args[0]]
+            keep.update(outputs)
+        elif node.target is operator.getitem:
+            source, index = node.args
+            if isinstance(slots[source], list):  # one slot per return: an alias
+                slots[node] = slots[source][index]
+            else:
+                slots[node] = new_slot()
+                calls.append(("elem", slots[source], index, slots[node], [slots[source]]))
+        else:
+            op = node.target
+            schema = op._schema
+            specs, reads = [], []
+            for i, arg in enumerate(schema.arguments):
+                if i < len(node.args):
+                    value = node.args[i]
+                elif arg.name in node.kwargs:
+                    value = node.kwargs[arg.name]
+                elif arg.has_default_value():
+                    value = arg.default_value
+                else:
+                    raise NotRecordable(f"{op}: no value for argument {arg.name}")
+                if isinstance(value, torch.fx.Node):
+                    specs.append(("slot", slots[value]))
+                    reads.append(slots[value])
+                elif isinstance(value, (list, tuple)) and any(isinstance(v, torch.fx.Node) for v in value):
+                    ids = [-1 if v is None else slots[v] for v in value]
+                    specs.append(("slots", ids))
+                    reads.extend(s for s in ids if s >= 0)
+                elif isinstance(value, (bool, int, float)) and isinstance(arg.type, torch.TensorType):
+                    specs.append(("wrapped", value))  # a Python number where a Tensor goes
+                else:
+                    specs.append(("const", value))
+            n_out = len(schema.returns)
+            out = [new_slot() for _ in range(n_out)]
+            slots[node] = out if n_out > 1 else (out[0] if out else None)
+            calls.append(("call", op, specs, out, reads))
+
+    # release each slot after its last read (or at once if never read), except
+    # inputs, constants and outputs
+    last_read: dict[int, int] = {}
+    for i, call in enumerate(calls):
+        for s in call[-1]:
+            last_read[s] = i
+    program = extension.Program(count)
+    for slot, tensor in constants.items():
+        program.set_constant(slot, tensor)
+    program.set_inputs(inputs)
+    program.set_outputs(outputs)
+    for i, call in enumerate(calls):
+        produced = call[3] if call[0] == "call" else [call[3]]
+        release = [s for s in call[-1] if last_read[s] == i and s not in keep]
+        release += [s for s in produced if s not in last_read and s not in keep]
+        if call[0] == "call":
+            op = call[1]
+            name, _, overload = op.name().partition(".")
+            program.add_call(name, overload, call[2], call[3], release)
+        else:
+            program.add_list_element(call[1], call[2], call[3], release)
+    return program
+
+
+class RecordedStep:
+    """``update(data.gather(idx))``: eager for ``WARMUP_STEPS``, recorded on the next
+    step, replayed after that. The batch gather is part of the recording, so a step's
+    only input is its (members, batch) index tensor."""
+
+    def __init__(self, update: Callable[[Batch], dict], data: MemberData, mode: str):
+        self.update, self.data, self.mode = update, data, mode
+        self.keys: list[str] | None = None
+        self.replay: Callable | None = None
+        self.eager_steps = 0
+        self.kind = "eager"
+
+    def __call__(self, idx: torch.Tensor) -> dict[str, torch.Tensor]:
+        if self.replay is not None:
+            return dict(zip(self.keys, self.replay([idx])))
+        if self.eager_steps < WARMUP_STEPS or self.kind == "not recordable":
+            self.eager_steps += 1
+            return self.update(self.data.gather(idx))
+        return self._record(idx)
+
+    def _record(self, idx: torch.Tensor) -> dict[str, torch.Tensor]:
+        def step(index):
+            losses = self.update(self.data.gather(index))
+            if self.keys is None:
+                self.keys = sorted(losses)
+            return [losses[k] for k in self.keys]
+
+        snapshot = Snapshot(getattr(self.update, "__self__", None))
+        try:
+            gm, outputs = record(step, [idx])  # this step, taken for real
+        except NotRecordable as exc:  # stopped part-way: undo what it did, take it eagerly
+            snapshot.restore()
+            self._refuse(str(exc))
+            return self.update(self.data.gather(idx))
+        try:
+            self.replay, self.kind = self._replayer(gm)
+        except NotRecordable as exc:
+            self._refuse(str(exc))
+        _free_grads(self.update)
+        return dict(zip(self.keys, outputs))
+
+    def _refuse(self, why: str) -> None:
+        _notice(f"training runs {type(getattr(self.update, '__self__', None)).__name__} eagerly: {why}")
+        self.kind = "not recordable"
+
+    def _replayer(self, gm):
+        if self.mode in ("auto", "cpp"):
+            from . import graph_runner
+
+            reason = graph_runner.unavailable_reason()
+            if reason is None:
+                return CppReplay(gm, graph_runner.extension()), "cpp"
+            if self.mode == "cpp":
+                raise UserError(f"{STEP_ENV}=cpp: the C++ step replayer cannot be built here: {reason}")
+            _notice(f"the C++ step replayer is not available ({reason}); replaying steps in Python")
+        return PythonReplay(gm), "python"
+
+
+class Snapshot:
+    """Copies of every tensor and generator state a learner's step can change (its
+    modules' parameters and buffers, its optimisers' state, its generators), to undo a
+    recording that stopped part-way."""
+
+    def __init__(self, learner):
+        self.tensors: list[tuple[torch.Tensor, torch.Tensor]] = []
+        self.generators: list[tuple[torch.Generator, torch.Tensor]] = []
+        seen: set[int] = set()
+        for obj in _reachable(learner):
+            if isinstance(obj, torch.nn.Module):
+                for t in [*obj.parameters(), *obj.buffers()]:
+                    self._keep(t, seen)
+            elif isinstance(obj, torch.optim.Optimizer):
+                for state in obj.state.values():
+                    for t in state.values():
+                        if isinstance(t, torch.Tensor):
+                            self._keep(t, seen)
+            elif isinstance(obj, torch.Generator):
+                self.generators.append((obj, obj.get_state()))
+
+    def _keep(self, t: torch.Tensor, seen: set[int]) -> None:
+        if id(t) not in seen:
+            seen.add(id(t))
+            self.tensors.append((t, t.detach().clone()))
+
+    def restore(self) -> None:
+        with torch.no_grad():
+            for t, copy in self.tensors:
+                t.copy_(copy)
+        for gen, state in self.generators:
+            gen.set_state(state)
+
+
+def _reachable(obj, depth: int = 2):
+    """``obj``'s attributes, and theirs, to ``depth`` levels (modules are not entered)."""
+    if obj is None or depth < 0 or not hasattr(obj, "__dict__"):
+        return
+    for value in vars(obj).values():
+        yield value
+        if not isinstance(value, (torch.nn.Module, torch.Tensor, torch.optim.Optimizer)):
+            yield from _reachable(value, depth - 1)
+
+
+def _free_grads(update) -> None:
+    """The recording leaves the parameters' ``.grad`` set; replay never reads them."""
+    learner = getattr(update, "__self__", None)
+    for opt in optimizers_of(learner):
+        for group in opt.param_groups:
+            for p in group["params"]:
+                p.grad = None
+
+
+def optimizers_of(obj) -> list[torch.optim.Optimizer]:
+    """The optimisers held by a learner (its attributes and theirs)."""
+    return [v for v in _reachable(obj) if isinstance(v, torch.optim.Optimizer)]

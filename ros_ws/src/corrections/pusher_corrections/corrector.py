@@ -1,0 +1,201 @@
+"""``ros2 run corrections corrector``: the human in human-in-the-loop, or a stand-in.
+
+Watches ``pusher/state`` with its ``pusher/target`` (paired by stamp, as the policy
+node does: ``offline_rl_core.pairing``) and answers every state on ``teleop/action``
+(JointState, stamp = the state's): either a correction (effort = torques in [-1, 1]) or a
+*yield* (empty effort: the policy keeps the arm). A republished state gets the same
+answer again; each state is decided once.
+
+``--mode scripted`` (default): takes over with the scripted expert when the fingertip
+has not got closer to the target for ``patience`` steps, hands back after
+``hold_steps`` steps or on success (see ``pusher_corrections.scripted``). Parameters
+(``-p name:=value`` or the flags): ``patience`` (8), ``hold_steps`` (25),
+``grace_steps`` (20: states at an episode's start before progress is judged),
+``min_progress`` (0.002 m), ``noise`` (0.0, std of torque noise), ``reaction_delay``
+(0 steps), ``seed`` (0).
+
+``--mode keyboard``: a person drives from the terminal (raw mode; needs a tty):
+  a / d  shoulder torque -1 / +1      j / l  elbow torque -1 / +1
+  s      shoulder torque 0            k      elbow torque 0
+  space  hand back to the policy      q      quit (Ctrl-C too)
+Any torque key takes over; the held torques are sent with every state until space.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import select
+import sys
+import termios
+import threading
+import tty
+from dataclasses import replace
+
+import numpy as np
+from geometry_msgs.msg import PointStamped
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from rclpy.task import Future
+from sensor_msgs.msg import JointState
+
+from offline_rl_core.errors import UserError
+from offline_rl_core.env import ACT_DIM, JOINT_NAMES
+from offline_rl_core.joint_messages import joints_from_state
+from offline_rl_core.pairing import Paired, StatePairing
+from pusher_common.node_main import run_node
+from pusher_common.params import Param, Settings
+from pusher_common.stamps import stamp_key
+
+from offline_rl_core.corrector import CorrectorParams, ScriptedCorrector
+
+KEEP_ANSWERS = 64
+KEYS = {
+    "a": (0, -1.0), "d": (0, 1.0), "s": (0, 0.0),
+    "j": (1, -1.0), "l": (1, 1.0), "k": (1, 0.0),
+}
+
+
+class KeyboardTeleop:
+    """Torques set by keys in a raw-mode terminal; read on a background thread."""
+
+    def __init__(self, stream=sys.stdin):
+        if not stream.isatty():
+            raise UserError("--mode keyboard needs an interactive terminal (stdin is not a tty)")
+        self.stream = stream
+        self.torque = np.zeros(ACT_DIM, np.float32)
+        self.active = False
+        self.quit = threading.Event()
+        self.lock = threading.Lock()
+        self.saved = termios.tcgetattr(stream.fileno())
+        tty.setcbreak(stream.fileno())  # keys arrive one by one, unechoed; Ctrl-C still signals
+        self.thread = threading.Thread(target=self.read_keys, daemon=True)
+        self.thread.start()
+        print("keyboard teleop: a/d shoulder -/+, j/l elbow -/+, s/k zero, space hand back, q quit",
+              file=sys.stderr, flush=True)
+
+    def read_keys(self) -> None:
+        fd = self.stream.fileno()
+        while not self.quit.is_set():
+            ready, _, _ = select.select([fd], [], [], 0.1)
+            if not ready:
+                continue
+            key = os.read(fd, 1).decode(errors="ignore").lower()
+            with self.lock:
+                if key == "q":
+                    self.quit.set()
+                elif key == " ":
+                    self.active = False
+                    self.torque[:] = 0.0
+                elif key in KEYS:
+                    joint, value = KEYS[key]
+                    self.torque[joint] = value
+                    self.active = True
+
+    def decide(self, qpos, qvel, target_xy) -> np.ndarray | None:
+        with self.lock:
+            return self.torque.copy() if self.active else None
+
+    def restore(self) -> None:
+        self.quit.set()
+        termios.tcsetattr(self.stream.fileno(), termios.TCSADRAIN, self.saved)
+
+
+PARAMS = (
+    Param("mode", "scripted", "scripted: the scripted expert takes over when progress stalls; keyboard: a person "
+          "at this terminal", choices=("scripted", "keyboard"), read_only=True, flag="--mode"),
+    Param("patience", 8, "k: states without progress before taking over", low=1, flag="--patience"),
+    Param("grace_steps", 20, "states at an episode's start before progress is judged", low=0, flag="--grace-steps"),
+    Param("hold_steps", 25, "m: steps of a takeover before handing back", low=1, flag="--hold-steps"),
+    Param("min_progress", 0.002, "metres the distance must shrink to count as progress", low=0.0, flag="--min-progress"),
+    Param("noise", 0.0, "std of Gaussian noise on the corrections' torques (a shaky hand)", low=0.0, flag="--noise"),
+    Param("reaction_delay", 0, "states between deciding to take over and acting", low=0, flag="--reaction-delay"),
+    Param("seed", 0, "seed of the correction noise", low=0, read_only=True, flag="--seed"),
+)
+RULE_PARAMS = tuple(p.name for p in PARAMS if p.name != "mode")
+
+
+class Corrector(Node):
+    def __init__(self, overrides=()):
+        super().__init__("corrector", parameter_overrides=list(overrides))
+        self.settings = Settings(self, PARAMS, on_change=self.on_parameter_change, check=self.check_parameter)
+        self.mode = self.settings.mode
+        self.finished = Future()  # done when the person quits (keyboard mode)
+        values = {name: getattr(self.settings, name) for name in RULE_PARAMS}
+        if self.mode == "scripted":
+            try:
+                self.teleop = ScriptedCorrector(CorrectorParams(**values))
+            except ValueError as exc:
+                raise UserError(str(exc)) from None
+        else:
+            self.teleop = KeyboardTeleop()
+            self.create_timer(0.1, self.check_quit, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self.pairing = StatePairing(use_fingertip=False)  # the rule computes its fingertip
+        self.answers: dict[int, JointState] = {}
+        self.states = 0
+        self.corrections = 0
+        self.create_subscription(PointStamped, "pusher/target", self.on_target, 10)
+        self.create_subscription(JointState, "pusher/state", self.on_state, 10)
+        self.pub = self.create_publisher(JointState, "teleop/action", 10)
+        desc = f"scripted ({', '.join(f'{k}={v}' for k, v in values.items())})" if self.mode == "scripted" else "keyboard"
+        self.get_logger().info(f"corrector {desc}: answering /pusher/state on /teleop/action")
+
+    def check_parameter(self, name: str, value) -> str | None:
+        if self.mode != "scripted":
+            return f"{name} belongs to the scripted corrector; this one is a keyboard"
+        try:
+            replace(self.teleop.p, **{name: value})  # the rule's own validation
+        except ValueError as exc:
+            return str(exc)
+        return None
+
+    def on_parameter_change(self, name: str, value) -> None:
+        self.teleop.p = replace(self.teleop.p, **{name: value})  # from the next state on
+
+    def check_quit(self) -> None:
+        if self.teleop.quit.is_set() and not self.finished.done():
+            self.finished.set_result(True)
+
+    def on_target(self, msg: PointStamped) -> None:
+        if math.isfinite(msg.point.x) and math.isfinite(msg.point.y):
+            self.answer(self.pairing.on_target(stamp_key(msg.header.stamp), (msg.point.x, msg.point.y)))
+
+    def on_state(self, msg: JointState) -> None:
+        self.answer(self.pairing.on_state(stamp_key(msg.header.stamp), msg))
+
+    def answer(self, paired: Paired | None) -> None:
+        if paired is None:
+            return
+        msg, stamp = paired.state, paired.stamp
+        out = self.answers.get(stamp)
+        if out is None:  # a new state: decide once
+            joints, _ = joints_from_state(msg.name, msg.position, msg.velocity)
+            if joints is None:
+                return
+            action = self.teleop.decide(joints[0], joints[1], paired.target_xy)
+            self.states += 1
+            out = JointState(name=list(JOINT_NAMES))
+            if action is not None:
+                out.effort = [float(a) for a in action]
+                self.corrections += 1
+            out.header.stamp = msg.header.stamp
+            self.answers[stamp] = out
+            if len(self.answers) > KEEP_ANSWERS:
+                for key in sorted(self.answers)[:-KEEP_ANSWERS // 2]:
+                    del self.answers[key]
+        self.pub.publish(out)  # a republished state gets the same answer again
+
+    def close(self) -> None:
+        if isinstance(self.teleop, KeyboardTeleop):
+            self.teleop.restore()
+        extra = f", {self.teleop.takeovers} takeovers" if self.mode == "scripted" else ""
+        print(f"corrector: answered {self.states} states, {self.corrections} with a correction{extra}", file=sys.stderr)
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_node(Corrector, prog="corrector", command="ros2 run corrections corrector", flags=PARAMS, argv=argv,
+                    description="Take over from the policy on teleop/action: scripted expert or keyboard.")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

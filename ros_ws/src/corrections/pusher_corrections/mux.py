@@ -1,0 +1,163 @@
+"""``ros2 run corrections mux``: the policy drives, a person (or the corrector) can take over.
+
+Forwards ``policy/action`` to the sim unless the human acts on ``teleop/action``: each
+command goes to ``pusher/command/policy`` or ``pusher/command/human``, the sim's inputs
+that say who acted (codes 2 and 3 in ``pusher/transition``, so the bag records it).
+``corrections/intervening`` (std_msgs/Bool, transient local) is published on each change.
+
+Parameters:
+- ``mode``: ``realtime`` (default) or ``lockstep``, as the sim's.
+- ``hold_ms`` (100): realtime: a teleop action holds the arm this long (on the node's
+  clock: sim time under ``use_sim_time``);
+  policy actions inside the hold are dropped. An empty teleop action lets go at once.
+- ``require_teleop`` (false): lockstep: always wait for the corrector's word on each
+  stamp (an action, or an empty-effort *yield*). When false, the mux waits only while
+  a ``/teleop/action`` publisher is matched.
+
+The rule in lockstep: exactly one command per stamp. A teleop action for the stamp
+wins; a yield lets the policy's action for the stamp through; a late message for a
+decided stamp only repeats the decided command (see ``pusher_corrections.arbiter``).
+"""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Bool
+
+from offline_rl_core.env import JOINT_NAMES
+from offline_rl_core.joint_messages import action_from_effort
+from pusher_common.node_main import run_node
+from pusher_common.params import Param, Settings
+from pusher_common.stamps import stamp_key
+
+from .arbiter import HUMAN, POLICY, LockstepArbiter, RealtimeArbiter
+
+WARN_THROTTLE_S = 2.0
+LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+PARAMS = (
+    Param("mode", "realtime", "as the sim's: realtime (a teleop action holds the arm for hold_ms) or lockstep "
+          "(exactly one command per state stamp)", choices=("realtime", "lockstep"), read_only=True),
+    Param("hold_ms", 100.0, "realtime: milliseconds a teleop action holds the arm; policy actions inside the hold "
+          "are dropped", low=0.0, high=60_000.0),
+    Param("require_teleop", False, "lockstep: always wait for the corrector's word on each stamp (otherwise only "
+          "while a teleop/action publisher is matched)"),
+)
+ONLY_IN = {"hold_ms": "realtime", "require_teleop": "lockstep"}
+
+
+def hold_check_period(hold_s: float) -> float:
+    return min(max(hold_s / 4, 0.005), 0.05)
+
+
+class Mux(Node):
+    def __init__(self, overrides=()):
+        super().__init__("mux", parameter_overrides=list(overrides))
+        self.settings = Settings(self, PARAMS, on_change=self.on_parameter_change, check=self.check_parameter)
+        self.mode = self.settings.mode
+        self.hold_s = self.settings.hold_ms / 1000.0
+        self.require_teleop = self.settings.require_teleop
+        self.arbiter = LockstepArbiter() if self.mode == "lockstep" else RealtimeArbiter(self.hold_s)
+        self.intervening: bool | None = None
+        # who acted is the topic: pusher/command/policy or pusher/command/human (the sim logs it)
+        self.command_pubs = {source: self.create_publisher(JointState, f"pusher/command/{source}", 10)
+                             for source in (POLICY, HUMAN)}
+        self.intervening_pub = self.create_publisher(Bool, "corrections/intervening", LATCHED)
+        self.create_subscription(JointState, "policy/action", self.on_policy, 10)
+        self.teleop_sub = self.create_subscription(JointState, "teleop/action", self.on_teleop, 10)
+        self.hold_timer = None
+        if self.mode == "realtime":
+            self.hold_timer = self.create_timer(hold_check_period(self.hold_s), self.check_hold)
+        self.set_intervening(False)
+        self.get_logger().info(
+            f"mux {self.mode}: /policy/action + /teleop/action -> /pusher/command"
+            + (f" (hold {self.hold_s * 1000:.0f} ms)" if self.mode == "realtime" else
+               f" (one command per stamp{', always waiting for the corrector' if self.require_teleop else ''})")
+        )
+
+    def check_parameter(self, name: str, value) -> str | None:
+        if ONLY_IN.get(name, self.mode) != self.mode:
+            return f"{name} applies in {ONLY_IN[name]} mode only; this mux runs in {self.mode} mode"
+        return None
+
+    def on_parameter_change(self, name: str, value) -> None:
+        if name == "hold_ms":
+            self.hold_s = value / 1000.0
+            self.arbiter.hold_s = self.hold_s
+            self.hold_timer.timer_period_ns = int(hold_check_period(self.hold_s) * 1e9)
+        elif name == "require_teleop":
+            self.require_teleop = value
+
+    def parse(self, msg: JointState, topic: str, allow_empty: bool) -> np.ndarray | None | bool:
+        """The action; None for an empty effort (a yield) when allowed; False if malformed."""
+        action, problem = action_from_effort(msg.name, msg.effort, allow_empty)
+        if problem:
+            self.get_logger().warning(f"ignoring {topic}: {problem}", throttle_duration_sec=WARN_THROTTLE_S)
+            return False
+        return action
+
+    def now(self) -> float:
+        """Seconds on the node's clock: the hold is in sim time under use_sim_time."""
+        return self.get_clock().now().nanoseconds / 1e9
+
+    def corrector_present(self) -> bool:
+        return self.require_teleop or self.teleop_sub.get_publisher_count() > 0
+
+    def on_policy(self, msg: JointState) -> None:
+        action = self.parse(msg, "policy/action", allow_empty=False)
+        if action is False:
+            return
+        stamp = stamp_key(msg.header.stamp)
+        if self.mode == "lockstep":
+            self.send(self.arbiter.on_policy(stamp, action, self.corrector_present()), msg)
+        else:
+            self.send(self.arbiter.on_policy(stamp, action, self.now()), msg)
+
+    def on_teleop(self, msg: JointState) -> None:
+        action = self.parse(msg, "teleop/action", allow_empty=True)
+        if action is False:
+            return
+        stamp = stamp_key(msg.header.stamp)
+        if self.mode == "lockstep":
+            self.send(self.arbiter.on_teleop(stamp, action), msg)
+        else:
+            self.send(self.arbiter.on_teleop(stamp, action, self.now()), msg)
+            self.check_hold()
+
+    def send(self, command, msg: JointState) -> None:
+        if command is None:
+            return
+        out = JointState(name=list(JOINT_NAMES), effort=[float(a) for a in command.action])
+        out.header.stamp = msg.header.stamp
+        self.command_pubs[command.source].publish(out)
+        if self.mode == "lockstep" and not command.resend:
+            self.set_intervening(command.source == HUMAN)
+
+    def check_hold(self) -> None:
+        if self.mode == "realtime":
+            self.set_intervening(self.arbiter.holding(self.now()))
+
+    def set_intervening(self, value: bool) -> None:
+        if value != self.intervening:
+            self.intervening = value
+            self.intervening_pub.publish(Bool(data=value))
+
+
+    def close(self) -> None:
+        counts = self.arbiter.counts
+        print(f"mux: forwarded {counts['policy']} policy and {counts['human']} human commands", file=sys.stderr)
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_node(Mux, prog="mux", command="ros2 run corrections mux", argv=argv,
+                    description="policy/action + teleop/action -> pusher/command, tagged with who acted.")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""The online learner node of the HIL-SERL stage (logic in offline_rl_core.online_service)."""

@@ -1,0 +1,104 @@
+"""Every node's ``main()``: set up rclpy, run the node, shut down cleanly, one-line errors.
+
+    def main(argv=None):
+        return run_node(PusherSim, prog="sim", flags=PARAMS, argv=argv)
+
+- The command line's flags (``flags``: :class:`~pusher_common.params.Param` entries with
+  a ``flag``) are parsed beside ``--ros-args`` and handed to the node's constructor as
+  parameter overrides: ``make_node(overrides)``.
+- A :class:`~offline_rl_core.errors.UserError` (bad parameter, missing file) prints
+  ``PROG: error: ...`` on one line and exits 2.
+- Ctrl-C and SIGTERM end the node cleanly (exit 0 for a node that serves until stopped):
+  rclpy's signal handlers shut the context down and the spin returns. A node whose work
+  runs in ``main`` itself (``runs_in_main``: ``node.run()``, the trainer) gets Python's signals instead, so
+  Ctrl-C interrupts that work as a KeyboardInterrupt; SIGTERM does the same.
+- The spin ends when the node's ``finished`` future (if it has one) completes.
+- ``node.close()`` (if defined) runs on every way out, before the node is destroyed: the
+  place to write a summary or restore a terminal.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+from typing import Callable, Sequence
+
+import rclpy
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.signals import SignalHandlerOptions
+from rclpy.utilities import remove_ros_args
+
+from offline_rl_core.errors import UserError, caused_by_interrupt
+
+from .params import Param, add_flags, overrides_from_flags
+
+
+def spin_executor(executor, node) -> None:
+    """Spin until ``node.finished`` completes, or until shutdown when it has none."""
+    finished = getattr(node, "finished", None)
+    if finished is None:
+        executor.spin()
+    else:
+        executor.spin_until_future_complete(finished)
+
+
+def run_node(
+    make_node: Callable,
+    *,
+    prog: str,
+    command: str | None = None,
+    flags: Sequence[Param] = (),
+    description: str | None = None,
+    argv: list[str] | None = None,
+    spin: Callable = spin_executor,
+    runs_in_main: bool = False,
+) -> int:
+    """Run one node process; returns its exit status.
+
+    ``prog`` names the node in error lines; ``command`` is how it is started, for
+    ``--help`` (default ``ros2 run PROG node``).
+    """
+    argv = list(sys.argv if argv is None else argv)
+    parser = argparse.ArgumentParser(prog=command or f"ros2 run {prog} node", description=description,
+                                     epilog="Every option is also a ROS parameter: --ros-args -p NAME:=VALUE "
+                                            "or --params-file FILE.")
+    add_flags(parser, flags)
+    args = parser.parse_args(remove_ros_args(argv)[1:])
+    overrides = overrides_from_flags(flags, args)
+    if runs_in_main:
+        rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+        previous_term = signal.signal(signal.SIGTERM, _interrupt)
+    else:
+        rclpy.init(args=argv)
+    node = None
+    try:
+        node = make_node(overrides)
+        if runs_in_main:
+            return int(node.run() or 0)
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        spin(executor, node)
+        return int(getattr(node, "exit_code", 0) or 0)
+    except UserError as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except (KeyboardInterrupt, ExternalShutdownException):
+        return 0
+    except Exception as exc:
+        if rclpy.ok() and not caused_by_interrupt(exc):
+            raise  # a real error; otherwise a signal shut the context down mid-wait
+        return 0
+    finally:
+        if runs_in_main:
+            signal.signal(signal.SIGTERM, previous_term)
+        if node is not None:
+            close = getattr(node, "close", None)
+            if close is not None:
+                close()
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt

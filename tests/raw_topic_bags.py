@@ -1,0 +1,150 @@
+"""Raw-topic bags written in process: the env driven as `offline-rl collect` drives it, its
+messages published into a rosbag2 bag as the sim node publishes them (or as a real arm's
+log would hold them), serialized with the ROS 2 message definitions.
+
+``sim_like=True``: the sim node's lockstep stream, stamp ``(e * 100 + t) * 20 ms``, no state
+after an episode's last step; some states and commands appear twice, as the sim's
+republishing and the recorder's resending put them in a bag. ``sim_like=False``: a real
+arm's log, its state after the last step included, episodes apart in time.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from offline_rl_core.bag import BagWriter, encode_transition_rows, typestore
+from offline_rl_core.env import ACT_DIM, JOINT_NAMES, MAX_STEPS, PusherReachEnv
+from offline_rl_core.collect import expert_episode_count
+from offline_rl_core.expert import reach_action
+from offline_rl_core.transitions import LAYOUT_SLICES, SOURCE_EXPERT, SOURCE_NAMES, SOURCE_RANDOM, TRANSITION_WIDTH
+
+TICK_NS = 20_000_000
+START_NS = 1_735_689_600 * 10**9
+TYPES = {
+    "/pusher/state": "sensor_msgs/msg/JointState",
+    "/pusher/target": "geometry_msgs/msg/PointStamped",
+    "/pusher/fingertip": "geometry_msgs/msg/PointStamped",
+    "/pusher/command": "sensor_msgs/msg/JointState",
+    "/pusher/transition": "std_msgs/msg/Float32MultiArray",
+    "/pusher/reset": "std_msgs/msg/Empty",
+}
+RAW_TOPICS = ("/pusher/state", "/pusher/target", "/pusher/command")  # what any arm logs
+SIM_TOPICS = ("/pusher/state", "/pusher/target", "/pusher/fingertip", "/pusher/command", "/pusher/transition")
+
+
+class _Messages:
+    def __init__(self):
+        ts = typestore()
+        self.ts = ts
+        self.T = ts.types["builtin_interfaces/msg/Time"]
+        self.H = ts.types["std_msgs/msg/Header"]
+        self.JS = ts.types["sensor_msgs/msg/JointState"]
+        self.PS = ts.types["geometry_msgs/msg/PointStamped"]
+        self.P = ts.types["geometry_msgs/msg/Point"]
+        self.F64 = ts.types["std_msgs/msg/Float64MultiArray"]
+        self.L = ts.types["std_msgs/msg/MultiArrayLayout"]
+        self.D = ts.types["std_msgs/msg/MultiArrayDimension"]
+
+    def header(self, ns: int, frame_id: str):
+        return self.H(stamp=self.T(sec=ns // 10**9, nanosec=ns % 10**9), frame_id=frame_id)
+
+    def joint_state(self, ns, frame_id, position=(), velocity=(), effort=(), names=JOINT_NAMES) -> bytes:
+        msg = self.JS(header=self.header(ns, frame_id), name=list(names), position=np.array(position, np.float64),
+                      velocity=np.array(velocity, np.float64), effort=np.array(effort, np.float64))
+        return bytes(self.ts.serialize_cdr(msg, "sensor_msgs/msg/JointState"))
+
+    def point(self, ns, xyz) -> bytes:
+        msg = self.PS(header=self.header(ns, "world"), point=self.P(x=float(xyz[0]), y=float(xyz[1]), z=float(xyz[2])))
+        return bytes(self.ts.serialize_cdr(msg, "geometry_msgs/msg/PointStamped"))
+
+    def empty(self) -> bytes:
+        return bytes(self.ts.serialize_cdr(self.ts.types["std_msgs/msg/Empty"](), "std_msgs/msg/Empty"))
+
+    def float64_array(self, values) -> bytes:
+        msg = self.F64(layout=self.L(dim=[], data_offset=0), data=np.array(values, np.float64))
+        return bytes(self.ts.serialize_cdr(msg, "std_msgs/msg/Float64MultiArray"))
+
+
+def record_raw_bag(
+    path,
+    episodes: int,
+    expert_frac: float,
+    seed: int,
+    *,
+    sim_like: bool = True,
+    topics: tuple[str, ...] = SIM_TOPICS,
+    drop: float = 0.0,
+    jitter_ns: int = 0,
+    duplicates: float = 0.0,
+    torque_commands: bool = False,
+    noise_seed: int = 1,
+) -> None:
+    """Roll out ``episodes`` as `offline-rl collect` does and write their raw topics.
+
+    ``drop``: share of state and of command messages left out; ``jitter_ns``: uniform
+    +/- jitter on every header stamp (targets' included); ``duplicates``: share of states
+    and commands written twice; ``torque_commands``: commands as std_msgs/Float64MultiArray
+    torques (action * 0.5 N·m, the motors' gear) on /pusher/effort_controller/commands,
+    with receive times equal to the commanded state's stamp (a recording in sim time).
+    """
+    msgs = _Messages()
+    env = PusherReachEnv()
+    rng = np.random.default_rng(seed)
+    noise = np.random.default_rng(noise_seed)
+    n_expert = expert_episode_count(episodes, expert_frac)
+    command_topic = "/pusher/effort_controller/commands" if torque_commands else "/pusher/command"
+    types = {t: TYPES[t] for t in topics}
+    if "/pusher/command" in types:
+        del types["/pusher/command"]
+        types[command_topic] = "std_msgs/msg/Float64MultiArray" if torque_commands else TYPES["/pusher/command"]
+    recv = [START_NS]
+
+    def jitter(ns: int) -> int:
+        return ns + (int(noise.integers(-jitter_ns, jitter_ns + 1)) if jitter_ns else 0)
+
+    with BagWriter(path) as bag:
+        for topic, msgtype in types.items():
+            bag.add_topic(topic, msgtype)
+
+        def write(topic: str, data: bytes, at: int | None = None, droppable: bool = False) -> None:
+            if topic not in types or (droppable and drop and noise.random() < drop):
+                return
+            copies = 2 if droppable and duplicates and noise.random() < duplicates else 1
+            for _ in range(copies):
+                recv[0] = max(recv[0] + 1000, at if at is not None else recv[0] + 1000)
+                bag.write(topic, recv[0], data)
+
+        def publish_state(ns: int) -> None:
+            write("/pusher/target", msgs.point(jitter(ns), env.target), START_NS + ns)
+            write("/pusher/fingertip", msgs.point(jitter(ns), env.fingertip), START_NS + ns)
+            effort = np.ascontiguousarray(env.data.actuator_force[:ACT_DIM])
+            write("/pusher/state", msgs.joint_state(jitter(ns), "", env.qpos, env.qvel, effort), START_NS + ns, True)
+
+        tick = 0
+        for ep in range(episodes):
+            obs = env.reset(seed=seed + ep)
+            source = SOURCE_EXPERT if ep < n_expert else SOURCE_RANDOM
+            done = False
+            while not done:
+                ns = tick * TICK_NS
+                publish_state(ns)
+                action = reach_action(env) if source == SOURCE_EXPERT else rng.uniform(-1, 1, size=ACT_DIM).astype(np.float32)
+                if torque_commands:
+                    write(command_topic, msgs.float64_array(np.asarray(action, np.float64) * 0.5), START_NS + ns + 500_000, True)
+                else:
+                    write(command_topic, msgs.joint_state(jitter(ns), SOURCE_NAMES[source], effort=action), None, True)
+                step = env.steps
+                next_obs, reward, done, info = env.step(action)
+                row = np.empty(TRANSITION_WIDTH, np.float32)
+                for label, value in (("obs", obs), ("action", action), ("reward", reward), ("next_obs", next_obs),
+                                     ("terminated", info["terminated"]), ("truncated", info["truncated"]),
+                                     ("success", info["success"]), ("episode", ep), ("step", step), ("source", source)):
+                    row[LAYOUT_SLICES[label]] = value
+                write("/pusher/transition", encode_transition_rows(row[None])[0])
+                obs = next_obs
+                tick += 1
+            if not sim_like:  # a real arm goes on publishing: its state after the last step,
+                publish_state(tick * TICK_NS)
+                tick += 5  # then a pause before the next episode's goal
+            write("/pusher/reset", msgs.empty())
+    assert tick >= episodes * MAX_STEPS

@@ -1,0 +1,80 @@
+"""The launch-file reader (offline_rl_core.launch) on the shipped pipelines, without ROS."""
+
+from __future__ import annotations
+
+import sys
+
+import pytest
+
+from offline_rl_core.errors import UserError
+from offline_rl_core.launch import find_launch_file, load_launch, parse_launch_arguments
+
+from ros_helpers import REPO
+
+LAUNCH_DIR = REPO / "ros_ws" / "src" / "pusher_bringup" / "launch"
+
+
+def by_label(nodes):
+    return {n.label: n for n in nodes}
+
+
+def test_serve_launch_becomes_ros2_run_command_lines():
+    nodes = by_label(load_launch(LAUNCH_DIR / "serve.launch.yaml", {
+        "checkpoint": "runs/x/policy.pt", "seed": "7", "episodes": "3", "summary": "/tmp/s.json", "namespace": "arm2"}))
+    assert list(nodes) == ["policy", "sim"] and nodes["sim"].shutdown_on_exit and not nodes["policy"].shutdown_on_exit
+    sim = nodes["sim"]
+    assert sim.params == {"mode": "lockstep", "seed": 7, "episodes": 3, "summary": "/tmp/s.json"}  # typed as YAML
+    cmd = sim.command()
+    assert cmd[0].endswith("lib/sim/node") or cmd[1:3] == ["run", "sim"]
+    ros_args = cmd[cmd.index("--ros-args") + 1:]
+    assert ros_args == ["-r", "__node:=sim", "-r", "__ns:=/arm2", "-p", 'mode:="lockstep"', "-p", "seed:=7",
+                        "-p", "episodes:=3", "-p", 'summary:="/tmp/s.json"', "-r", "pusher/command:=policy/action"]
+    assert nodes["policy"].params == {"checkpoint": "runs/x/policy.pt", "poll_period": 0.5}
+    served_only = load_launch(LAUNCH_DIR / "serve.launch.yaml", {"checkpoint": "c.pt", "closed_loop": "false"})
+    assert [n.label for n in served_only] == ["policy"]  # if: $(var closed_loop)
+
+
+def test_every_shipped_launch_file_reads_with_its_required_arguments():
+    required = {"record.launch.yaml": {"out": "b.db3"}, "serve.launch.yaml": {"checkpoint": "c.pt"},
+                "corrections.launch.yaml": {"out": "b.db3", "checkpoint": "c.pt"}}
+    assert sorted(p.name for p in LAUNCH_DIR.glob("*.launch.yaml")) == sorted(required)
+    for name, arguments in required.items():
+        nodes = load_launch(find_launch_file("pusher_bringup", name), arguments)
+        assert sum(n.shutdown_on_exit for n in nodes) == 1, name  # one node ends each pipeline
+        with pytest.raises(UserError, match=f"launch argument '{next(iter(arguments))}' is required"):
+            load_launch(LAUNCH_DIR / name, {})
+    corrections = load_launch(LAUNCH_DIR / "corrections.launch.yaml", {"out": "b.db3", "with_policy": "false"})
+    assert [n.label for n in corrections] == ["mux", "corrector", "recorder", "sim"]  # the start order hil relies on
+    recorder = by_label(corrections)["recorder"]
+    assert recorder.args == ["--passive", "--episodes", "30", "--out", "b.db3", "--overwrite"]
+
+
+def test_unsupported_launch_content_is_refused_naming_the_file(tmp_path):
+    bad = tmp_path / "bad.launch.yaml"
+    bad.write_text("launch:\n- include:\n    file: other.launch.yaml\n")
+    with pytest.raises(UserError, match=r"bad.launch.yaml: action 'include' is not supported"):
+        load_launch(bad)
+    bad.write_text("launch:\n- node:\n    pkg: sim\n    exec: node\n    param:\n    - name: x\n      value: $(eval 1)\n")
+    with pytest.raises(UserError, match=r"substitution \$\(eval 1\) is not supported"):
+        load_launch(bad)
+    bad.write_text("launch:\n- node:\n    pkg: sim\n    exec: node\n    respawn: true\n")
+    with pytest.raises(UserError, match="respawn not supported"):
+        load_launch(bad)
+    with pytest.raises(UserError, match="expected NAME:=VALUE"):
+        parse_launch_arguments(["seed=3"])
+    with pytest.raises(UserError, match="not found in package 'pusher_bringup'"):
+        find_launch_file("pusher_bringup", "none.launch.yaml")
+
+
+def test_launched_processes_end_with_the_on_exit_node_and_stop_the_rest(tmp_path):
+    from offline_rl_core.launch import LaunchedProcesses, LaunchNode
+
+    server = LaunchNode("x", "server", name="server")
+    worker = LaunchNode("x", "worker", name="worker", shutdown_on_exit=True)
+    launched = LaunchedProcesses([server, worker], {}, tmp_path)
+    launched["server"].cmd = [sys.executable, "-c", "import time; print('up', flush=True); time.sleep(60)"]
+    launched["worker"].cmd = [sys.executable, "-c", "print('done')"]
+    with launched.start(ready={"server": "up"}):
+        assert launched.wait(timeout=30) == 0
+        assert launched["server"].running()  # ended by the worker, stopped on leaving the block
+    assert not launched["server"].running() and "done" in (tmp_path / "worker.log").read_text()

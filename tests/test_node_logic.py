@@ -1,0 +1,83 @@
+"""The nodes' logic as plain classes, tested without DDS: the sim's protocol
+(offline_rl_core.sim_loop), stamp pairing (pairing) and joint messages (joint_messages)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from offline_rl_core.collect import collect_transitions
+from offline_rl_core.expert import expert_action
+from offline_rl_core.joint_messages import (action_from_effort, action_from_torques, joints_from_state,
+                                            torques_from_action)
+from offline_rl_core.pairing import StatePairing
+from offline_rl_core.sim_loop import TICK_NS, SimLoop
+from offline_rl_core.transitions import SOURCE_EXPERT, Transitions
+
+START = 1_700_000_000 * 1_000_000_000
+
+
+def test_lockstep_loop_driven_by_the_expert_equals_collect():
+    loop = SimLoop("lockstep", seed=4, episodes=2, start_ns=START)
+    state, rows = loop.start_episode(), []
+    assert state.stamp_ns == START
+    while not loop.finished:
+        action = expert_action(state.position, state.velocity, state.target[:2])
+        assert loop.command(state.stamp_ns + 1, action, SOURCE_EXPERT) is None  # another state's stamp: stale
+        step = loop.command(state.stamp_ns, action, SOURCE_EXPERT)
+        assert loop.command(state.stamp_ns, action, SOURCE_EXPERT) is None  # answered: the stamp is stale now
+        rows.append(step.transition)
+        state = step.next_state or step.new_episode
+        if step.episode_over and not loop.finished:
+            assert state.stamp_ns == START + 100 * TICK_NS  # an episode owns 100 ticks
+    assert state is None and loop.summary()["episodes"] == 2
+    assert np.array_equal(np.stack(rows), collect_transitions(2, 1.0, 4).to_rows())
+
+
+def test_realtime_loop_holds_the_latest_command_and_counts_ticks():
+    loop = SimLoop("realtime", seed=0, start_ns=START)
+    loop.start_episode()
+    assert loop.command(None, np.array([1.0, -1.0], np.float32), 3) is None  # held, not stepped
+    first, second = loop.tick(), loop.tick()
+    assert first.next_state.stamp_ns == START + TICK_NS and second.next_state.stamp_ns == START + 2 * TICK_NS
+    assert list(Transitions.from_rows(np.stack([first.transition, second.transition])).source) == [3, 3]
+    state = loop.reset()  # the next episode; sim time goes on
+    assert loop.episode == 1 and state.stamp_ns == START + 2 * TICK_NS
+
+
+def test_pairing_waits_for_the_target_and_fingertip_of_the_state():
+    p = StatePairing()
+    assert p.on_state(1, "s1") is None  # no target yet
+    done = p.on_target(1, (0.1, 0.2))
+    assert done.state == "s1" and done.fingertip_xy is None and np.allclose(done.target_xy, [0.1, 0.2])
+    # co-stamped from now on: a state waits for the target of its own stamp
+    assert p.on_state(2, "s2") is None and p.on_target(2, (0.3, 0.4)).state == "s2"
+    # once a fingertip has been heard, a state waits for its fingertip too
+    assert p.on_fingertip(3, (0.0, 0.1)) is None
+    assert p.on_target(3, (0.3, 0.4)) is None and p.on_state(3, "s3").fingertip_xy is not None
+    assert p.on_target(4, (0.3, 0.4)) is None and p.on_state(4, "s4") is None
+    assert p.on_fingertip(4, (0.0, 0.2)).state == "s4"
+
+
+def test_pairing_without_co_stamped_targets_uses_the_latest():
+    p = StatePairing()
+    p.on_target(10, (0.1, 0.2))
+    assert p.on_state(11, "s").stamp == 11  # another arm: targets carry their own stamps
+
+
+def test_joint_messages_read_commands_states_and_torques():
+    assert np.array_equal(action_from_effort(["elbow", "shoulder"], [0.5, 2.0])[0], np.float32([1.0, 0.5]))
+    assert action_from_effort([], [0.1])[1] == "effort has 1 values, expected 2 (shoulder, elbow)"
+    assert action_from_effort([], [float("nan"), 0])[1] == "effort is not finite"
+    assert action_from_effort([], [], allow_empty=True) == (None, None)  # a teleop yield
+    (q, qd), _ = joints_from_state(["elbow", "shoulder"], [1.0, 2.0], [3.0, 4.0])
+    assert list(q) == [2.0, 1.0] and list(qd) == [4.0, 3.0]
+    assert joints_from_state([], [0.1], [0.1])[1].startswith("needs 2 positions")
+    assert np.allclose(torques_from_action([1.0, -0.4]), [0.5, -0.2])  # motor gear 0.5 N·m
+    assert np.allclose(action_from_torques([0.25, -3.0])[0], [0.5, -1.0])  # clipped to the action range
+    assert action_from_torques([1.0])[1].startswith("expected 2 torques")
+
+
+def test_sim_loop_refuses_an_unknown_mode():
+    with pytest.raises(ValueError, match="mode must be one of realtime, lockstep"):
+        SimLoop("fast")

@@ -1,0 +1,200 @@
+"""The online (HIL-SERL) learner: learning from a live stream on a schedule set by counts,
+resuming where it saved, and the in-process stage that the ROS stage is measured against."""
+
+import numpy as np
+import pytest
+import torch
+
+from offline_rl_core.collect import collect_transitions
+from offline_rl_core.corrector import CorrectorParams
+from offline_rl_core.learners import TrainConfig, train
+from offline_rl_core.learners.online import OnlineLearner, OnlineSettings
+from offline_rl_core.online_loop import OnlineRunConfig, run_online
+from offline_rl_core.transitions import SOURCE_HUMAN, SOURCE_POLICY
+
+SMALL = dict(batch_size=32, hidden=32, log_every=10)
+
+
+@pytest.fixture(scope="module")
+def offline():
+    return collect_transitions(10, 0.3, 0)
+
+
+@pytest.fixture(scope="module")
+def prior(offline):
+    return train(offline, TrainConfig(algo="awac", steps=50, **SMALL), seed=0).checkpoint
+
+
+def _stream(n, seed=1):
+    live = collect_transitions(max(1, n // 100 + 1), 0.0, seed)
+    rows = live.select(np.arange(n))
+    rows.source[:] = SOURCE_POLICY
+    rows.source[::7] = SOURCE_HUMAN
+    return rows
+
+
+def _learner(offline, prior, **settings):
+    cfg = TrainConfig(algo="sac", **SMALL)
+    return OnlineLearner(offline, cfg, OnlineSettings(**{"publish_every": 10, **settings}), seed=3, prior=prior)
+
+
+def _feed(learner, rows, start=0, stop=None):
+    versions = []
+    for i in range(start, len(rows) if stop is None else stop):
+        learner.add(rows.select(np.array([i])))
+        while learner.updates_owed > 0:
+            learner.train()
+            if learner.version_due():
+                versions.append(learner.cut_version())
+    return versions
+
+
+def _flat(weights):
+    return torch.cat([t.flatten() for t in weights["policy_state"].values()])
+
+
+def test_weights_do_not_depend_on_how_the_stream_is_chunked(offline, prior):
+    """Versions are cut by counts: training after every transition or in bursts gives
+    the same bytes (so a fast or slow learner serves the same versions)."""
+    rows = _stream(40)
+    a = _learner(offline, prior, utd=2)
+    va = _feed(a, rows)
+    b = _learner(offline, prior, utd=2)
+    for i in range(len(rows)):  # everything arrives before any training
+        b.add(rows.select(np.array([i])))
+    vb = []
+    while b.updates_owed > 0:
+        b.train(max_updates=3)
+        if b.version_due():
+            vb.append(b.cut_version())
+    assert [v["weights_version"] for v in va] == [1, 2, 3, 4] == [v["weights_version"] for v in vb]
+    for x, y in zip(va, vb):
+        assert torch.equal(_flat(x), _flat(y))
+        assert x["trained_through"] == y["trained_through"]
+
+
+def test_the_prior_initialises_actor_and_critic(offline, prior):
+    learner = _learner(offline, prior)
+    w = learner.weights()
+    assert w["weights_version"] == 0
+    for k, v in prior["policy_state"].items():
+        assert torch.equal(w["policy_state"][k], v)
+    state = learner.learner.learner_state(0)
+    assert torch.equal(state["critic1"]["0.weight"], prior["learner_state"]["critic1"]["0.weight"])
+
+
+def test_a_resumed_learner_continues_exactly(offline, prior, tmp_path):
+    rows = _stream(50)
+    whole = _learner(offline, prior)
+    _feed(whole, rows)
+    first = _learner(offline, prior)
+    _feed(first, rows, 0, 23)
+    torch.save(first.state(), tmp_path / "state.pt")
+    resumed = _learner(offline, prior)
+    resumed.restore(torch.load(tmp_path / "state.pt", weights_only=True))
+    _feed(resumed, rows, 23)
+    assert resumed.updates == whole.updates and resumed.version == whole.version
+    assert torch.equal(_flat(resumed.weights()), _flat(whole.weights()))
+    assert torch.equal(resumed.weights()["exploration_log_std"], whole.weights()["exploration_log_std"])
+
+
+def test_in_process_stage_is_reproducible_and_learns_from_corrections(offline, prior):
+    cfg = OnlineRunConfig(env_steps=300, seed=0, eval_every=150, eval_episodes=4,
+                          corrector=CorrectorParams(patience=4, grace_steps=5, hold_steps=10),
+                          settings=OnlineSettings(publish_every=25),
+                          train=TrainConfig(algo="sac", **SMALL))
+    one = run_online(offline, prior, cfg, log=lambda s: None)
+    two = run_online(offline, prior, cfg, log=lambda s: None)
+    assert one["counts"] == two["counts"]
+    assert [p["success"] for p in one["curve"]] == [p["success"] for p in two["curve"]]
+    assert torch.equal(_flat(one["final_weights"]), _flat(two["final_weights"]))
+    assert one["counts"]["steps"] == 300 and one["counts"]["human"] > 0  # the corrector took over
+    assert [p["env_steps"] for p in one["curve"]] == [0, 150, 300]
+    assert one["final_weights"]["weights_version"] == 12
+
+
+# ---------------------------------------------------------------- the learner node's logic
+def _service(tmp_path, bag, prior_path, name, **kw):
+    from offline_rl_core.online_service import LearnerService, LearnerServiceConfig
+
+    cfg = LearnerServiceConfig(bags=[str(bag)], out=str(tmp_path / name), prior=str(prior_path), seed=5,
+                               settings=OnlineSettings(publish_every=10), train=TrainConfig(algo="sac", **SMALL), **kw)
+    return LearnerService(cfg, log=lambda s: None)
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory, offline, prior):
+    from offline_rl_core.bag import write_transitions
+    from offline_rl_core.policy import save_checkpoint
+
+    d = tmp_path_factory.mktemp("online")
+    write_transitions(d / "offline.db3", offline)
+    save_checkpoint(d / "prior.pt", prior)
+    stream = _stream(40)
+    write_transitions(d / "session.db3", stream)
+    return d, stream
+
+
+def _drain(service):
+    versions = []
+    while service.learner.updates_owed > 0:
+        versions += service.work(budget_s=10.0)
+    return versions
+
+
+def test_bad_live_transitions_are_counted_and_never_trained_on(tmp_path, files):
+    from offline_rl_core.bag.cdr import encode_transition_rows
+
+    d, stream = files
+    service = _service(tmp_path, d / "offline.db3", d / "prior.pt", "bad")
+    rows = stream.to_rows()[:3].copy()
+    nan, wild, good = rows[0].copy(), rows[1].copy(), rows[2]
+    nan[3] = np.nan
+    wild[8] = 1e38  # an action far outside [-1, 1]
+    payloads = encode_transition_rows(np.stack([nan, wild, good]))
+    assert "non-finite obs" in service.receive(payloads[0])
+    assert service.receive(payloads[1]) == "action outside [-1, 1]"
+    assert service.receive(b"\x00\x01\x00\x00garbage") .startswith("bad layout")
+    assert service.receive(payloads[2]) is None
+    assert service.learner.n_online == 1
+    assert service.rejected.total == 3
+
+
+def test_weights_messages_round_trip_and_snapshots_are_kept(tmp_path, files):
+    from offline_rl_core.bag.cdr import encode_transition_rows
+    from offline_rl_core.online_service import decode_weights, encode_weights
+
+    d, stream = files
+    service = _service(tmp_path, d / "offline.db3", d / "prior.pt", "w", snapshot_every=20)
+    for payload in encode_transition_rows(stream.to_rows()):
+        service.receive(payload)
+    versions = _drain(service)
+    assert [v["weights_version"] for v in versions] == [1, 2, 3, 4]
+    back = decode_weights(encode_weights(versions[-1]))
+    assert back["weights_version"] == 4 and back["trained_through"] == 40
+    assert torch.equal(_flat(back), _flat(versions[-1]))
+    assert sorted(p.name for p in (tmp_path / "w" / "snapshots").iterdir()) == [
+        "policy_000000.pt", "policy_000020.pt", "policy_000040.pt"]
+    assert len((tmp_path / "w" / "progress.jsonl").read_text().splitlines()) == 4
+
+
+def test_a_killed_learner_resumes_from_its_state_and_the_session_bag(tmp_path, files):
+    from offline_rl_core.bag.cdr import encode_transition_rows
+
+    d, stream = files
+    payloads = encode_transition_rows(stream.to_rows())
+    whole = _service(tmp_path, d / "offline.db3", d / "prior.pt", "whole")
+    for p in payloads:
+        whole.receive(p)
+    _drain(whole)
+    first = _service(tmp_path, d / "offline.db3", d / "prior.pt", "run")
+    for p in payloads[:17]:
+        first.receive(p)
+    _drain(first)
+    first.save()  # its last resume point; then it dies, and transitions 17.. go by unseen
+    resumed = _service(tmp_path, d / "offline.db3", d / "prior.pt", "run", resume=True,
+                       session_bag=str(d / "session.db3"))
+    assert resumed.learner.n_online == 40  # read back from the session's recording
+    _drain(resumed)
+    assert resumed.learner.version == whole.learner.version == 4
+    assert torch.equal(_flat(resumed.learner.weights()), _flat(whole.learner.weights()))

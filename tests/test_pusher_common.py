@@ -1,0 +1,124 @@
+"""pusher_common: node settings as parameters with descriptors and flag aliases."""
+
+from __future__ import annotations
+
+import argparse
+
+import pytest
+
+from offline_rl_core.errors import UserError
+
+from ros_helpers import require_ros
+
+pytestmark = pytest.mark.ros
+
+
+@pytest.fixture
+def make_node():
+    """``make_node(name, overrides)``: a node in its own context (no traffic needed)."""
+    require_ros()
+    import rclpy
+    from rclpy.node import Node
+
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    nodes = []
+
+    def make(name="settings_test", overrides=()):
+        node = Node(name, context=context, parameter_overrides=list(overrides), start_parameter_services=False)
+        nodes.append(node)
+        return node
+
+    yield make
+    for node in nodes:
+        node.destroy_node()
+    rclpy.try_shutdown(context=context)
+
+
+def specs():
+    from pusher_common.params import Param
+
+    return (
+        Param("mode", "a", "the mode", choices=("a", "b"), read_only=True, flag="--mode"),
+        Param("count", 3, "how many", low=1, flag="--count"),
+        Param("rate", 0.5, "how fast", low=0.0, high=1.0),
+        Param("path", None, "optional path", kind=str, read_only=True),
+        Param("bags", [], "bags", kind=list, read_only=True, flag="--bag"),
+    )
+
+
+def test_flags_are_aliases_and_win_over_other_sources(make_node):
+    from rclpy.parameter import Parameter
+
+    from pusher_common.params import Settings, add_flags, overrides_from_flags
+
+    parser = argparse.ArgumentParser()
+    add_flags(parser, specs())
+    args = parser.parse_args(["--count", "7", "--bag", "x.db3", "--bag", "y.db3"])
+    overrides = overrides_from_flags(specs(), args)
+    assert {p.name: p.value for p in overrides} == {"count": 7, "bags": ["x.db3", "y.db3"]}  # only given flags
+    # a -p / params-file value for the same parameter comes first in the list; the flag wins
+    node = make_node(overrides=[Parameter("count", value=2), Parameter("rate", value=1), *overrides])
+    s = Settings(node, specs(), on_change=lambda name, value: None)
+    assert (s.mode, s.count, s.rate, s.path, s.bags) == ("a", 7, 1.0, None, ["x.db3", "y.db3"])
+    assert isinstance(s.rate, float)  # an int given for a float parameter is taken as a float
+    d = node.describe_parameter("count")
+    assert d.description == "how many" and d.integer_range[0].from_value == 1 and not d.read_only
+    assert node.describe_parameter("mode").read_only
+
+
+@pytest.mark.parametrize("name, value, why", [
+    ("mode", "c", "parameter mode: must be one of a, b; got 'c'"),
+    ("count", 0, "parameter count: Parameter count out of range. Min: 1, "),  # rclpy's range check
+    ("rate", 1.5, "parameter rate: Parameter rate out of range Min: 0.0, Max: 1.0, value: 1.5"),
+    ("rate", "fast", "parameter rate: expected a number, got 'fast'"),
+])
+def test_a_bad_starting_value_is_a_user_error_naming_the_parameter(make_node, name, value, why):
+    from rclpy.parameter import Parameter
+
+    from pusher_common.params import Settings
+
+    node = make_node(overrides=[Parameter(name, value=value)])
+    with pytest.raises(UserError) as err:
+        Settings(node, specs(), on_change=lambda n, v: None)
+    assert str(err.value).startswith(why) and "\n" not in str(err.value)
+
+
+def test_run_time_changes_take_effect_or_are_refused(make_node):
+    from rclpy.parameter import Parameter
+
+    from pusher_common.params import Settings
+
+    changes = []
+    node = make_node()
+    s = Settings(node, specs(), on_change=lambda name, value: changes.append((name, value)),
+                 check=lambda name, value: "too many" if name == "count" and value > 100 else None)
+    results = node.set_parameters([Parameter("count", value=5), Parameter("rate", value=1), Parameter("mode", value="b"),
+                                   Parameter("count", value=500), Parameter("count", value=0)])
+    assert [r.successful for r in results] == [True, True, False, False, False]
+    assert "read-only" in results[2].reason and results[3].reason == "parameter count: too many"
+    assert changes == [("count", 5), ("rate", 1.0)] and (s.count, s.rate, s.mode) == (5, 1.0, "a")
+
+
+def test_a_setting_that_can_change_needs_a_handler(make_node):
+    from pusher_common.params import Param, Settings
+
+    with pytest.raises(TypeError, match="handles no change"):
+        Settings(make_node(), (Param("gain", 1.0, "gain"),))
+
+
+def test_train_flags_become_read_only_parameters():
+    require_ros()
+    from pusher_common.params import params_from_parser
+
+    from offline_rl_core.training_run import add_train_arguments
+
+    parser = argparse.ArgumentParser()
+    add_train_arguments(parser)
+    params = {p.name: p for p in params_from_parser(parser)}
+    assert params["bag"].kind is list and params["bag"].flag == "--bag"
+    assert params["algo"].choices and params["algo"].default == "awac"
+    assert params["steps"].type is int and params["lr"].type is float
+    assert params["deterministic"].type is bool and params["deterministic"].flag == "--deterministic"
+    assert params["init"].default is None and params["init"].type is str
+    assert all(p.read_only for p in params.values())

@@ -1,0 +1,211 @@
+"""Transitions built from raw robot topics (state, command, target): `offline-rl dataset
+--from-topics` and `offline-rl train --from-topics`."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sqlite3
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from offline_rl_core.bag import read_transitions, typestore
+from offline_rl_core.cli import main
+from offline_rl_core.collect import collect_transitions
+from offline_rl_core.errors import UserError
+from offline_rl_core.raw_topics import TopicSpec, load_spec, spec_from_dict, transitions_from_topics
+from offline_rl_core.raw_topics.messages import JOINT_STATE, decode_messages
+from offline_rl_core.training_run import add_train_arguments, run_training_from_args
+from offline_rl_core.transitions import LAYOUT_SLICES
+
+from raw_topic_bags import RAW_TOPICS, SIM_TOPICS, record_raw_bag
+
+REPO = Path(__file__).resolve().parents[1]
+SPEC = REPO / "bags" / "pusher_topics.yaml"
+
+
+def bits(rows: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(rows, np.float32).view(np.uint32)
+
+
+def rows_by_step(data) -> dict[tuple[int, int], np.ndarray]:
+    return {(int(e), int(s)): row for e, s, row in zip(data.episode, data.step, data.to_rows())}
+
+
+def write_spec(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "spec.yaml"
+    path.write_text(text)
+    return path
+
+
+def test_the_shipped_spec_holds_the_defaults():
+    assert load_spec(SPEC) == TopicSpec()
+
+
+def test_a_sim_bag_gives_the_recorded_transitions_bit_for_bit(tmp_path):
+    """The sim's lockstep stream (republished states and resent commands included): every
+    transition built equals the recorded one; the sim never publishes the state after an
+    episode's last step, so that step alone cannot be built, and is counted."""
+    bag = tmp_path / "sim.db3"
+    record_raw_bag(bag, episodes=4, expert_frac=0.5, seed=7, sim_like=True, duplicates=0.1)
+    built, report = transitions_from_topics(bag, SPEC)
+    recorded = rows_by_step(read_transitions(bag))
+    assert len(recorded) == 400
+    built_rows = rows_by_step(built)
+    assert sorted(set(recorded) - set(built_rows)) == [(e, 99) for e in range(4)]
+    for key, row in built_rows.items():
+        assert np.array_equal(bits(row), bits(recorded[key])), key
+    assert report.commands["exact"] == 400 and report.commands["no_next_state"] == 4
+    assert report.states["duplicates"] > 0 and report.states["duplicates_differing"] == 0
+    assert report.commands["duplicates"] > 0 and report.commands["duplicates_differing"] == 0
+    assert report.episodes == 4 and report.transitions == 396
+
+
+def test_a_robot_log_gives_every_transition_and_the_command_reports_the_join(tmp_path, capsys):
+    """A log with the state after each episode's last step: all of `offline-rl collect`'s
+    transitions, bit for bit, written as a transition bag with the report in its metadata."""
+    raw, out, report_json = tmp_path / "arm.db3", tmp_path / "out.db3", tmp_path / "report.json"
+    record_raw_bag(raw, episodes=3, expert_frac=0.34, seed=11, sim_like=False)
+    assert main(["dataset", "--from-topics", str(SPEC), str(raw), str(out), "--report", str(report_json)]) == 0
+    printed = capsys.readouterr().out
+    assert "joined 300 (300 exact, 0 within tolerance)" in printed and "transitions 300" in printed
+    assert np.array_equal(bits(read_transitions(out).to_rows()), bits(collect_transitions(3, 0.34, 11).to_rows()))
+    stored = sqlite3.connect(out).execute("SELECT metadata FROM metadata").fetchone()[0]
+    assert "offline_rl.dataset" in stored
+    report = json.loads(report_json.read_text())
+    assert report["transitions"] == 300 and report["commands"]["no_next_state"] == 0
+    # a second run does not overwrite the first unless asked to
+    assert main(["dataset", "--from-topics", str(SPEC), str(raw), str(out)]) == 2
+    assert "exists already" in capsys.readouterr().err
+
+
+def test_torque_commands_joined_by_receive_time(tmp_path):
+    """std_msgs/Float64MultiArray torques (N·m, no header), scaled back by 1 / gear, joined by
+    the bag's receive times: the same transitions."""
+    raw = tmp_path / "torque.db3"
+    record_raw_bag(raw, episodes=2, expert_frac=0.5, seed=5, sim_like=False, torque_commands=True)
+    spec = spec_from_dict({
+        "stamps": "receive",
+        "command": {"topic": "/pusher/effort_controller/commands", "scale": 2.0, "source": "human"},
+    })
+    built, report = transitions_from_topics(raw, spec)
+    expected = collect_transitions(2, 0.5, 5).to_rows()
+    expected[:, LAYOUT_SLICES["source"]] = 3  # human: the spec's fixed source
+    assert np.array_equal(bits(built.to_rows()), bits(expected))
+    assert report.commands["within_tolerance"] == 200  # receive times: 0.5 ms after the state
+
+
+@pytest.mark.parametrize("episodes", [
+    {"target_change": 0.0},
+    {"reset_topic": "/pusher/reset", "target_change": 10.0},
+    {"max_gap": 0.05, "target_change": 10.0},
+], ids=["target", "reset", "gap"])
+def test_episode_boundaries(tmp_path, episodes):
+    raw = tmp_path / "arm.db3"
+    record_raw_bag(raw, episodes=3, expert_frac=0.0, seed=2, sim_like=False,
+                   topics=(*SIM_TOPICS, "/pusher/reset"))
+    built, report = transitions_from_topics(raw, spec_from_dict({"episodes": episodes}))
+    assert np.array_equal(bits(built.to_rows()), bits(collect_transitions(3, 0.0, 2).to_rows()))
+    cause = {"target_change": "target", "reset_topic": "reset", "max_gap": "gap"}[next(iter(episodes))]
+    assert report.episode_starts[cause] == 2
+
+
+def test_dropped_and_jittered_messages_are_counted_never_filled(tmp_path):
+    """Only the three raw topics, 10 % of states and commands lost, stamps jittered by up to
+    3 ms: each message is accounted for, and every transition built is a true one: its
+    command and both states are the recorded step's (no fingertip topic: planar kinematics)."""
+    raw = tmp_path / "lossy.db3"
+    record_raw_bag(raw, episodes=4, expert_frac=0.5, seed=3, sim_like=True, topics=(*RAW_TOPICS, "/pusher/transition"),
+                   drop=0.1, jitter_ns=3_000_000, duplicates=0.05)
+    spec = spec_from_dict({"join": {"tolerance": 0.008}, "control": {"period_tolerance": 0.008}})
+    built, report = transitions_from_topics(raw, spec)
+    cmd = report.commands
+    joined = cmd["exact"] + cmd["within_tolerance"]
+    assert cmd["messages"] == cmd["duplicates"] + cmd["malformed"] + joined + cmd["without_state"] + cmd["superseded"]
+    assert joined == report.transitions + cmd["no_next_state"] + cmd["after_termination"]
+    assert cmd["without_state"] > 0 and cmd["no_next_state"] > 4 and cmd["within_tolerance"] > 0
+    assert report.fingertip == "forward kinematics"
+    recorded = {row[LAYOUT_SLICES["obs"]][:6].tobytes(): row for row in read_transitions(raw).to_rows()}
+    assert 250 < len(built) < 396
+    obs, next_obs = LAYOUT_SLICES["obs"], LAYOUT_SLICES["next_obs"]
+    for row in built.to_rows():
+        want = recorded[row[obs][:6].tobytes()]  # the recorded step from the same state
+        assert np.array_equal(row[next_obs][:6], want[next_obs][:6])  # joints exact; dx, dy from kinematics
+        for label in ("action", "episode", "source"):
+            assert row[LAYOUT_SLICES[label]] == pytest.approx(want[LAYOUT_SLICES[label]], abs=0)
+        # a step counts from the episode's first state in the log, which may have been lost
+        assert 0 <= want[LAYOUT_SLICES["step"]][0] - row[LAYOUT_SLICES["step"]][0] <= 2
+        assert np.allclose(row[obs][6:], want[obs][6:], atol=0.02)
+
+
+def test_train_takes_the_spec(tmp_path):
+    """`offline-rl train --from-topics` and the trainer node share run_training_from_args."""
+    raw, out = tmp_path / "arm.db3", tmp_path / "run"
+    record_raw_bag(raw, episodes=2, expert_frac=0.5, seed=1, sim_like=False, topics=RAW_TOPICS)
+    parser = argparse.ArgumentParser()
+    add_train_arguments(parser)
+    args = parser.parse_args(["--from-topics", str(SPEC), "--bag", str(raw), "--algo", "bc", "--steps", "20",
+                              "--eval-episodes", "0", "--out", str(out)])
+    run_training_from_args(args, progress=lambda p: None)
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["transitions"] == 200
+    assert metrics["bags"][0]["from_topics"]["commands"]["exact"] == 200
+    args.from_topics, args.out = None, str(tmp_path / "plain")
+    with pytest.raises(UserError, match="no /pusher/transition topic"):
+        run_training_from_args(args, progress=lambda p: None)
+
+
+@pytest.mark.parametrize("spec_text, message", [
+    ("state: {topic: /arm/joint_states}", "no topic /arm/joint_states (spec {spec}, field state.topic)"),
+    ("target: {topic: /pusher/state}", "/pusher/state has type sensor_msgs/msg/JointState; spec field target.topic"),
+    ("state: {joints: [shoulder, wrist]}\ncommand: {joints: [shoulder, wrist]}",
+     "/pusher/state: joint 'wrist' (spec field state.joints) is not among"),
+    ("join: {match: closest}", "{spec}: field join.match: expected one of exact, nearest, got 'closest'"),
+    ("command: {gain: 2}", "{spec}: unknown field command.gain"),
+    ("command: {topic: /pusher/effort_controller/commands}", "no topic /pusher/effort_controller/commands"),
+], ids=["missing-topic", "wrong-type", "unknown-joint", "bad-value", "unknown-field", "missing-command"])
+def test_bad_spec_or_bag_is_one_line_and_exit_2(tmp_path, capsys, spec_text, message):
+    raw, out = tmp_path / "arm.db3", tmp_path / "out.db3"
+    record_raw_bag(raw, episodes=1, expert_frac=1.0, seed=0, sim_like=False)
+    spec = write_spec(tmp_path, spec_text)
+    assert main(["dataset", "--from-topics", str(spec), str(raw), str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and message.format(spec=spec) in err, err
+    assert not out.exists()
+
+
+def test_float64_command_needs_receive_stamps(tmp_path, capsys):
+    raw = tmp_path / "torque.db3"
+    record_raw_bag(raw, episodes=1, expert_frac=1.0, seed=0, sim_like=False, torque_commands=True)
+    spec = write_spec(tmp_path, "command: {topic: /pusher/effort_controller/commands, scale: 2.0}")
+    assert main(["dataset", "--from-topics", str(spec), str(raw), str(tmp_path / "out.db3")]) == 2
+    assert "has no header; set stamps: receive" in capsys.readouterr().err
+
+
+def test_vectorised_decoding_equals_rosbags():
+    """Mixed layouts (name orders, frame ids, an empty effort, big-endian) decode as rosbags
+    deserializes them, message by message, also past the layout limit (one frame id each)."""
+    ts = typestore()
+    JS, H, T = ts.types[JOINT_STATE], ts.types["std_msgs/msg/Header"], ts.types["builtin_interfaces/msg/Time"]
+    rng = np.random.default_rng(0)
+    msgs, payloads = [], []
+    for i in range(400):
+        names = ["shoulder", "elbow"] if i % 5 else ["elbow", "shoulder", "wrist"]
+        frame = f"f{i}" if i >= 300 else ("expert", "random", "")[i % 3]
+        msg = JS(header=H(stamp=T(sec=i, nanosec=7 * i), frame_id=frame), name=names,
+                 position=rng.normal(size=len(names)), velocity=rng.normal(size=len(names)),
+                 effort=rng.normal(size=len(names)) if i % 7 else np.zeros(0))
+        msgs.append(msg)
+        payloads.append(bytes(ts.serialize_cdr(msg, JOINT_STATE, little_endian=bool(i % 11))))
+    seen = 0
+    for d in decode_messages(payloads, JOINT_STATE):
+        for k, row in enumerate(d.rows):
+            msg = msgs[row]
+            assert d.stamp_ns[k] == msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+            assert (d.layout.frame_id, list(d.layout.names)) == (msg.header.frame_id, msg.name)
+            for key in ("position", "velocity", "effort"):
+                assert np.array_equal(d.arrays[key][k], getattr(msg, key))
+            seen += 1
+    assert seen == 400

@@ -1,0 +1,188 @@
+"""The fast path is derived from each learner's one definition: the recorded and
+replayed step gives the same bytes as running ``update`` with autograd, every learner
+takes it, and an edit to a learner's loss changes what trains."""
+
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from offline_rl_core.collect import collect_transitions
+from offline_rl_core.kernel_choice import native_bf16
+from offline_rl_core.learners import ALGORITHMS, TrainConfig, train_seeds
+from offline_rl_core.learners.awac import AWAC
+from offline_rl_core.learners.base import per_member_mean, regression_error
+from offline_rl_core.learners.loop import LEARNERS
+
+has_compiler = shutil.which("g++") is not None and shutil.which("ninja") is not None
+REPLAYS = ["python"] + (["cpp"] if has_compiler else [])
+CFG = dict(steps=40, log_every=10, batch_size=64, hidden=64)
+
+
+@pytest.fixture(scope="module")
+def data():
+    return collect_transitions(20, 0.3, 0)
+
+
+def _run(monkeypatch, data, mode: str, algo: str, seeds=(0, 1), **overrides):
+    monkeypatch.setenv("PUSHER_RL_STEP", mode)
+    return train_seeds(data, TrainConfig(algo=algo, **{**CFG, **overrides}), list(seeds))
+
+
+def _tensors(checkpoint) -> dict:
+    flat = {f"policy.{k}": v for k, v in checkpoint["policy_state"].items()}
+    for name, part in checkpoint["learner_state"].items():
+        flat.update({f"{name}.{k}": v for k, v in part.items()} if isinstance(part, dict) else {name: part})
+    return flat
+
+
+def _assert_same_bytes(got, want):
+    for g, w in zip(got, want):
+        tg, tw = _tensors(g.checkpoint), _tensors(w.checkpoint)
+        assert tg.keys() == tw.keys()
+        for key in tw:
+            np.testing.assert_array_equal(tg[key].numpy(), tw[key].numpy(), err_msg=key)
+        assert g.history == w.history
+        assert g.mean_abs_q == w.mean_abs_q
+
+
+@pytest.mark.parametrize("replay", REPLAYS)
+@pytest.mark.parametrize("algo", ALGORITHMS)
+def test_replayed_step_is_byte_identical_to_autograd(monkeypatch, data, algo, replay):
+    want = _run(monkeypatch, data, "autograd", algo)
+    got = _run(monkeypatch, data, replay, algo)
+    assert {r.step_kind for r in got} == {replay}
+    assert {r.step_kind for r in want} == {"eager"}
+    _assert_same_bytes(got, want)
+
+
+@pytest.mark.skipif(not native_bf16(), reason="no native bf16 on this CPU")
+def test_replay_is_byte_identical_in_bf16_too(monkeypatch, data):
+    monkeypatch.setenv("PUSHER_RL_KERNELS", "bf16")
+    want = _run(monkeypatch, data, "autograd", "awac", deterministic=False)
+    got = _run(monkeypatch, data, "auto", "awac", deterministic=False)
+    assert "bf16" in got[0].checkpoint["kernels"]
+    _assert_same_bytes(got, want)
+
+
+def test_every_learner_takes_the_fast_path_by_default(monkeypatch, data):
+    monkeypatch.delenv("PUSHER_RL_STEP", raising=False)
+    for algo in LEARNERS:
+        result = train_seeds(data, TrainConfig(algo=algo, **{**CFG, "steps": 5}), [0])[0]
+        assert result.step_kind in REPLAYS, algo
+        assert result.checkpoint["train_step"] == result.step_kind
+
+
+class SquaredWeightAWAC(AWAC):
+    """A researcher's edit: AWAC with the advantage weight squared."""
+
+    def actor_loss(self, batch):
+        pred = self.policy(batch.obs)
+        with torch.no_grad():
+            both = self.critic.q_min(torch.cat([batch.obs, batch.obs], 1), torch.cat([batch.action, pred], 1))
+            q_data, value = both.chunk(2, dim=1)
+            weight = torch.exp((q_data - value) / self.cfg.beta).clamp(max=self.cfg.weight_clip).pow(2)
+        return per_member_mean(weight * regression_error(pred, batch.action) * batch.actor_mask)
+
+
+def test_a_subclassed_loss_trains_on_the_default_path(monkeypatch, data):
+    plain = _run(monkeypatch, data, "auto", "awac", seeds=[0])
+    monkeypatch.setitem(LEARNERS, "awac", SquaredWeightAWAC)
+    edited = _run(monkeypatch, data, "auto", "awac", seeds=[0])
+    assert edited[0].step_kind in REPLAYS
+    assert edited[0].history["policy_loss"] != plain[0].history["policy_loss"]
+    _assert_same_bytes(edited, _run(monkeypatch, data, "autograd", "awac", seeds=[0]))
+
+
+def test_a_monkeypatched_loss_trains_on_the_default_path(monkeypatch, data):
+    plain = _run(monkeypatch, data, "auto", "bc", seeds=[0])
+
+    def absolute_error(self, batch):  # L1 instead of the squared error
+        loss = per_member_mean((self.policy(batch.obs) - batch.action).abs().mean(-1, keepdim=True) * batch.actor_mask)
+        self.step_policy(loss)
+        return {"policy_loss": loss.detach()}
+
+    from offline_rl_core.learners.bc import BC
+
+    monkeypatch.setattr(BC, "update", absolute_error)
+    edited = _run(monkeypatch, data, "auto", "bc", seeds=[0])
+    assert edited[0].step_kind in REPLAYS
+    assert edited[0].history["policy_loss"] != plain[0].history["policy_loss"]
+    _assert_same_bytes(edited, _run(monkeypatch, data, "autograd", "bc", seeds=[0]))
+
+
+def test_draws_from_a_learners_own_generator_replay_like_eager(monkeypatch, data):
+    """Noise drawn inside update from a generator the learner owns (as a stochastic
+    policy would) replays exactly as the eager step draws it."""
+    from offline_rl_core.learners.bc import BC
+
+    def noisy_targets(self, batch):
+        if not hasattr(self, "noise_gen"):
+            self.noise_gen = torch.Generator().manual_seed(7)
+        noise = torch.randn(batch.action.shape, generator=self.noise_gen) * 0.1
+        loss = per_member_mean(regression_error(self.policy(batch.obs), batch.action + noise))
+        self.step_policy(loss)
+        return {"policy_loss": loss.detach()}
+
+    monkeypatch.setattr(BC, "update", noisy_targets)
+    got = _run(monkeypatch, data, "auto", "bc", seeds=[0])
+    assert got[0].step_kind in REPLAYS
+    _assert_same_bytes(got, _run(monkeypatch, data, "autograd", "bc", seeds=[0]))
+
+
+def test_an_update_that_reads_a_tensor_back_runs_eagerly(monkeypatch, data, capsys):
+    """A Python branch on a value read back from a tensor cannot be replayed: the learner
+    runs eagerly, says so, and trains exactly as autograd."""
+    from offline_rl_core.learners.bc import BC
+
+    def branchy(self, batch):
+        err = regression_error(self.policy(batch.obs), batch.action)
+        loss = per_member_mean(err * 2.0 if float(err.mean()) > 0.5 else err)
+        self.step_policy(loss)
+        return {"policy_loss": loss.detach()}
+
+    monkeypatch.setattr(BC, "update", branchy)
+    got = _run(monkeypatch, data, "auto", "bc", seeds=[0])
+    assert got[0].step_kind == "not recordable"
+    assert "eagerly" in capsys.readouterr().err
+    _assert_same_bytes(got, _run(monkeypatch, data, "autograd", "bc", seeds=[0]))
+
+
+@pytest.mark.skipif(not has_compiler, reason="no g++ / ninja")
+def test_build_command_reports_ready():
+    proc = subprocess.run([sys.executable, "-m", "offline_rl_core.learners.graph_runner"], capture_output=True,
+                          text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "C++ step replayer ready" in proc.stdout
+
+
+def test_unknown_step_mode_is_a_one_line_error(monkeypatch, tmp_path):
+    monkeypatch.setenv("PUSHER_RL_STEP", "fastest")
+    proc = subprocess.run([sys.executable, "-m", "offline_rl_core", "train", "--bag", "bags/mix.db3", "--steps", "5",
+                           "--eval-episodes", "0", "--out", str(tmp_path / "run")], capture_output=True, text=True)
+    assert proc.returncode == 2
+    assert "PUSHER_RL_STEP=fastest: expected one of auto, cpp, python, autograd" in proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_lock_left_by_an_interrupted_build_does_not_hang_the_next_run(tmp_path):
+    """torch's loader waits forever on its build lock; a Ctrl-C during the first
+    compile leaves one behind. An old lock is cleared, a fresh one (a build running
+    in another process) is left alone."""
+    import os
+    import time
+
+    from offline_rl_core.learners.graph_runner import _clear_stale_lock
+
+    lock = tmp_path / "lock"
+    lock.write_text("")
+    _clear_stale_lock(tmp_path)
+    assert lock.exists()
+    old = time.time() - 3600
+    os.utime(lock, (old, old))
+    _clear_stale_lock(tmp_path)
+    assert not lock.exists()
