@@ -19,8 +19,8 @@ REPO = Path(__file__).resolve().parents[1]
 ROS2 = Path(sys.prefix) / "bin" / "ros2"
 PACKAGES = ("sim", "recorder", "trainer", "policy", "learner")
 # The Python module of each ROS package (PyPI has packages called sim, trainer, policy,
-# recorder); the recorder's is renamed in its own change.
-MODULES = {"sim": "pusher_sim", "recorder": "recorder", "trainer": "pusher_trainer", "policy": "pusher_policy",
+# recorder).
+MODULES = {"sim": "pusher_sim", "recorder": "pusher_recorder", "trainer": "pusher_trainer", "policy": "pusher_policy",
            "corrections": "pusher_corrections", "pusher_common": "pusher_common", "learner": "pusher_learner"}
 INDEX = Path(sys.prefix) / "share" / "ament_index" / "resource_index" / "packages"
 

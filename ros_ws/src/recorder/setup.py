@@ -5,7 +5,7 @@ package_name = "recorder"
 setup(
     name=package_name,
     version="0.1.0",
-    packages=[package_name],
+    packages=["pusher_recorder"],  # the Python module: PyPI has a package called recorder
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
@@ -17,5 +17,5 @@ setup(
     description="Drives the sim with the scripted expert / random actions (or listens passively) and records a rosbag2 dataset.",
     license="Apache-2.0",
     # Kept a literal list: offline_rl_core.ros_install reads it to generate lib/recorder/<exe>.
-    entry_points={"console_scripts": ["node = recorder.node:main"]},
+    entry_points={"console_scripts": ["node = pusher_recorder.node:main"]},
 )
