@@ -93,7 +93,7 @@ class JoinReport:
         lines = [
             f"{self.bag} (spec: {self.spec})",
             f"  states      {_messages_text(st)}, {st['malformed']} malformed, {st['without_target']} without a target; "
-            f"{st['used']} used",
+            f"{st['kept']} kept",
             f"  commands    {_messages_text(cmd)}, {cmd['malformed']} malformed; "
             f"joined {cmd['exact'] + cmd['within_tolerance']} ({cmd['exact']} exact, {cmd['within_tolerance']} within "
             f"tolerance), dropped {cmd['without_state']} without a state, {cmd['superseded']} with another command "
@@ -435,7 +435,7 @@ class _Join:
             step=step,
             source=source[c].astype(np.int64),
         )
-        report.states["used"] = int(t_state.size)
+        report.states["kept"] = int(t_state.size)
         report.episodes = int(used_episodes.size)
         report.episode_starts = {k: int(v.sum()) for k, v in starts.items()}
         report.transitions = len(data)
