@@ -4,13 +4,17 @@
 
 tests/test_ros_packaging.py checks that the files hold every setting with its default.
 """
-import importlib, yaml
+import importlib
 from pathlib import Path
+
+import yaml
+
 spec = {
  "sim": [("pusher_sim.node", "sim", "ros2 run sim node")],
  "policy": [("pusher_policy.node", "policy", "ros2 run policy node")],
  "trainer": [("pusher_trainer.node", "trainer", "ros2 run trainer node")],
- "corrections": [("pusher_corrections.mux", "mux", "ros2 run corrections mux"), ("pusher_corrections.corrector", "corrector", "ros2 run corrections corrector")],
+ "corrections": [("pusher_corrections.mux", "mux", "ros2 run corrections mux"),
+                 ("pusher_corrections.corrector", "corrector", "ros2 run corrections corrector")],
 }
 for pkg, nodes in spec.items():
     d = Path(__file__).resolve().parents[1] / "src" / pkg / "config"
