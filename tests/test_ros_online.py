@@ -134,3 +134,69 @@ def test_the_learner_node_drops_bad_transitions_and_counts_them(spawn, tmp_path,
     assert set(statuses[-1]["rejected"]) == {"non-finite", "bad layout"}
     assert statuses[-1]["weights_version"] == 1  # the two good ones were trained on and a version cut
     assert "dropped a pusher/transition" in learner.output()
+
+
+@pytest.mark.slow
+def test_a_person_at_the_keyboard_takes_over_in_realtime(ros_env, tmp_path, prior):
+    """End to end in a pseudo-terminal: the person's keys take over the arm in the realtime
+    stage, and what they did lands in the session bag and in the learner's buffer as human."""
+    import pty
+    import threading
+    import time
+
+    out = tmp_path / "online"
+    cmd = [sys.executable, "-m", "offline_rl_core", "hil", "--online", "--mode", "realtime", "--corrector", "keyboard",
+           "--env-steps", "400", "--publish-every", "25", "--eval-every", "200", "--eval-episodes", "4",
+           "--prior", str(prior), "--out", str(out)]
+    pid, fd = pty.fork()
+    if pid == 0:  # the child: the stage, on the pseudo-terminal
+        os.chdir(REPO)
+        os.execve(cmd[0], cmd, ros_env)
+    screen = []
+    reader = threading.Thread(target=lambda: _read_all(fd, screen), daemon=True)
+    reader.start()
+
+    def shown(text, timeout):
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if text in "".join(screen):
+                return True
+            time.sleep(0.05)
+        return False
+
+    def env_steps():
+        try:
+            return json.loads((out / "learner" / "progress.jsonl").read_text().splitlines()[-1])["trained_through"]
+        except (OSError, IndexError, ValueError):
+            return 0
+
+    try:
+        assert shown("keyboard teleop:", 120), "".join(screen)[-3000:]
+        start = env_steps()
+        os.write(fd, b"d")  # shoulder torque +1: the person takes over
+        deadline = time.monotonic() + 60
+        while env_steps() < start + 50 and time.monotonic() < deadline:  # a second of the arm under their hand
+            time.sleep(0.05)
+        os.write(fd, b" ")  # hand back to the policy
+        _, status = os.waitpid(pid, 0)
+        pid = 0
+        assert os.waitstatus_to_exitcode(status) == 0, "".join(screen)[-3000:]
+    finally:
+        if pid:
+            os.kill(pid, signal.SIGINT)
+            os.waitpid(pid, 0)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["counts"]["human"] >= 10 and summary["counts"]["takeovers"] >= 1
+    state = torch.load(out / "learner" / "learner_state.pt", weights_only=True)
+    assert float(state["online_rows"]["human"].sum()) >= 10  # the learner has the person's steps
+
+
+def _read_all(fd, screen):
+    while True:
+        try:
+            data = os.read(fd, 4096)
+        except OSError:
+            return
+        if not data:
+            return
+        screen.append(data.decode(errors="replace"))

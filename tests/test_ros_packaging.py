@@ -54,7 +54,8 @@ def test_config_files_hold_every_setting_with_its_default():
         params = importlib.import_module(module).PARAMS
         text = (SRC / package / "config" / f"{name}.yaml").read_text()
         values = yaml.safe_load(text)["/**"]["ros__parameters"]
-        assert values == {p.name: p.default for p in params if p.default not in (None, [])}, name
+        assert values == {p.name: p.default for p in params if p.default not in (None, [])}, \
+            f"{name}: run ros_ws/tools/write_param_configs.py"
         assert all(f"# {p.name}: (unset)" in text for p in params if p.default in (None, [])), name
 
 

@@ -17,7 +17,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable
 
-GROUPS = ("train", "decode", "eval", "serve", "record")
+GROUPS = ("train", "decode", "eval", "serve", "record", "online")
 
 
 @dataclass
@@ -275,7 +275,8 @@ def run_bench(settings: BenchSettings, only: list[str] | None = None, log: Calla
     machine["threads_choice"] = why
     log(f"bench on {machine['cpu_model']} ({machine['cpu_count']} cpus, torch threads {why}, "
         f"ISA {' '.join(machine['isa_flags']) or 'none'}, load {machine['loadavg_start']})")
-    modules = {"train": "train", "decode": "decode", "eval": "eval_rollouts", "serve": "serve", "record": "record"}
+    modules = {"train": "train", "decode": "decode", "eval": "eval_rollouts", "serve": "serve", "record": "record",
+               "online": "online"}
     t0 = time.perf_counter()
     figures: list[Figure] = []
     for g in groups:

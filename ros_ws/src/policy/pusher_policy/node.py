@@ -19,8 +19,8 @@ publishes; it acts deterministically unless ``explore`` is set, then it samples 
 learner's Gaussian from its own ``seed``; with ``paced_every`` (the learner's
 ``publish_every``) state n waits for weights version n // paced_every, so a lockstep sim
 cannot outrun the learner. Every answer is also reported on ``policy/provenance``
-(std_msgs/String, JSON: stamp, weights_version, trained_through, explore), so a bag says
-which weights acted.
+(std_msgs/String, JSON: stamp, weights_version, trained_through, weights_age_s: seconds
+since the learner cut them, explore), so a bag says which weights acted.
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ import json
 import math
 import os
 import sys
+import time
 
 # One observation per call: BLAS threads only add hand-off latency (set before numpy loads).
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
@@ -222,9 +223,11 @@ class PolicyServer(Node):
         out = JointState(name=list(JOINT_NAMES), effort=[float(a) for a in action])
         out.header.stamp = msg.header.stamp
         self.action_pub.publish(out)
+        cut = self.policy.checkpoint.get("cut_unix")  # when the learner cut these weights (same machine clock)
         self.provenance_pub.publish(String(data=json.dumps({
             "stamp": paired.stamp, "weights_version": self.policy.weights_version,
             "trained_through": int(self.policy.checkpoint.get("trained_through", 0) or 0),
+            "weights_age_s": None if cut is None else round(time.time() - float(cut), 4),
             "explore": self.actor.explore})))
         if self.effort_pub is not None:
             self.effort_pub.publish(Float64MultiArray(data=[float(t) for t in torques_from_action(action)]))
