@@ -34,6 +34,7 @@ from typing import Callable
 
 import numpy as np
 
+from . import seeds
 from .atomic import atomic_path
 from .bag import read_transitions
 from .errors import UserError
@@ -46,8 +47,8 @@ from .transitions import SOURCE_HUMAN, SOURCE_POLICY
 
 DEFAULT_BAG = "bags/mix.db3"
 DEMO_PRIOR = "runs/demo/awac/policy.pt"
-EVAL_SEED = 500000  # held-out reset seeds (the chapter's)
-TRAIN_SEED_BASE = 100000  # correction runs reset with seeds far from the evaluation's
+EVAL_SEED = seeds.HELD_OUT
+TRAIN_SEED_BASE = seeds.ONLINE
 
 
 @dataclass
