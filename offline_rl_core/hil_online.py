@@ -53,7 +53,7 @@ class OnlineHilConfig:
     bags: list[str] = field(default_factory=lambda: [DEFAULT_BAG])
     corrector: str = "scripted"  # scripted | keyboard | none
     mode: str = "lockstep"  # lockstep (paced, reproducible) | realtime (50 Hz)
-    utd: int = 1
+    utd: int = 2
     publish_every: int = 50
     eval_every: int = 2500
     eval_episodes: int = 100
