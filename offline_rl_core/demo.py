@@ -24,7 +24,7 @@ from pathlib import Path
 
 from . import seeds
 from .errors import UserError
-from .evaluation import write_json_atomic
+from .atomic import write_json_atomic
 from .launch import LaunchedProcesses, find_launch_file, load_launch
 from .rosproc import RosProcess, isolated_ros_env, ros2_run, venv_bin
 from .stats import newcombe_diff_ci

@@ -29,7 +29,6 @@ import mujoco
 import mujoco.batch
 import numpy as np
 
-from .atomic import write_json_atomic  # noqa: F401 - TODO(lead): drop once demo.py and hil.py import it from atomic
 from .env import (  # batch_observations is re-exported: part of this module's API
     ACT_DIM,
     FRAME_SKIP,

@@ -38,7 +38,8 @@ from . import seeds
 from .atomic import atomic_path
 from .bag import read_transitions
 from .errors import UserError
-from .evaluation import evaluate_policy, write_json_atomic
+from .atomic import write_json_atomic
+from .evaluation import evaluate_policy
 from .policy import load_checkpoint, load_policy
 from .launch import LaunchedProcesses, find_launch_file, load_launch
 from .rosproc import RosProcess, isolated_ros_env, ros2_run
