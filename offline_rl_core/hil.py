@@ -35,10 +35,9 @@ from typing import Callable
 import numpy as np
 
 from . import seeds
-from .atomic import atomic_path
+from .atomic import atomic_path, write_json_atomic
 from .bag import read_transitions
 from .errors import UserError
-from .atomic import write_json_atomic
 from .evaluation import evaluate_policy
 from .policy import load_checkpoint, load_policy
 from .launch import LaunchedProcesses, find_launch_file, load_launch
