@@ -151,7 +151,7 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
         # until the learner's first weights, the policy serves the prior (or the learner's initial weights)
         "checkpoint": prior_path or learner_dir / "policy.pt",
         "mode": cfg.mode, "paced_every": cfg.publish_every if lockstep else 0, "publish_every": cfg.publish_every,
-        "utd": cfg.utd, "seed": cfg.seed, "reset_seed": TRAIN_SEED_BASE + 10000 * cfg.seed, "episodes": episodes,
+        "utd": cfg.utd, "seed": cfg.seed, "learner_nice": 0 if lockstep else 10, "reset_seed": TRAIN_SEED_BASE + 10000 * cfg.seed, "episodes": episodes,
         "snapshot_every": cfg.eval_every, "corrector": cfg.corrector,
         # a person's corrector runs in the foreground, on this terminal (below)
         "with_corrector": "true" if cfg.corrector == "scripted" else "false",
