@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.setup-done
 ROS_PACKAGES := $(sort $(dir $(wildcard ros_ws/src/*/package.xml)))
 ROS_FILES := $(wildcard ros_ws/src/*/package.xml ros_ws/src/*/setup.py ros_ws/src/*/setup.cfg)
 
-.PHONY: setup demo test test-fast bag bench hil-demo clean help
+.PHONY: setup demo test test-fast bag bench hil-demo hil-online clean help
 
 help:
 	@echo "make demo      set up .venv, then train BC and AWAC over ROS on bags/mix.db3 and print the comparison"
@@ -16,6 +16,7 @@ help:
 	@echo "make bag       regenerate bags/mix.db3 (bit-reproducible)"
 	@echo "make bench     full benchmark against the reference implementations -> bench/results.json"
 	@echo "make hil-demo  the corrections loop: serve, correct, record, retrain, reload"
+	@echo "make hil-online the HIL-SERL stage: the online learner fine-tunes the prior while the policy node acts"
 
 # The C++ AWAC step (offline_rl_core/csrc) compiles once into torch's extension cache;
 # later runs only check it (about a second). Without a compiler the Python step runs.
@@ -49,6 +50,9 @@ bench: setup
 
 hil-demo: setup
 	$(VENV)/bin/offline-rl hil --out runs/hil
+
+hil-online: setup
+	$(VENV)/bin/offline-rl hil --online --out runs/hil-online
 
 clean:
 	rm -rf runs build ros_ws/build ros_ws/install ros_ws/log

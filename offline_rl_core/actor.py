@@ -4,8 +4,9 @@ and when a state must wait for newer weights.
 The policy node holds one :class:`Actor`. Weights arrive as checkpoints (a file it
 watches, or the online learner's weights messages); :meth:`Actor.offer` keeps the newest
 version. By default the actor is deterministic (``tanh(mean)``, what evaluation scores);
-with ``explore`` it samples the learner's Gaussian, ``tanh(mean + std * eps)``, from its
-own seeded generator, so the same states give the same actions.
+with ``explore`` it samples the learner's Gaussian, ``tanh(mean + std * eps)``, the noise
+of state n drawn from (seed, n) alone: the same session gives the same actions, also
+where a state went unanswered (a person's takeover moved the arm on first).
 
 Paced (``paced_every`` = the learner's ``publish_every``): state n of the session (counted
 by distinct stamps) is answered only with weights version ``n // paced_every`` or newer,
@@ -26,10 +27,11 @@ class Actor:
     def __init__(self, policy: LoadedPolicy, explore: bool = False, seed: int = 0, paced_every: int = 0):
         self.policy = policy
         self.explore = explore
-        self.rng = np.random.default_rng(np.random.SeedSequence([int(seed), 11]))
+        self.seed = int(seed)
         self.paced_every = int(paced_every)
         self.states = 0  # distinct states seen this session
         self.last_stamp: int | None = None
+        self.answered: tuple[int, np.ndarray] | None = None  # (stamp, action) of the last answer
 
     @property
     def version(self) -> int:
@@ -57,9 +59,17 @@ class Actor:
         """Whether the current state may be answered with the weights held."""
         return self.version >= self.required_version()
 
-    def act(self, obs: np.ndarray) -> np.ndarray:
-        """The action for ``obs``: in [-1, 1], finite (a non-finite one is returned as is
-        for the caller to refuse; it is never clipped into range silently)."""
+    def act(self, obs: np.ndarray, stamp: int | None = None) -> np.ndarray:
+        """The action for the state ``obs`` stamped ``stamp``: in [-1, 1] (a non-finite one
+        is returned as is for the caller to refuse). A state answered before (the sim
+        republishes one whose command was lost) gets the same action again: one draw of
+        exploration noise per state."""
+        if stamp is not None and self.answered is not None and self.answered[0] == stamp:
+            return self.answered[1]
         if self.explore:
-            return self.policy.sample(obs, self.rng)
-        return self.policy.act(obs)
+            action = self.policy.sample(obs, np.random.default_rng([self.seed, 11, self.states]))
+        else:
+            action = self.policy.act(obs)
+        if stamp is not None:
+            self.answered = (stamp, action)
+        return action

@@ -66,7 +66,7 @@ class ScriptedCorrector:
         return self.target is None or not np.allclose(self.target, np.asarray(target_xy, np.float64)[:2], atol=1e-9)
 
     def decide(self, qpos, qvel, target_xy) -> np.ndarray | None:
-        """The correction for this state, or None. Call once per state, in order."""
+        """Decide the correction for this state, or None. Call once per state, in order."""
         if self.is_new_episode(target_xy):
             self.new_episode(target_xy)
         self.step += 1

@@ -22,13 +22,14 @@ import sys
 import time
 from pathlib import Path
 
+from . import seeds
 from .errors import UserError
 from .evaluation import write_json_atomic
 from .launch import LaunchedProcesses, find_launch_file, load_launch
 from .rosproc import RosProcess, isolated_ros_env, ros2_run, venv_bin
 from .stats import newcombe_diff_ci
 
-EVAL_SEED = 500000  # the chapter's held-out reset seeds: 500000 .. 500099 for seed 0
+EVAL_SEED = seeds.HELD_OUT
 EVAL_EPISODES = 100
 
 
@@ -45,10 +46,9 @@ def say(msg: str) -> None:
 
 def wait_for(proc: RosProcess, timeout: float, what: str) -> int:
     """Exit status of ``proc``; a clear error (and the log to read) when it fails or hangs."""
-    try:
-        status = proc.wait(timeout=timeout)
-    except subprocess.TimeoutExpired:
-        raise UserError(f"{what} did not finish within {timeout:.0f} s; see {proc.log_path}") from None
+    status = proc.wait(timeout=timeout)
+    if status is None:
+        raise UserError(f"{what} did not finish within {timeout:.0f} s; see {proc.log_path}")
     if status != 0:
         raise UserError(f"{what} failed (exit {status}); see {proc.log_path}")
     return status

@@ -34,6 +34,7 @@ from typing import Callable
 
 import numpy as np
 
+from . import seeds
 from .atomic import atomic_path
 from .bag import read_transitions
 from .errors import UserError
@@ -46,8 +47,8 @@ from .transitions import SOURCE_HUMAN, SOURCE_POLICY
 
 DEFAULT_BAG = "bags/mix.db3"
 DEMO_PRIOR = "runs/demo/awac/policy.pt"
-EVAL_SEED = 500000  # held-out reset seeds (the chapter's)
-TRAIN_SEED_BASE = 100000  # correction runs reset with seeds far from the evaluation's
+EVAL_SEED = seeds.HELD_OUT
+TRAIN_SEED_BASE = seeds.ONLINE
 
 
 @dataclass
@@ -158,8 +159,8 @@ class Loop:
 
     # ------------------------------------------------------------ steps
     def train(self, name: str, bags: list[str], steps: int, seed: int, out_dir: Path, init: str | None = None,
-              correction_ratio: float | None = None) -> Path:
-        args = ["--algo", self.cfg.algo, "--steps", steps, "--seed", seed, "--out", out_dir,
+              correction_ratio: float | None = None, algo: str | None = None) -> Path:
+        args = ["--algo", algo or self.cfg.algo, "--steps", steps, "--seed", seed, "--out", out_dir,
                 "--eval-episodes", 0, "--log-every", max(100, steps // 8)]
         for bag in bags:
             args += ["--bag", bag]
@@ -256,8 +257,9 @@ def _tail(text: str, lines: int = 15) -> str:
     return "\n".join(text.rstrip().splitlines()[-lines:])
 
 
-def reusable_prior(path: str | os.PathLike, bags: list[str], cfg: HilConfig) -> bool:
-    """True when ``path`` is an AWAC checkpoint trained for ``prior_steps`` on exactly ``bags``."""
+def reusable_prior(path: str | os.PathLike, bags: list[str], cfg: HilConfig, seed: int | None = None) -> bool:
+    """True when ``path`` is an AWAC checkpoint trained for ``prior_steps`` on exactly
+    ``bags`` (and with ``seed``, when given)."""
     try:
         ckpt = load_checkpoint(path)
     except Exception:  # noqa: BLE001 - not reusable, whatever is wrong
@@ -267,10 +269,28 @@ def reusable_prior(path: str | os.PathLike, bags: list[str], cfg: HilConfig) -> 
         return False
     if (ckpt.get("metrics") or {}).get("init"):
         return False
+    if seed is not None and int(ckpt.get("seed", -1)) != int(seed):
+        return False
     from .training_run import load_bags
 
     data, _ = load_bags(bags)
     return ckpt.get("dataset_hash") == data.content_hash()
+
+
+def resolve_prior(loop: Loop, given: str | None, bags: list[str], seed: int, prior_steps: int, out: Path,
+                  log: Callable[[str], None]) -> tuple[Path, str]:
+    """(the prior checkpoint, how it was had: given / reused / trained). The chapter's AWAC
+    prior: ``make demo``'s or an earlier run's when it was trained so on these bags,
+    else trained now with the trainer node."""
+    spec = HilConfig(prior_steps=prior_steps, algo="awac")
+    if given:
+        return Path(given), "given"
+    for candidate in (Path(DEMO_PRIOR), out / "prior" / "policy.pt"):
+        if candidate.exists() and reusable_prior(candidate, bags, spec, seed):
+            log(f"prior: reusing {candidate} (AWAC, {prior_steps} steps, same data and seed)")
+            return candidate, "reused"
+    log(f"prior: training AWAC on {', '.join(bags)} for {prior_steps} steps, seed {seed} (trainer node)")
+    return loop.train("prior", bags, prior_steps, seed, out / "prior", algo="awac"), "trained"
 
 
 def evaluate(path: Path, cfg: HilConfig) -> dict:
@@ -304,19 +324,7 @@ def run_hil(cfg: HilConfig, log: Callable[[str], None] = lambda s: print(s, file
     previous = signal.signal(signal.SIGTERM, _raise_interrupt) if _main_thread() else None
     try:
         log(f"hil: {cfg.rounds} rounds x {cfg.episodes} episodes -> {out} (ROS_DOMAIN_ID {loop.env['ROS_DOMAIN_ID']})")
-        # -------------------------------------------------------- the prior
-        if cfg.prior:
-            prior_path, prior_from = Path(cfg.prior), "given"
-        elif Path(DEMO_PRIOR).exists() and reusable_prior(DEMO_PRIOR, cfg.bags, cfg):
-            prior_path, prior_from = Path(DEMO_PRIOR), "reused"
-            log(f"prior: reusing {DEMO_PRIOR} (AWAC, {cfg.prior_steps} steps, same data)")
-        elif (out / "prior" / "policy.pt").exists() and reusable_prior(out / "prior" / "policy.pt", cfg.bags, cfg):
-            prior_path, prior_from = out / "prior" / "policy.pt", "reused"
-            log(f"prior: reusing {prior_path}")
-        else:
-            log(f"prior: training {cfg.algo} on {', '.join(cfg.bags)} for {cfg.prior_steps} steps (trainer node)")
-            prior_path = loop.train("prior", cfg.bags, cfg.prior_steps, cfg.seed, out / "prior")
-            prior_from = "trained"
+        prior_path, prior_from = resolve_prior(loop, cfg.prior, cfg.bags, cfg.seed, cfg.prior_steps, out, log)
         served = out / "policy.pt"
         with atomic_path(served) as tmp:
             shutil.copyfile(prior_path, tmp)

@@ -21,6 +21,7 @@ from typing import Callable
 
 import numpy as np
 
+from . import seeds
 from .actor import Actor
 from .corrector import CorrectorParams, ScriptedCorrector
 from .env import PusherReachEnv
@@ -31,8 +32,8 @@ from .policy import LoadedPolicy
 from .stats import wilson_ci
 from .transitions import SOURCE_HUMAN, SOURCE_POLICY, Transitions
 
-EVAL_SEED = 500000  # the chapter's held-out reset seeds
-TRAIN_SEED_BASE = 100000  # online episodes reset far from the evaluation's seeds
+EVAL_SEED = seeds.HELD_OUT
+TRAIN_SEED_BASE = seeds.ONLINE
 
 
 @dataclass
@@ -62,7 +63,7 @@ def run_online(offline: Transitions, prior: dict | None, cfg: OnlineRunConfig,
     actor = Actor(LoadedPolicy(learner.weights()), explore=cfg.explore, seed=cfg.seed,
                   paced_every=cfg.settings.publish_every)
     env = PusherReachEnv()
-    corrector = ScriptedCorrector(CorrectorParams(**{**asdict(cfg.corrector), "seed": 1000 * cfg.seed}))
+    corrector = ScriptedCorrector(CorrectorParams(**{**asdict(cfg.corrector), "seed": cfg.seed}))
     t0 = time.perf_counter()
     curve: list[dict] = []
     counts = {"steps": 0, "human": 0, "takeovers": 0, "episodes": 0, "successes": 0}
@@ -90,7 +91,7 @@ def run_online(offline: Transitions, prior: dict | None, cfg: OnlineRunConfig,
         while not done and n < cfg.env_steps:
             actor.see(n)
             assert actor.ready(), "the learner cut every version due before this step"
-            action, source = actor.act(obs), SOURCE_POLICY
+            action, source = actor.act(obs, n), SOURCE_POLICY
             correction = corrector.decide(env.qpos.copy(), env.qvel.copy(), env.target[:2]) if cfg.corrections else None
             if correction is not None:
                 action, source = correction, SOURCE_HUMAN

@@ -92,7 +92,7 @@ def encode_weights(checkpoint: dict) -> bytes:
 def serving_part(checkpoint: dict) -> dict:
     """What acting needs: the policy, its exploration std, dims and provenance."""
     keep = ("format", "version", "algorithm", "obs_dim", "act_dim", "hidden", "policy_state", "obs_mean", "obs_std",
-            "exploration_log_std", "weights_version", "trained_through", "updates", "seed")
+            "exploration_log_std", "weights_version", "trained_through", "updates", "seed", "cut_unix")
     return {k: checkpoint[k] for k in keep if k in checkpoint}
 
 
@@ -123,6 +123,7 @@ class LearnerService:
             self._resume()
         else:
             self._write_policy(self.learner.weights())
+            self.save()  # a resume point from the start: a learner killed at once restarts too
             if cfg.snapshot_every:
                 save_checkpoint(self.out / "snapshots" / "policy_000000.pt", {**self.learner.weights(), "wall_s": 0.0,
                                                                              "train_s": 0.0})
@@ -154,7 +155,7 @@ class LearnerService:
         while self.learner.updates_owed > 0 and time.perf_counter() < deadline:
             self.learner.train(max_updates=8)
             if self.learner.version_due():
-                self.weights = self.learner.cut_version()
+                self.weights = {**self.learner.cut_version(), "cut_unix": time.time()}
                 versions.append(self.weights)
                 self._on_version(self.weights)
         if time.monotonic() - self.last_save >= self.cfg.save_every:

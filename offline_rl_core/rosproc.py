@@ -108,11 +108,15 @@ class RosProcess:
     def poll(self) -> int | None:
         return None if self.proc is None else self.proc.poll()
 
-    def wait(self, timeout: float | None = None) -> int:
-        """Exit status; raises ``subprocess.TimeoutExpired`` after ``timeout``."""
+    def wait(self, timeout: float | None = None) -> int | None:
+        """Exit status, or None while it still runs after ``timeout`` s (so that
+        ``assert p.wait(60) == 0, p.output()`` shows what the process printed)."""
         if self.proc is None:
             raise RuntimeError(f"{self.name} was never started")
-        return self.proc.wait(timeout=timeout)
+        try:
+            return self.proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            return None
 
     def output(self) -> str:
         try:
@@ -131,13 +135,14 @@ class RosProcess:
             time.sleep(0.05)
         return False
 
-    def stop(self, timeout: float = 5.0) -> int | None:
-        """SIGINT, then SIGTERM after ``timeout`` s, then SIGKILL: always by this pid.
+    def stop(self, sig: int = signal.SIGINT, timeout: float = 5.0) -> int | None:
+        """``sig`` (SIGINT), then SIGTERM after ``timeout`` s, then SIGKILL: always by this pid.
         Returns the exit status (None if never started)."""
         if self.proc is None:
             return None
+        signals = [sig] + [s for s in (signal.SIGTERM, signal.SIGKILL) if s != sig]
         try:
-            for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
+            for sig in signals:
                 if self.proc.poll() is not None:
                     break
                 try:

@@ -1,5 +1,5 @@
-"""Shared pieces of the ROS 2 tests: an isolated DDS domain, node processes stopped by pid,
-and an in-test rclpy node.
+"""Shared pieces of the ROS 2 tests: an isolated DDS domain, node processes stopped by pid
+(``offline_rl_core.rosproc.RosProcess``), and an in-test rclpy node.
 
 Import the fixtures into a test module with ``from ros_helpers import ros_env, spawn``.
 """
@@ -8,8 +8,6 @@ from __future__ import annotations
 
 import os
 import random
-import signal
-import subprocess
 import sys
 import time
 from contextlib import contextmanager
@@ -19,11 +17,11 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 ROS2 = Path(sys.prefix) / "bin" / "ros2"
-PACKAGES = ("sim", "recorder", "trainer", "policy")
+PACKAGES = ("sim", "recorder", "trainer", "policy", "learner")
 # The Python module of each ROS package (PyPI has packages called sim, trainer, policy,
 # recorder).
 MODULES = {"sim": "pusher_sim", "recorder": "pusher_recorder", "trainer": "pusher_trainer", "policy": "pusher_policy",
-           "corrections": "pusher_corrections", "pusher_common": "pusher_common"}
+           "corrections": "pusher_corrections", "pusher_common": "pusher_common", "learner": "pusher_learner"}
 INDEX = Path(sys.prefix) / "share" / "ament_index" / "resource_index" / "packages"
 
 # One DDS domain per test session, localhost only: parallel sessions and other machines
@@ -72,57 +70,15 @@ def ros_env():
             os.environ[key] = value
 
 
-class NodeProcess:
-    """A process started by a test; output goes to a log file read by ``output()``."""
-
-    def __init__(self, cmd: list[str], env: dict, log_path: Path, cwd: Path = REPO):
-        self.cmd = [str(c) for c in cmd]
-        self.log_path = log_path
-        self._log = open(log_path, "wb")
-        self.proc = subprocess.Popen(self.cmd, env=env, cwd=cwd, stdout=self._log, stderr=subprocess.STDOUT)
-        self.pid = self.proc.pid
-
-    def output(self) -> str:
-        return self.log_path.read_text(errors="replace")
-
-    def wait_for_output(self, text: str, timeout: float = 20.0) -> bool:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if text in self.output():
-                return True
-            if self.proc.poll() is not None:
-                return text in self.output()
-            time.sleep(0.05)
-        return False
-
-    def wait(self, timeout: float) -> int | None:
-        """The exit status, or None if still running after ``timeout`` (so that an
-        ``assert p.wait(...) == 0, p.output()`` shows what the process printed)."""
-        try:
-            return self.proc.wait(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            return None
-
-    def stop(self, sig: int = signal.SIGINT, timeout: float = 10.0) -> int:
-        """Signal by pid, then kill after ``timeout``; returns the exit status."""
-        if self.proc.poll() is None:
-            self.proc.send_signal(sig)
-            try:
-                self.proc.wait(timeout=timeout)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(timeout=10)
-        self._log.close()
-        return self.proc.returncode
-
-
 @pytest.fixture
 def spawn(ros_env, tmp_path):
     """``spawn(cmd, name)`` starts a process on the test domain; all are stopped at teardown."""
-    started: list[NodeProcess] = []
+    from offline_rl_core.rosproc import RosProcess
 
-    def start(cmd: list, name: str, env: dict | None = None) -> NodeProcess:
-        proc = NodeProcess(cmd, env or ros_env, tmp_path / f"{name}.log")
+    started: list[RosProcess] = []
+
+    def start(cmd: list, name: str, env: dict | None = None) -> RosProcess:
+        proc = RosProcess(cmd, env or ros_env, tmp_path / f"{name}.log", cwd=REPO, name=name).start()
         started.append(proc)
         return proc
 

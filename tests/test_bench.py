@@ -22,7 +22,7 @@ FIGURE_KEYS = {"ours", "reference", "reference_name", "ratio", "unit", "higher_i
 
 def check_schema(payload: dict, groups) -> None:
     assert set(GROUPS) <= set(payload)
-    assert {"cpu_model", "bf16_flags", "amx", "avx512_bf16", "torch_threads"} <= set(payload["machine"])
+    assert {"cpu_model", "isa_flags", "kernels", "amx", "avx512_bf16", "torch_threads"} <= set(payload["machine"])
     for g in groups:
         assert payload[g], f"group {g} has no figures"
         for name, fig in payload[g].items():

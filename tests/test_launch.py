@@ -36,15 +36,19 @@ def test_serve_launch_becomes_ros2_run_command_lines():
 
 def test_every_shipped_launch_file_reads_with_its_required_arguments():
     required = {"record.launch.yaml": {"out": "b.db3"}, "serve.launch.yaml": {"checkpoint": "c.pt"},
-                "corrections.launch.yaml": {"out": "b.db3", "checkpoint": "c.pt"}}
+                "corrections.launch.yaml": {"out": "b.db3", "checkpoint": "c.pt"}, "online.launch.yaml": {}}
     assert sorted(p.name for p in LAUNCH_DIR.glob("*.launch.yaml")) == sorted(required)
     for name, arguments in required.items():
         nodes = load_launch(find_launch_file("pusher_bringup", name), arguments)
         assert sum(n.shutdown_on_exit for n in nodes) == 1, name  # one node ends each pipeline
-        with pytest.raises(UserError, match=f"launch argument '{next(iter(arguments))}' is required"):
-            load_launch(LAUNCH_DIR / name, {})
+        if arguments:
+            with pytest.raises(UserError, match=f"launch argument '{next(iter(arguments))}' is required"):
+                load_launch(LAUNCH_DIR / name, {})
     corrections = load_launch(LAUNCH_DIR / "corrections.launch.yaml", {"out": "b.db3", "with_policy": "false"})
     assert [n.label for n in corrections] == ["mux", "corrector", "recorder", "sim"]  # the start order hil relies on
+    online = load_launch(LAUNCH_DIR / "online.launch.yaml", {"corrector": "none", "with_corrector": "false"})
+    assert [n.label for n in online] == ["learner", "policy", "mux", "recorder", "sim"]  # the learner serves first
+    assert by_label(online)["policy"].params["weights_topic"] == "learner/weights"
     recorder = by_label(corrections)["recorder"]
     assert recorder.args == ["--passive", "--episodes", "30", "--out", "b.db3", "--overwrite"]
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -40,7 +41,7 @@ def test_every_package_declares_node_and_real_dependencies():
 # (package, module with PARAMS, config file): each node's every setting, installed with its package
 CONFIGS = [("sim", "pusher_sim.node", "sim"), ("policy", "pusher_policy.node", "policy"),
            ("trainer", "pusher_trainer.node", "trainer"), ("corrections", "pusher_corrections.mux", "mux"),
-           ("corrections", "pusher_corrections.corrector", "corrector")]
+           ("corrections", "pusher_corrections.corrector", "corrector"), ("learner", "pusher_learner.node", "learner")]
 
 
 def test_config_files_hold_every_setting_with_its_default():
@@ -53,7 +54,8 @@ def test_config_files_hold_every_setting_with_its_default():
         params = importlib.import_module(module).PARAMS
         text = (SRC / package / "config" / f"{name}.yaml").read_text()
         values = yaml.safe_load(text)["/**"]["ros__parameters"]
-        assert values == {p.name: p.default for p in params if p.default not in (None, [])}, name
+        assert values == {p.name: p.default for p in params if p.default not in (None, [])}, \
+            f"{name}: run ros_ws/tools/write_param_configs.py"
         assert all(f"# {p.name}: (unset)" in text for p in params if p.default in (None, [])), name
 
 
@@ -122,3 +124,13 @@ def test_colcon_builds_the_workspace(tmp_path):
     for package, _, config in CONFIGS:
         assert (ws / "install" / package / "share" / package / "config" / f"{config}.yaml").is_file()
     assert not (ws / "install" / "ros2_shim").exists()  # tools/ carries COLCON_IGNORE
+    assert (ws / "install" / "pusher_bringup" / "share" / "pusher_bringup" / "launch" / "serve.launch.yaml").is_file()
+
+    # colcon test runs each package's ament template tests (flake8, pep257), and they pass
+    tested = subprocess.run([str(colcon), "--log-base", "log", "test", "--base-paths", "src", "tools",
+                             "--event-handlers", "console_direct-"], cwd=ws, capture_output=True, text=True, timeout=400)
+    assert tested.returncode == 0, tested.stdout[-2000:] + tested.stderr[-2000:]
+    result = subprocess.run([str(colcon), "test-result", "--test-result-base", "build", "--verbose"], cwd=ws,
+                            capture_output=True, text=True, timeout=60)
+    summary = re.search(r"Summary: (\d+) tests, (\d+) errors, (\d+) failures", result.stdout)
+    assert summary and int(summary.group(1)) >= 12 and summary.group(2, 3) == ("0", "0"), result.stdout[-2000:]

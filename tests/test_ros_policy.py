@@ -208,7 +208,7 @@ def test_two_namespaced_pipelines_on_one_domain_stay_apart(spawn, data, tmp_path
                              env={**os.environ, "ROS_LOG_DIR": str(tmp_path / "logs")})
     for ns, launch in launches.items():
         assert launch.wait(timeout=120) == 0, launch.output()  # ends when its sim has run its episodes
-        assert f"[node-2] [INFO]" in launch.output() and "process has finished cleanly" in launch.output()
+        assert "[node-2] [INFO]" in launch.output() and "process has finished cleanly" in launch.output()
     for ns, (checkpoint, seed) in runs.items():
         over_ros = json.loads((tmp_path / f"{ns}.json").read_text())
         in_process = evaluate_policy(load_policy(checkpoint), episodes, seed)

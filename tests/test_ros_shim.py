@@ -121,6 +121,35 @@ def test_node_list_and_param_list_get_set_describe(spawn, ros_env):
     assert sim.stop() == 0
 
 
+def test_hands_over_only_to_a_ros2cli_on_this_python(installed, tmp_path):
+    """A ros2cli importable here takes over, seeing this venv's packages; one built for
+    another Python (a sourced ROS install) does not, and the shim says why once."""
+    import os
+    import sys
+
+    same = tmp_path / "same" / "ros2cli"
+    same.mkdir(parents=True)
+    (same / "__init__.py").write_text("")
+    (same / "cli.py").write_text("import os\ndef main(argv):\n"
+                                 "    print('real ros2cli', argv, os.environ['AMENT_PREFIX_PATH'])\n    return 0\n")
+    env = {k: v for k, v in os.environ.items() if k not in ("ROS2_SHIM_NO_HANDOVER", "AMENT_PREFIX_PATH")}
+    handed = run("pkg", "list", env={**env, "PYTHONPATH": str(same.parent)})
+    assert handed.returncode == 0 and handed.stdout.startswith("real ros2cli ['pkg', 'list'] " + sys.prefix)
+
+    other = tmp_path / "opt" / "lib" / "python3.99" / "site-packages" / "ros2cli"
+    other.mkdir(parents=True)
+    (other / "__init__.py").write_text("")
+    env_other = {**env, "AMENT_PREFIX_PATH": str(tmp_path / "opt")}
+    notice = Path(sys.prefix) / "share" / "ros2_shim" / "handover-notice"
+    notice.unlink(missing_ok=True)
+    first, second = run("pkg", "list", env=env_other), run("pkg", "list", env=env_other)
+    assert first.returncode == second.returncode == 0 and "sim" in first.stdout.splitlines()  # the shim served
+    assert first.stderr.strip() == f"ros2: using this project's ros2 command: the ros2cli at {other} is for " \
+                                   f"python3.99, this environment is python{sys.version_info.major}.{sys.version_info.minor}"
+    assert second.stderr == ""  # said once
+    notice.unlink(missing_ok=True)
+
+
 def test_bag_info_prints_topics_and_counts(installed, tmp_path):
     from offline_rl_core.bag import write_transitions
     from offline_rl_core.collect import collect_transitions

@@ -17,7 +17,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable
 
-GROUPS = ("train", "decode", "eval", "serve", "record")
+GROUPS = ("train", "decode", "eval", "serve", "record", "online")
 
 
 @dataclass
@@ -174,6 +174,7 @@ def machine_info() -> dict:
         "cpu_model": model,
         "cpu_count": os.cpu_count(),
         "isa_flags": kernel_choice.isa_flags(),
+        "kernels": kernel_choice.report(),
         "amx": "amx_bf16" in kernel_choice.isa_flags(),
         "avx512_bf16": "avx512_bf16" in kernel_choice.isa_flags(),
         "native_bf16": kernel_choice.native_bf16(),
@@ -273,8 +274,9 @@ def run_bench(settings: BenchSettings, only: list[str] | None = None, log: Calla
     machine = machine_info()
     machine["threads_choice"] = why
     log(f"bench on {machine['cpu_model']} ({machine['cpu_count']} cpus, torch threads {why}, "
-        f"bf16 flags {machine['bf16_flags'] or 'none'}, load {machine['loadavg_start']})")
-    modules = {"train": "train", "decode": "decode", "eval": "eval_rollouts", "serve": "serve", "record": "record"}
+        f"ISA {' '.join(machine['isa_flags']) or 'none'}, load {machine['loadavg_start']})")
+    modules = {"train": "train", "decode": "decode", "eval": "eval_rollouts", "serve": "serve", "record": "record",
+               "online": "online"}
     t0 = time.perf_counter()
     figures: list[Figure] = []
     for g in groups:

@@ -64,18 +64,11 @@ def isolate() -> int:
 
 
 class NodeProcess(RosProcess):
-    """A node process on the bench's domain, started at once and stopped by its pid on exit."""
+    """A ``RosProcess`` on the bench's domain, started at once and stopped by its pid on exit."""
 
     def __init__(self, argv: list[str], log_path: Path):
         super().__init__(argv, isolated_ros_env(isolate()), log_path)
         self.start()
-
-    def wait(self, timeout: float) -> int | None:
-        """Exit status, or None while it still runs after ``timeout`` s."""
-        try:
-            return super().wait(timeout)
-        except subprocess.TimeoutExpired:
-            return None
 
     def log_tail(self, chars: int = 600) -> str:
         return self.output()[-chars:]

@@ -18,7 +18,7 @@ def register(subparsers) -> None:
     )
     p.add_argument("--quick", action="store_true", help="short runs (under 3 minutes on 2 cores)")
     p.add_argument("--json", metavar="PATH", help="write the results as JSON")
-    p.add_argument("--only", metavar="GROUPS", help="comma-separated subset of train,decode,eval,serve,record")
+    p.add_argument("--only", metavar="GROUPS", help="comma-separated subset of train,decode,eval,serve,record,online")
     p.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's choice)")
     p.add_argument("--device", default="cpu",
                    help="where the training figures train: cpu (default), or cuda / cuda:N; every contender "

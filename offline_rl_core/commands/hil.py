@@ -5,9 +5,12 @@ from __future__ import annotations
 import json
 
 from ..hil import DEFAULT_BAG, EVAL_SEED, HilConfig, run_hil
+from ..hil_online import OnlineHilConfig, run_hil_online
 
 
 def _run(args) -> int:
+    if args.online:
+        return _run_online(args)
     cfg = HilConfig(
         out=args.out, rounds=args.rounds, episodes=args.episodes, prior=args.prior, bags=args.bag or [DEFAULT_BAG],
         seed=args.seed, prior_steps=args.prior_steps, steps=args.steps, correction_ratio=args.correction_ratio,
@@ -20,6 +23,19 @@ def _run(args) -> int:
     return 0
 
 
+def _run_online(args) -> int:
+    cfg = OnlineHilConfig(
+        out=args.out if args.out != HilConfig().out else OnlineHilConfig().out, env_steps=args.env_steps,
+        seed=args.seed, prior=args.prior, no_prior=args.no_prior, prior_steps=args.prior_steps,
+        bags=args.bag or [DEFAULT_BAG], corrector=args.corrector, mode=args.mode, utd=args.utd,
+        publish_every=args.publish_every, eval_every=args.eval_every, eval_episodes=args.eval_episodes,
+        eval_seed=args.eval_seed, in_process=args.in_process)
+    summary = run_hil_online(cfg)
+    print(json.dumps({k: summary[k] for k in ("prior_success", "final_success", "final_ci", "to", "intervention_rate",
+                                              "wall_seconds")}))
+    return 0
+
+
 def register(subparsers) -> None:
     d = HilConfig()
     p = subparsers.add_parser(
@@ -28,7 +44,9 @@ def register(subparsers) -> None:
         description="Runs ROUNDS rounds: serve the prior (policy node, hot reload), run EPISODES lockstep episodes with "
         "the scripted corrector taking over through the mux, record them (recorder --passive), retrain AWAC from the "
         "served checkpoint on the offline bag plus all corrections (trainer node, --correction-ratio), reload. "
-        "Writes DIR/summary.json and DIR/rounds.png.",
+        "Writes DIR/summary.json and DIR/rounds.png. With --online: the HIL-SERL stage itself, the online "
+        "learner fine-tuning the prior from the live stream while the policy node acts (DIR/summary.json with the "
+        "learning curve, DIR/online.png).",
     )
     p.add_argument("--out", default=d.out, metavar="DIR", help="output directory (default: %(default)s)")
     p.add_argument("--rounds", type=int, default=d.rounds, help="correction rounds (default: %(default)s)")
@@ -52,4 +70,23 @@ def register(subparsers) -> None:
                    help="states at an episode's start before progress is judged (default: %(default)s)")
     c.add_argument("--noise", type=float, default=d.noise, help="std of noise on the corrections (default: %(default)s)")
     c.add_argument("--reaction-delay", type=int, default=d.reaction_delay, help="steps of reaction delay (default: %(default)s)")
+    o = p.add_argument_group("online stage (--online)")
+    od = OnlineHilConfig()
+    o.add_argument("--online", action="store_true", help="run the online learner instead of offline rounds "
+                   "(default output directory: runs/hil-online)")
+    o.add_argument("--env-steps", type=int, default=od.env_steps, help="environment steps of the session "
+                   "(default: %(default)s, 400 s of robot time at 50 Hz)")
+    o.add_argument("--corrector", choices=("scripted", "keyboard", "none"), default=od.corrector,
+                   help="who takes over: the scripted stand-in, a person at this terminal (realtime), or nobody "
+                        "(default: %(default)s)")
+    o.add_argument("--mode", choices=("lockstep", "realtime"), default=od.mode,
+                   help="lockstep: paced by the learner, reproducible; realtime: 50 Hz, as a robot (default: %(default)s)")
+    o.add_argument("--no-prior", action="store_true", help="the learner starts from scratch (an ablation)")
+    o.add_argument("--utd", type=int, default=od.utd, help="gradient steps per environment step (default: %(default)s)")
+    o.add_argument("--publish-every", type=int, default=od.publish_every,
+                   help="environment steps between weights versions (default: %(default)s, 1 s at 50 Hz)")
+    o.add_argument("--eval-every", type=int, default=od.eval_every,
+                   help="environment steps between points of the learning curve (default: %(default)s)")
+    o.add_argument("--in-process", action="store_true", help="the same stage in one process, without ROS "
+                   "(the reference; ablations)")
     p.set_defaults(func=_run)

@@ -14,10 +14,14 @@ setup(
         ("share/" + package_name + "/config", glob("config/*.yaml")),
     ],
     install_requires=["setuptools"],
+    extras_require={"test": ["pytest"]},  # colcon test runs test/ with pytest
     zip_safe=True,
     maintainer="pusher-rl maintainers",
     maintainer_email="maintainers@pusher-rl.invalid",
-    description="Serves a trained checkpoint: answers every /pusher/state with /policy/action; hot-reloads the checkpoint file.",
+    description=(
+        "Serves a trained checkpoint: answers every /pusher/state with /policy/action; hot-reloads"
+        " the checkpoint file."
+    ),
     license="Apache-2.0",
     # Kept a literal list: offline_rl_core.ros_install reads it to generate lib/policy/<exe>.
     entry_points={"console_scripts": ["node = pusher_policy.node:main"]},

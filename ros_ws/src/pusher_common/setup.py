@@ -11,12 +11,12 @@ setup(
         ("share/" + package_name, ["package.xml"]),
     ],
     install_requires=["setuptools"],
+    extras_require={"test": ["pytest"]},  # colcon test runs test/ with pytest
     zip_safe=True,
     maintainer="pusher-rl maintainers",
     maintainer_email="maintainers@pusher-rl.invalid",
     description="Shared plumbing of the pusher-rl nodes (no executables).",
     license="Apache-2.0",
-    tests_require=["pytest"],
     # A library package: no console_scripts.
     entry_points={"console_scripts": []},
 )

@@ -14,10 +14,14 @@ setup(
         ("share/" + package_name + "/config", glob("config/*.yaml")),
     ],
     install_requires=["setuptools"],
+    extras_require={"test": ["pytest"]},  # colcon test runs test/ with pytest
     zip_safe=True,
     maintainer="pusher-rl maintainers",
     maintainer_email="maintainers@pusher-rl.invalid",
-    description="The pusher-reach MuJoCo arm as a ROS 2 node: publishes state, target and transitions, obeys commands (realtime or lockstep).",
+    description=(
+        "The pusher-reach MuJoCo arm as a ROS 2 node: publishes state, target and transitions,"
+        " obeys commands (realtime or lockstep)."
+    ),
     license="Apache-2.0",
     # Kept a literal list: offline_rl_core.ros_install reads it to generate lib/sim/<exe>.
     entry_points={"console_scripts": ["node = pusher_sim.node:main"]},

@@ -14,10 +14,14 @@ setup(
         ("share/" + package_name + "/config", glob("config/*.yaml")),
     ],
     install_requires=["setuptools"],
+    extras_require={"test": ["pytest"]},  # colcon test runs test/ with pytest
     zip_safe=True,
     maintainer="pusher-rl maintainers",
     maintainer_email="maintainers@pusher-rl.invalid",
-    description="Trains an offline RL policy (BC, filtered BC, AWAC, IQL, naive) from rosbag2 bags and publishes progress.",
+    description=(
+        "Trains an offline RL policy (BC, filtered BC, AWAC, IQL, naive) from rosbag2 bags and"
+        " publishes progress."
+    ),
     license="Apache-2.0",
     # Kept a literal list: offline_rl_core.ros_install reads it to generate lib/trainer/<exe>.
     entry_points={"console_scripts": ["node = pusher_trainer.node:main"]},

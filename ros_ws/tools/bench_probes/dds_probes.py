@@ -7,6 +7,7 @@ them with the bench's isolated ROS_DOMAIN_ID and reads one JSON line from stdout
     python dds_probes.py echo                    # a bare echo node: /pusher/state -> /policy/action
     python dds_probes.py round-trip N RATE_HZ    # time N states answered on /policy/action
     python dds_probes.py realtime-stamps SECONDS # stamps of /pusher/state from a realtime sim
+    python dds_probes.py online-actor SECONDS    # states, the policy node's answers and weights arrivals
 """
 
 import json
@@ -152,12 +153,50 @@ def echo() -> None:
         rclpy.try_shutdown()
 
 
+def online_actor(seconds: float) -> dict:
+    """For ``seconds``: each /pusher/state (stamp, arrival), each answer reported on
+    /policy/provenance (stamp, arrival, weights version and age) and each /learner/weights
+    arrival, all on this process's monotonic clock."""
+    from std_msgs.msg import String, UInt8MultiArray
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    node = rclpy.create_node("bench_online_probe", context=ctx)
+    executor = SingleThreadedExecutor(context=ctx)
+    executor.add_node(node)
+    states, answers, weights = [], [], []
+
+    def on_state(msg):
+        states.append((msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec, time.monotonic()))
+
+    def on_provenance(msg):
+        info = json.loads(msg.data)
+        answers.append((info["stamp"], time.monotonic(), info["weights_version"], info.get("weights_age_s")))
+
+    node.create_subscription(JointState, "/pusher/state", on_state, 100)
+    node.create_subscription(String, "/policy/provenance", on_provenance, 100)
+    node.create_subscription(UInt8MultiArray, "/learner/weights", lambda m: weights.append(time.monotonic()),
+                             QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                                        durability=DurabilityPolicy.VOLATILE))
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=0.01)
+    executor.shutdown()
+    node.destroy_node()
+    rclpy.try_shutdown(context=ctx)
+    return {"states": states, "answers": answers, "weights": weights}
+
+
 def main(argv: list) -> int:
     if argv[:1] == ["echo"]:
         echo()
         return 0
     if argv[:1] == ["round-trip"] and len(argv) == 3:
         print(json.dumps(round_trip(int(argv[1]), float(argv[2]))))
+        return 0
+    if argv[:1] == ["online-actor"] and len(argv) == 2:
+        print(json.dumps(online_actor(float(argv[1]))))
         return 0
     if argv[:1] == ["realtime-stamps"] and len(argv) == 2:
         print(json.dumps(realtime_stamps(float(argv[1]))))

@@ -107,7 +107,8 @@ PARAMS = (
     Param("patience", 8, "k: states without progress before taking over", low=1, flag="--patience"),
     Param("grace_steps", 20, "states at an episode's start before progress is judged", low=0, flag="--grace-steps"),
     Param("hold_steps", 25, "m: steps of a takeover before handing back", low=1, flag="--hold-steps"),
-    Param("min_progress", 0.002, "metres the distance must shrink to count as progress", low=0.0, flag="--min-progress"),
+    Param("min_progress", 0.002, "metres the distance must shrink to count as progress", low=0.0,
+          flag="--min-progress"),
     Param("noise", 0.0, "std of Gaussian noise on the corrections' torques (a shaky hand)", low=0.0, flag="--noise"),
     Param("reaction_delay", 0, "states between deciding to take over and acting", low=0, flag="--reaction-delay"),
     Param("seed", 0, "seed of the correction noise", low=0, read_only=True, flag="--seed"),
@@ -137,7 +138,8 @@ class Corrector(Node):
         self.create_subscription(PointStamped, "pusher/target", self.on_target, 10)
         self.create_subscription(JointState, "pusher/state", self.on_state, 10)
         self.pub = self.create_publisher(JointState, "teleop/action", 10)
-        desc = f"scripted ({', '.join(f'{k}={v}' for k, v in values.items())})" if self.mode == "scripted" else "keyboard"
+        rule = ", ".join(f"{k}={v}" for k, v in values.items())
+        desc = f"scripted ({rule})" if self.mode == "scripted" else "keyboard"
         self.get_logger().info(f"corrector {desc}: answering /pusher/state on /teleop/action")
 
     def check_parameter(self, name: str, value) -> str | None:

@@ -5,7 +5,7 @@ command goes to ``pusher/command/policy`` or ``pusher/command/human``, the sim's
 that say who acted (codes 2 and 3 in ``pusher/transition``, so the bag records it).
 ``corrections/intervening`` (std_msgs/Bool, transient local) is published on each change.
 
-Parameters:
+Its parameters:
 - ``mode``: ``realtime`` (default) or ``lockstep``, as the sim's.
 - ``hold_ms`` (100): realtime: a teleop action holds the arm this long (on the node's
   clock: sim time under ``use_sim_time``);
@@ -95,7 +95,7 @@ class Mux(Node):
             self.require_teleop = value
 
     def parse(self, msg: JointState, topic: str, allow_empty: bool) -> np.ndarray | None | bool:
-        """The action; None for an empty effort (a yield) when allowed; False if malformed."""
+        """Read the action: None for an empty effort (a yield) when allowed; False if malformed."""
         action, problem = action_from_effort(msg.name, msg.effort, allow_empty)
         if problem:
             self.get_logger().warning(f"ignoring {topic}: {problem}", throttle_duration_sec=WARN_THROTTLE_S)
@@ -147,7 +147,6 @@ class Mux(Node):
         if value != self.intervening:
             self.intervening = value
             self.intervening_pub.publish(Bool(data=value))
-
 
     def close(self) -> None:
         counts = self.arbiter.counts

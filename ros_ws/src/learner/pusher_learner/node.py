@@ -1,8 +1,8 @@
-"""``ros2 run learner node --bag bags/mix.db3 --prior runs/demo/awac/policy.pt``: the online
-learner of the HIL-SERL stage.
+"""The online learner of the HIL-SERL stage.
 
-Subscribes to the live ``pusher/transition`` stream (every source: the policy's steps and
-a person's takeovers), keeps it in an online buffer beside the offline bag(s), trains
+``ros2 run learner node --bag bags/mix.db3 --prior runs/demo/awac/policy.pt``. Subscribes
+to the live ``pusher/transition`` stream (every source: the policy's steps and a person's
+takeovers), keeps it in an online buffer beside the offline bag(s), trains
 continuously (``utd`` gradient steps per transition, half of each batch from the offline
 data), and every ``publish_every`` transitions publishes a new weights version on
 ``~/weights`` (``std_msgs/UInt8MultiArray``, layout label ``pusher-rl/weights``: a
@@ -45,8 +45,8 @@ _O = OnlineSettings()
 PARAMS = [
     Param("bag", [], "offline bag(s) sampled beside the live data (repeat the flag)", read_only=True, flag="--bag",
           kind=list),
-    Param("prior", None, "checkpoint that initialises the actor (and the critic, when it holds one); unset: from scratch",
-          read_only=True, flag="--prior", kind=str),
+    Param("prior", None, "checkpoint that initialises the actor (and the critic, when it holds one); "
+          "unset: from scratch", read_only=True, flag="--prior", kind=str),
     Param("out", "runs/online", "directory for policy.pt, learner_state.pt and progress.jsonl", read_only=True,
           flag="--out"),
     Param("seed", 0, "seed of initialisation, batches and the policy's noise", read_only=True, flag="--seed"),
@@ -89,10 +89,12 @@ class Learner(Node):
                                   capacity=s.capacity)
         self.service = LearnerService(LearnerServiceConfig(
             bags=list(s.bag), out=s.out, prior=s.prior or None, seed=s.seed, save_every=s.save_every, resume=s.resume,
-            session_bag=s.session_bag or None, snapshot_every=s.snapshot_every, settings=settings, train=train), log=self.get_logger().info)
+            session_bag=s.session_bag or None, snapshot_every=s.snapshot_every, settings=settings, train=train),
+            log=self.get_logger().info)
         self.weights_pub = self.create_publisher(UInt8MultiArray, "~/weights", WEIGHTS_QOS)
         self.status_pub = self.create_publisher(String, "~/status", 10)
-        self.create_subscription(Float32MultiArray, "pusher/transition", self.on_transition, TRANSITION_QOS, raw=True)
+        self.create_subscription(Float32MultiArray, "pusher/transition", self.on_transition, TRANSITION_QOS,
+                                 raw=True)
         self.create_timer(0.002, self.work)
         self.create_timer(1.0, self.report)
         self.publish(self.service.weights)

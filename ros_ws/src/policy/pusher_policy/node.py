@@ -4,45 +4,62 @@ Every ``pusher/state`` (with its ``pusher/target``) is answered on ``policy/acti
 a JointState whose effort is the action in [-1, 1], stamped with the state's stamp; and,
 on ``effort_topic`` (default ``effort_controller/commands``), the same action as joint
 torques in N·m (std_msgs/Float64MultiArray), what a ros2_control effort controller
-takes. A malformed or non-finite state gets no action and a throttled warning. The checkpoint (``--checkpoint`` or ``-p checkpoint:=``)
+takes. A malformed or non-finite state gets no action and a throttled warning.
+The checkpoint (``--checkpoint`` or ``-p checkpoint:=``)
 is polled every ``poll_period`` seconds and hot-swapped when it changes; a file that
 fails to load leaves the previous policy serving, with an error logged. A missing or
 broken checkpoint at start is one error line and exit status 2.
 
 State, target and fingertip are paired by stamp as ``offline_rl_core.pairing`` says;
 an arm that publishes no fingertip gets planar forward kinematics of its joints.
+
+The actor of the HIL-SERL stage (``offline_rl_core.actor``): with ``weights_topic`` set
+(``learner/weights``) it also takes each new weights version the online learner
+publishes; it acts deterministically unless ``explore`` is set, then it samples the
+learner's Gaussian from its own ``seed``; with ``paced_every`` (the learner's
+``publish_every``) state n waits for weights version n // paced_every, so a lockstep sim
+cannot outrun the learner. Every answer is also reported on ``policy/provenance``
+(std_msgs/String, JSON: stamp, weights_version, trained_through, weights_age_s: seconds
+since the learner cut them, explore), so a bag says which weights acted.
 """
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import sys
+import time
 
 # One observation per call: BLAS threads only add hand-off latency (set before numpy loads).
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
-from geometry_msgs.msg import PointStamped
-from rclpy.clock import Clock, ClockType
-from rclpy.node import Node
-from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray
+from geometry_msgs.msg import PointStamped  # noqa: E402
+from rclpy.clock import Clock, ClockType  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
+from sensor_msgs.msg import JointState  # noqa: E402
+from std_msgs.msg import Float64MultiArray, String, UInt8MultiArray  # noqa: E402
 
-from offline_rl_core.env import JOINT_NAMES, observation_from_joints
-from offline_rl_core.joint_messages import joints_from_state, torques_from_action
-from offline_rl_core.pairing import Paired, StatePairing
-from offline_rl_core.errors import UserError
-from offline_rl_core.policy import load_policy
-from pusher_common.node_main import run_node
-from pusher_common.params import Param, Settings
-from pusher_common.stamps import stamp_key
+from offline_rl_core.actor import Actor  # noqa: E402
+from offline_rl_core.env import JOINT_NAMES, observation_from_joints  # noqa: E402
+from offline_rl_core.errors import UserError  # noqa: E402
+from offline_rl_core.joint_messages import joints_from_state, torques_from_action  # noqa: E402
+from offline_rl_core.online_service import WEIGHTS_LABEL, decode_weights  # noqa: E402
+from offline_rl_core.pairing import Paired, StatePairing  # noqa: E402
+from offline_rl_core.policy import LoadedPolicy, load_policy  # noqa: E402
+from pusher_common.node_main import run_node  # noqa: E402
+from pusher_common.params import Param, Settings  # noqa: E402
+from pusher_common.stamps import stamp_key  # noqa: E402
 
 WARN_THROTTLE_S = 2.0
+# The learner publishes reliable and transient local: a late joiner gets the latest version.
+WEIGHTS_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 def file_signature(path: str):
-    """What changes when a checkpoint is rewritten (also by an atomic rename)."""
+    """Return what changes when a checkpoint is rewritten (also by an atomic rename)."""
     try:
         st = os.stat(path)
     except OSError:
@@ -57,11 +74,18 @@ PARAMS = (
     Param("effort_topic", "effort_controller/commands", "also publish each action as std_msgs/Float64MultiArray joint "
           "torques in N·m (action x motor gear) on this topic, as a ros2_control effort controller takes them "
           "(empty: off)", read_only=True),
+    Param("weights_topic", "", "also act on the weights versions the online learner publishes on this topic "
+          "(std_msgs/UInt8MultiArray, e.g. learner/weights; empty: off)", read_only=True, flag="--weights-topic"),
+    Param("explore", False, "sample exploration actions from the policy's Gaussian (the online learner's std) "
+          "instead of acting deterministically", flag="--explore"),
+    Param("seed", 0, "seed of the exploration noise", read_only=True, flag="--seed"),
+    Param("paced_every", 0, "answer state n only with weights version n // paced_every or newer (the learner's "
+          "publish_every; 0: never wait)", low=0, read_only=True, flag="--paced-every"),
 )
 
 
 def checkpoint_file(path: str) -> str:
-    """A run directory means the policy.pt in it (the file the trainer replaces)."""
+    """Return the checkpoint file: a run directory means its policy.pt (the file the trainer replaces)."""
     return os.path.join(path, "policy.pt") if os.path.isdir(path) else path
 
 
@@ -74,9 +98,12 @@ class PolicyServer(Node):
             raise UserError("no checkpoint given: pass --checkpoint PATH or -p checkpoint:=PATH")
         self.path = checkpoint_file(self.settings.checkpoint)
         self.signature = file_signature(self.path)
-        self.policy = load_policy(self.path)  # UserError with one clear line if missing/broken
+        self.actor = Actor(load_policy(self.path),  # UserError with one clear line if missing/broken
+                           explore=self.settings.explore, seed=self.settings.seed,
+                           paced_every=self.settings.paced_every)
         self.candidate = None  # a checkpoint set at run time, loaded while checking it
         self.pairing = StatePairing()
+        self.held: Paired | None = None  # a state waiting for the weights version it needs
         self.answered = 0
 
         # Target subscription first: when both are ready the executor takes it first.
@@ -84,12 +111,19 @@ class PolicyServer(Node):
         self.create_subscription(PointStamped, "pusher/fingertip", self.on_fingertip, 10)
         self.create_subscription(JointState, "pusher/state", self.on_state, 10)
         self.action_pub = self.create_publisher(JointState, "policy/action", 10)
+        self.provenance_pub = self.create_publisher(String, "policy/provenance", 10)
+        if self.settings.weights_topic:
+            self.create_subscription(UInt8MultiArray, self.settings.weights_topic, self.on_weights, WEIGHTS_QOS)
         effort_topic = self.settings.effort_topic
         self.effort_pub = self.create_publisher(Float64MultiArray, effort_topic, 10) if effort_topic else None
         # Watching a file is wall-clock work, also under use_sim_time.
         self.poll_timer = self.create_timer(self.poll_period, self.check_checkpoint,
                                             clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.get_logger().info(f"serving {self.policy.algorithm} policy from {self.path}")
+
+    @property
+    def policy(self) -> LoadedPolicy:
+        return self.actor.policy
 
     # -------------------------------------------------------------- parameters
     def check_parameter(self, name: str, value) -> str | None:
@@ -105,10 +139,13 @@ class PolicyServer(Node):
         return None
 
     def on_parameter_change(self, name: str, value) -> None:
-        if name == "poll_period":
+        if name == "explore":
+            self.actor.explore = bool(value)
+        elif name == "poll_period":
             self.poll_timer.timer_period_ns = int(value * 1e9)
         elif name == "checkpoint" and self.candidate is not None:
-            self.path, self.signature, self.policy = self.candidate
+            self.path, self.signature, policy = self.candidate
+            self.actor.offer(policy)
             self.candidate = None
             self.get_logger().info(f"serving {self.policy.algorithm} policy from {self.path}")
 
@@ -126,8 +163,24 @@ class PolicyServer(Node):
         except Exception as exc:  # noqa: BLE001 - whatever is wrong with the file, keep serving
             self.get_logger().error(f"cannot reload {self.path}, keeping the previous policy: {exc}")
             return
-        self.policy = policy  # one reference swap: a callback sees the old or the new policy
+        self.actor.offer(policy)  # one reference swap: a callback sees the old or the new policy
         self.get_logger().info(f"reloaded {self.path} ({policy.algorithm})")
+
+    def on_weights(self, msg: UInt8MultiArray) -> None:
+        label = msg.layout.dim[0].label if msg.layout.dim else ""
+        try:
+            if label != WEIGHTS_LABEL:
+                raise UserError(f"layout label {label!r}, expected {WEIGHTS_LABEL!r}")
+            policy = LoadedPolicy(decode_weights(msg.data, self.settings.weights_topic))
+        except Exception as exc:  # noqa: BLE001 - whatever is wrong with the message, keep serving
+            self.get_logger().error(f"ignoring a message on {self.settings.weights_topic}: {exc}",
+                                    throttle_duration_sec=WARN_THROTTLE_S)
+            return
+        if self.actor.offer(policy):
+            self.get_logger().info(f"acting on weights version {policy.weights_version}",
+                                   throttle_duration_sec=WARN_THROTTLE_S)
+            held, self.held = self.held, None
+            self.answer(held)
 
     # -------------------------------------------------------------- serving
     def on_target(self, msg: PointStamped) -> None:
@@ -139,7 +192,9 @@ class PolicyServer(Node):
             self.answer(self.pairing.on_fingertip(stamp_key(msg.header.stamp), (msg.point.x, msg.point.y)))
 
     def on_state(self, msg: JointState) -> None:
-        self.answer(self.pairing.on_state(stamp_key(msg.header.stamp), msg))
+        stamp = stamp_key(msg.header.stamp)
+        self.actor.see(stamp)  # every state counts, answered or not
+        self.answer(self.pairing.on_state(stamp, msg))
 
     def finite_point(self, msg: PointStamped, topic: str) -> bool:
         if math.isfinite(msg.point.x) and math.isfinite(msg.point.y):
@@ -150,13 +205,16 @@ class PolicyServer(Node):
     def answer(self, paired: Paired | None) -> None:
         if paired is None:
             return
+        if not self.actor.ready():
+            self.held = paired  # answered when the weights version it needs arrives
+            return
         msg = paired.state
         joints, problem = joints_from_state(msg.name, msg.position, msg.velocity)
         if joints is None:
             self.get_logger().warning(f"no action for pusher/state: {problem}", throttle_duration_sec=WARN_THROTTLE_S)
             return
         obs = observation_from_joints(joints[0], joints[1], paired.target_xy, paired.fingertip_xy)
-        action = self.policy.act(obs)
+        action = self.actor.act(obs, paired.stamp)
         if not np.all(np.isfinite(action)):
             self.get_logger().warning("the policy produced a non-finite action; none sent",
                                       throttle_duration_sec=WARN_THROTTLE_S)
@@ -165,6 +223,12 @@ class PolicyServer(Node):
         out = JointState(name=list(JOINT_NAMES), effort=[float(a) for a in action])
         out.header.stamp = msg.header.stamp
         self.action_pub.publish(out)
+        cut = self.policy.checkpoint.get("cut_unix")  # when the learner cut these weights (same machine clock)
+        self.provenance_pub.publish(String(data=json.dumps({
+            "stamp": paired.stamp, "weights_version": self.policy.weights_version,
+            "trained_through": int(self.policy.checkpoint.get("trained_through", 0) or 0),
+            "weights_age_s": None if cut is None else round(time.time() - float(cut), 4),
+            "explore": self.actor.explore})))
         if self.effort_pub is not None:
             self.effort_pub.publish(Float64MultiArray(data=[float(t) for t in torques_from_action(action)]))
         self.answered += 1

@@ -80,7 +80,7 @@ class Param:
         return d
 
     def check(self, value) -> tuple[Any, str | None]:
-        """(the value in this parameter's type, None) or (None, why it is refused)."""
+        """Check a value: (it in this parameter's type, None) or (None, why it is refused)."""
         kind = self.type
         if value is None:
             return (None, None) if self.default is None or kind is list else (None, "has no value")
@@ -151,7 +151,8 @@ class Settings:
                     declared = node.declare_parameter(p.name, p.default, p.descriptor())
             except (InvalidParameterValueException, InvalidParameterTypeException) as exc:
                 reason = str(exc).split("Reason: ", 1)[-1].removesuffix(f": {p.name}")
-                raise UserError(reason if reason.startswith("parameter ") else f"parameter {p.name}: {reason}") from None
+                named = reason if reason.startswith("parameter ") else f"parameter {p.name}: {reason}"
+                raise UserError(named) from None
             self._values[p.name] = p.check(declared.value)[0]
         node.add_post_set_parameters_callback(self._changed)
         self._check = check
@@ -187,7 +188,6 @@ class Settings:
             self._values[parameter.name] = value
             if changed and self._on_change is not None:
                 self._on_change(parameter.name, value)
-
 
 
 def params_from_parser(parser: argparse.ArgumentParser, read_only: bool = True) -> list[Param]:

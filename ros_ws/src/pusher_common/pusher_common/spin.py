@@ -39,7 +39,7 @@ def fast_path_available() -> bool:
 
 
 def spin_until_future_complete(executor: Executor, future: Future) -> None:
-    """``executor.spin_until_future_complete(future)``, fast for messages.
+    """Spin until ``future`` completes, as the executor's method of that name, fast for messages.
 
     For nodes whose subscriptions (with message-only callbacks), timers and services all
     exist when it is called. Raises ExternalShutdownException when the context shuts down

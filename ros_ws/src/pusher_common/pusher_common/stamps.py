@@ -8,10 +8,10 @@ NS_PER_S = 1_000_000_000
 
 
 def stamp_key(stamp) -> int:
-    """``builtin_interfaces/Time`` (a header's stamp) as integer nanoseconds."""
+    """Return a ``builtin_interfaces/Time`` (a header's stamp) as integer nanoseconds."""
     return int(stamp.sec) * NS_PER_S + int(stamp.nanosec)
 
 
 def stamp_from_ns(ns: int) -> Time:
-    """The inverse of :func:`stamp_key`."""
+    """Invert :func:`stamp_key`."""
     return Time(sec=int(ns) // NS_PER_S, nanosec=int(ns) % NS_PER_S)

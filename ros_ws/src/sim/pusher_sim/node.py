@@ -74,7 +74,7 @@ PARAMS = (
 
 
 def source_from_tag(frame_id: str) -> int | None:
-    """The source named by a deprecated ``header.frame_id`` tag, or None for none."""
+    """Read the source named by a deprecated ``header.frame_id`` tag (None: none)."""
     tag = frame_id.strip().lower()
     if tag in SOURCE_BY_NAME:
         return SOURCE_BY_NAME[tag]
@@ -204,7 +204,7 @@ class PusherSim(Node):
     def warn_tag_deprecated(self) -> None:
         # a method of its own: rclpy ties a log call's filters (once, throttle) to its caller
         self.get_logger().warning("a source tag in header.frame_id is deprecated; publish on "
-                               "pusher/command/<expert|random|policy|human> instead", once=True)
+                                  "pusher/command/<expert|random|policy|human> instead", once=True)
 
     def on_effort(self, msg: Float64MultiArray) -> None:
         if self.mode != "realtime":
@@ -213,13 +213,13 @@ class PusherSim(Node):
         action, problem = action_from_torques(msg.data)
         if action is None:
             self.get_logger().warning(f"ignoring {self.settings.effort_topic}: {problem}",
-                                   throttle_duration_sec=WARN_THROTTLE_S)
+                                      throttle_duration_sec=WARN_THROTTLE_S)
             return
         self.loop.command(None, action, SOURCE_POLICY)
 
     def warn_effort_in_lockstep(self) -> None:
-        self.get_logger().warning(f"ignoring {self.settings.effort_topic}: torques carry no stamp, and lockstep steps "
-                               "on the command for a state's stamp (use pusher/command)", once=True)
+        self.get_logger().warning(f"ignoring {self.settings.effort_topic}: torques carry no stamp, and lockstep "
+                                  "steps on the command for a state's stamp (use pusher/command)", once=True)
 
     def on_tick(self) -> None:
         if self.finished.done():
@@ -228,7 +228,8 @@ class PusherSim(Node):
         self.publish_step(self.loop.tick())
 
     def on_republish_timer(self) -> None:
-        if not self.finished.done() and time.monotonic() - self.last_publish >= self.republish_timer.timer_period_ns / 1e9:
+        period_s = self.republish_timer.timer_period_ns / 1e9
+        if not self.finished.done() and time.monotonic() - self.last_publish >= period_s:
             self.publish_state(new=False)
 
     def on_reset(self, request, response):

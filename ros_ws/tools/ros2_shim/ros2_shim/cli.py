@@ -1,4 +1,4 @@
-"""``ros2``: hand over to ros2cli when installed, else the verbs this project needs.
+"""``ros2``: hand over to a usable ros2cli (handover.py), else the verbs this project needs.
 
 Implemented here (same output shape as ros2cli):
   ros2 run [--prefix P] PKG [EXE] [args ...]   (EXE may be left out when PKG has one)
@@ -15,31 +15,23 @@ user started is the node's pid and signals reach the node directly.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import os
 import shlex
 import sys
 
 from . import ament
+from .handover import hand_over, say_once, usable_ros2cli
 
 PROG = "ros2"
 
 
-def real_ros2cli_available() -> bool:
-    if os.environ.get("ROS2_SHIM_NO_HANDOVER"):
-        return False
-    try:
-        return importlib.util.find_spec("ros2cli") is not None
-    except (ImportError, ValueError):
-        return False
-
-
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    if real_ros2cli_available():
-        from ros2cli.cli import main as ros2cli_main  # the real tool, when a ROS 2 install is sourced
-
-        return ros2cli_main(argv=argv)
+    usable, why_not = usable_ros2cli()
+    if usable:
+        return hand_over(argv)
+    if why_not:
+        say_once(why_not)
     if not argv:
         print(_usage(), file=sys.stderr)
         return 2

@@ -1,0 +1,202 @@
+"""The HIL-SERL stage over ROS: the learner node, the actor (policy node) and the rest as
+real processes on a private DDS domain."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from ros_helpers import REPO, probe_node, require_ros, ros_env, spawn  # noqa: F401 - fixtures
+
+pytestmark = pytest.mark.ros
+
+STAGE = ["--env-steps", "300", "--publish-every", "25", "--eval-every", "150", "--eval-episodes", "4"]
+
+
+@pytest.fixture(scope="module")
+def prior(tmp_path_factory):
+    require_ros()
+    from offline_rl_core.bag import read_transitions
+    from offline_rl_core.learners import TrainConfig, train
+    from offline_rl_core.policy import save_checkpoint
+
+    path = tmp_path_factory.mktemp("prior") / "policy.pt"
+    result = train(read_transitions(REPO / "bags" / "mix.db3"), TrainConfig(algo="awac", steps=100), seed=0)
+    save_checkpoint(path, result.checkpoint)
+    return path
+
+
+@pytest.fixture(scope="module")
+def reference(prior):
+    """The same stage in one process: what the ROS run must reproduce bit for bit."""
+    from offline_rl_core.bag import read_transitions
+    from offline_rl_core.learners.online import OnlineSettings
+    from offline_rl_core.online_loop import OnlineRunConfig, run_online
+    from offline_rl_core.policy import load_checkpoint
+
+    return run_online(read_transitions(REPO / "bags" / "mix.db3"), load_checkpoint(prior),
+                      OnlineRunConfig(env_steps=300, seed=0, eval_every=150, eval_episodes=4,
+                                      settings=OnlineSettings(publish_every=25)), log=lambda s: None)
+
+
+def _hil_online(out, prior, *extra):
+    return [sys.executable, "-m", "offline_rl_core", "hil", "--online", *STAGE, "--prior", str(prior),
+            "--out", str(out), *extra]
+
+
+def _assert_same_weights(path, reference):
+    served = torch.load(path, weights_only=True)
+    assert served["weights_version"] == reference["final_weights"]["weights_version"] == 12
+    for key, value in reference["final_weights"]["policy_state"].items():
+        assert torch.equal(served["policy_state"][key], value), key
+
+
+@pytest.mark.slow
+def test_the_stage_over_ros_reproduces_the_in_process_run(ros_env, tmp_path, prior, reference):
+    out = tmp_path / "online"
+    proc = subprocess.run(_hil_online(out, prior), env=ros_env, cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["counts"]["steps"] == reference["counts"]["steps"] == 300
+    assert summary["counts"]["human"] == reference["counts"]["human"] > 0  # the corrector's takeovers
+    assert [p["successes"] for p in summary["curve"]] == [p["successes"] for p in reference["curve"]]
+    _assert_same_weights(out / "learner" / "policy.pt", reference)
+    # the bag says which weights acted: every answer of the policy node is on policy/provenance
+    from offline_rl_core.bag import read_transitions
+
+    session = read_transitions(out / "session.db3")
+    assert len(session) == 300 and set(np.unique(session.source)) == {2, 3}
+
+
+@pytest.mark.slow
+def test_a_killed_learner_restarts_and_the_session_ends_as_if_it_never_died(ros_env, tmp_path, prior, reference):
+    out = tmp_path / "online"
+    proc = subprocess.Popen(_hil_online(out, prior), env=ros_env, cwd=REPO, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    log, killed = [], False
+    try:
+        for line in proc.stderr:
+            log.append(line)
+            if "learner pid" in line and not killed:
+                pid = int(line.rsplit("learner pid", 1)[1].split()[0])
+            if not killed and line.strip().startswith(("105/", "120/", "135/", "150/")):
+                os.kill(pid, signal.SIGKILL)  # the learner process the stage started, by its pid
+                killed = True
+        assert proc.wait(timeout=600) == 0, "".join(log[-40:])
+    finally:
+        proc.kill()
+    assert killed, "".join(log)
+    text = "".join(log)
+    assert "the learner stopped" in text and "resumed" in text
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["counts"]["learner_restarts"] == 1
+    _assert_same_weights(out / "learner" / "policy.pt", reference)
+
+
+def test_the_learner_node_drops_bad_transitions_and_counts_them(spawn, tmp_path, prior):
+    from std_msgs.msg import Float32MultiArray, String
+
+    from offline_rl_core.bag import write_transitions
+    from offline_rl_core.collect import collect_transitions
+    from offline_rl_core.transitions import TRANSITION_LAYOUT as LAYOUT
+
+    data = collect_transitions(2, 0.5, 0)
+    write_transitions(tmp_path / "offline.db3", data)
+    learner = spawn([sys.executable, "-m", "pusher_learner.node", "--bag", str(tmp_path / "offline.db3"),
+                     "--prior", str(prior), "--out", str(tmp_path / "learner"), "--publish-every", "2"], "learner")
+    assert learner.wait_for_output("learning from", 60), learner.output()
+    statuses = []
+    with probe_node() as node:
+        node.create_subscription(String, "/learner/status", lambda m: statuses.append(json.loads(m.data)), 10)
+        pub = node.create_publisher(Float32MultiArray, "/pusher/transition", 10)
+        assert node.spin_until(lambda: pub.get_subscription_count() > 0, 30), learner.output()
+        from std_msgs.msg import MultiArrayDimension
+
+        def message(row, layout=LAYOUT):
+            msg = Float32MultiArray(data=[float(v) for v in row])
+            msg.layout.dim = [MultiArrayDimension(label=label, size=size, stride=size) for label, size in layout]
+            return msg
+
+        rows = data.to_rows()
+        nan = rows[0].copy()
+        nan[10] = np.nan  # the reward
+        pub.publish(message(nan))
+        pub.publish(message(rows[1][:20], layout=(("obs", 8), ("action", 2), ("reward", 10))))
+        pub.publish(message(rows[2]))
+        pub.publish(message(rows[3]))
+        assert node.spin_until(lambda: statuses and statuses[-1]["received"] == 2
+                               and sum(statuses[-1]["rejected"].values()) == 2, 30), (statuses[-3:], learner.output())
+    assert set(statuses[-1]["rejected"]) == {"non-finite", "bad layout"}
+    assert statuses[-1]["weights_version"] == 1  # the two good ones were trained on and a version cut
+    assert "dropped a pusher/transition" in learner.output()
+
+
+@pytest.mark.slow
+def test_a_person_at_the_keyboard_takes_over_in_realtime(ros_env, tmp_path, prior):
+    """End to end in a pseudo-terminal: the person's keys take over the arm in the realtime
+    stage, and what they did lands in the session bag and in the learner's buffer as human."""
+    import pty
+    import threading
+    import time
+
+    out = tmp_path / "online"
+    cmd = [sys.executable, "-m", "offline_rl_core", "hil", "--online", "--mode", "realtime", "--corrector", "keyboard",
+           "--env-steps", "400", "--publish-every", "25", "--eval-every", "200", "--eval-episodes", "4",
+           "--prior", str(prior), "--out", str(out)]
+    pid, fd = pty.fork()
+    if pid == 0:  # the child: the stage, on the pseudo-terminal
+        os.chdir(REPO)
+        os.execve(cmd[0], cmd, ros_env)
+    screen = []
+    reader = threading.Thread(target=lambda: _read_all(fd, screen), daemon=True)
+    reader.start()
+
+    def shown(text, timeout):
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if text in "".join(screen):
+                return True
+            time.sleep(0.05)
+        return False
+
+    def env_steps():
+        try:
+            return json.loads((out / "learner" / "progress.jsonl").read_text().splitlines()[-1])["trained_through"]
+        except (OSError, IndexError, ValueError):
+            return 0
+
+    try:
+        assert shown("keyboard teleop:", 120), "".join(screen)[-3000:]
+        start = env_steps()
+        os.write(fd, b"d")  # shoulder torque +1: the person takes over
+        deadline = time.monotonic() + 60
+        while env_steps() < start + 50 and time.monotonic() < deadline:  # a second of the arm under their hand
+            time.sleep(0.05)
+        os.write(fd, b" ")  # hand back to the policy
+        _, status = os.waitpid(pid, 0)
+        pid = 0
+        assert os.waitstatus_to_exitcode(status) == 0, "".join(screen)[-3000:]
+    finally:
+        if pid:
+            os.kill(pid, signal.SIGINT)
+            os.waitpid(pid, 0)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["counts"]["human"] >= 10 and summary["counts"]["takeovers"] >= 1
+    state = torch.load(out / "learner" / "learner_state.pt", weights_only=True)
+    assert float(state["online_rows"]["human"].sum()) >= 10  # the learner has the person's steps
+
+
+def _read_all(fd, screen):
+    while True:
+        try:
+            data = os.read(fd, 4096)
+        except OSError:
+            return
+        if not data:
+            return
+        screen.append(data.decode(errors="replace"))
