@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import re
 import signal
+import subprocess
 import time
 
 import numpy as np
@@ -104,7 +105,7 @@ def test_sigkilled_recording_keeps_what_it_flushed(spawn, tmp_path, passive, nam
 
 
 @pytest.mark.slow
-def test_passive_records_every_topic_with_its_qos_namespace_and_clock(spawn, tmp_path):
+def test_passive_records_every_topic_with_its_qos_namespace_and_clock(spawn, ros_env, tmp_path):
     """No --topics: every topic as it appears, with the publishers' offered QoS; relative
     names in the node's namespace; stamps on the node's clock: the sim's /clock with
     use_sim_time."""
@@ -127,6 +128,9 @@ def test_passive_records_every_topic_with_its_qos_namespace_and_clock(spawn, tmp
         for _ in range(10):
             notes.publish(String(data="hello"))
             node.spin_for(0.1)
+        refused = subprocess.run(ros2("param", "set", "/arm2/recorder", "max_bag_size", "1000"),
+                                 capture_output=True, text=True, env=ros_env)
+        assert "sqlite3 minimum" in refused.stdout + refused.stderr, refused
     assert recorder.stop(signal.SIGINT) == 0, recorder.output()
     with Reader(bag) as reader:
         topics = {c.topic: c for c in reader.connections}

@@ -45,6 +45,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float32MultiArray
 
 from offline_rl_core.bag import TRANSITION_CDR_HEADER, BagWriter, decode_transition_payloads, typestore
+from offline_rl_core.bag.recording import MIN_SQLITE_SPLIT_SIZE
 from offline_rl_core.collect import expert_episode_count
 from offline_rl_core.env import ACT_DIM, JOINT_NAMES
 from offline_rl_core.errors import UserError
@@ -214,6 +215,8 @@ class Recorder(Node):
     def check_parameter(self, name: str, value) -> str | None:
         if name in ("max_bag_size", "max_bag_duration") and value and self.bag.target.single_file:
             return f"splitting needs a bag directory as output, not {self.bag.path}"
+        if name == "max_bag_size" and self.bag.storage_id == "sqlite3" and 0 < value < MIN_SQLITE_SPLIT_SIZE:
+            return f"below the sqlite3 minimum of {MIN_SQLITE_SPLIT_SIZE} bytes"
         return None
 
     def on_parameter_change(self, name: str, value) -> None:
