@@ -36,24 +36,12 @@ import numpy as np
 from ..bag import TRANSITION_TOPIC, open_bag
 from ..env import SUCCESS_TOL, StepScore, batch_observations, fingertip_from_joints, planar_distances, score_steps
 from ..errors import UserError
-from ..transitions import SOURCE_NAMES, SOURCE_POLICY, Transitions
+from ..transitions import SOURCE_BY_NAME, SOURCE_POLICY, Transitions, source_from_tag
 from .messages import (
     FLOAT64_MULTI_ARRAY, HAS_HEADER, JOINT_STATE, POINT_STAMPED, Decoded, MessageDecodeError, decode_messages,
 )
 from .spec import SOURCE_AUTO, TopicSpec, load_spec
 
-SOURCE_BY_NAME = {name: code for code, name in SOURCE_NAMES.items()}
-
-
-def source_from_tag(frame_id: str) -> int | None:
-    """The source a command's (deprecated) ``header.frame_id`` tag names, as the sim reads
-    it: 'expert', 'random', 'policy', 'human' or the digit 0-3; None for anything else."""
-    tag = frame_id.strip().lower()
-    if tag in SOURCE_BY_NAME:
-        return SOURCE_BY_NAME[tag]
-    if tag.isdigit() and int(tag) in SOURCE_NAMES:
-        return int(tag)
-    return None
 
 
 def source_of_topic(topic: str) -> int | None:

@@ -40,13 +40,12 @@ from offline_rl_core.bag import encode_transition_rows
 from offline_rl_core.env import CONTROL_HZ, JOINT_NAMES
 from offline_rl_core.joint_messages import action_from_effort, action_from_torques
 from offline_rl_core.sim_loop import MODES, ArmState, SimLoop, Step
-from offline_rl_core.transitions import SOURCE_NAMES, SOURCE_POLICY
+from offline_rl_core.transitions import SOURCE_NAMES, SOURCE_POLICY, source_from_tag
 from pusher_common.node_main import run_node
 from pusher_common.params import Param, Settings
 from pusher_common.spin import spin_node_fast
 from pusher_common.stamps import NS_PER_S, stamp_from_ns, stamp_key
 
-SOURCE_BY_NAME = {name: code for code, name in SOURCE_NAMES.items()}
 WARN_THROTTLE_S = 2.0
 # Transitions must not be dropped by a slow reader: a deep reliable history.
 TRANSITION_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
@@ -71,16 +70,6 @@ PARAMS = (
           "topic, as an effort controller does (realtime; e.g. effort_controller/commands; empty: off)",
           read_only=True),
 )
-
-
-def source_from_tag(frame_id: str) -> int | None:
-    """Read the source named by a deprecated ``header.frame_id`` tag (None: none)."""
-    tag = frame_id.strip().lower()
-    if tag in SOURCE_BY_NAME:
-        return SOURCE_BY_NAME[tag]
-    if tag.isdigit() and int(tag) in SOURCE_NAMES:
-        return int(tag)
-    return None
 
 
 class PusherSim(Node):
