@@ -70,7 +70,46 @@ def main() -> int:
             results.setdefault(arm, {})[str(seed)] = summary
             Path(args.json).write_text(json.dumps(results, indent=1, sort_keys=True) + "\n")
     print(table(results))
+    plot(results, Path(args.json).with_suffix(".png"))
     return 0
+
+
+def curve_of(arm: str, summary: dict) -> tuple[list[int], list[float]]:
+    """(environment steps, success without intervention) along a run."""
+    if arm == "offline_rounds":  # success of the served policy at the start of each round, then the final one
+        per_round = summary["rounds"][0]["episodes"] * 100
+        steps = [per_round * i for i in range(len(summary["rounds"]) + 1)]
+        return steps, [r["success_without_intervention"] for r in summary["rounds"]] + [summary["final_success"]]
+    return [p["env_steps"] for p in summary["curve"]], [p["success"] for p in summary["curve"]]
+
+
+def plot(results: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7.5, 4.5))
+    labels = {"online": "online stage (prior + corrections), over ROS", "no_prior": "no prior (from scratch)",
+              "no_corrections": "no corrections (prior + online RL)", "offline_rounds": "offline rounds (issue 6)"}
+    for i, (arm, by_seed) in enumerate(results.items()):
+        color = f"C{i}"
+        curves = [curve_of(arm, s) for _, s in sorted(by_seed.items())]
+        for steps, success in curves:
+            ax.plot(steps, success, color=color, alpha=0.35, lw=1)
+        steps = curves[0][0]
+        if all(c[0] == steps for c in curves):
+            ax.plot(steps, [sum(c[1][j] for c in curves) / len(curves) for j in range(len(steps))], "o-",
+                    color=color, lw=2, label=f"{labels.get(arm, arm)} (mean of {len(curves)} seeds)")
+    ax.axhline(0.95, color="grey", ls=":", lw=1)
+    ax.set_xlabel("environment steps (50 Hz: 20,000 = 400 s of robot time)")
+    ax.set_ylabel("success without intervention (100 held-out resets)")
+    ax.set_ylim(0, 1.02)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    print(f"wrote {path}", file=sys.stderr)
 
 
 def table(results: dict) -> str:
