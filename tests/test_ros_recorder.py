@@ -54,7 +54,7 @@ def test_interrupted_recording_leaves_a_readable_bag(spawn, tmp_path, sig, name)
         ros2("run", "recorder", "node", "--out", bag, "--episodes", 1000, "--expert-frac", 0.5, "--seed", 3), "recorder"
     )
     assert recorder.wait_for_output("recording 1000 episodes", timeout=30), recorder.output()
-    time.sleep(2.0)  # mid-episode somewhere
+    assert wait_for_rows(bag, 150), recorder.output()  # on disk, into the second episode at least
     rc = recorder.stop(sig, timeout=20)
     assert rc == 0, f"exit {rc}: {recorder.output()}"
     match = re.search(r"interrupted; wrote (\d+) transitions", recorder.output())
@@ -85,7 +85,7 @@ def test_sigkilled_recording_keeps_what_it_flushed(spawn, tmp_path, passive, nam
         args = ["--episodes", 1000, "--expert-frac", 0.5, "--seed", 3, "--flush-interval", 0.2]
     recorder = spawn(ros2("run", "recorder", "node", "--out", bag, *args), "recorder")
     assert recorder.wait_for_output("recording", timeout=30), recorder.output()
-    time.sleep(2.0)
+    assert wait_for_rows(bag, 200), recorder.output()  # two episodes flushed, then a kill at any moment after
     recorder.stop(signal.SIGKILL)
     try:
         recorded = read_transitions(bag)
@@ -140,3 +140,17 @@ def test_passive_records_every_topic_with_its_qos_namespace_and_clock(spawn, ros
         stamps = [stamp for _, stamp, _ in reader.messages([topics["/arm2/pusher/transition"]])]
     assert stamps and all(sim_start * 10**9 <= s < (sim_start + 3600) * 10**9 for s in stamps)  # sim time, not wall
     assert len(read_transitions(bag)) == len(stamps)  # the namespaced transition topic is the dataset
+
+
+def wait_for_rows(bag, n: int, timeout: float = 60.0) -> bool:
+    """Wait until the bag being recorded holds at least ``n`` transitions on disk."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            if len(read_transitions(bag)) >= n:
+                return True
+        except UserError:
+            pass  # nothing flushed yet
+        time.sleep(0.05)
+    return False
+
