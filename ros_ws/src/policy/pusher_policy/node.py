@@ -227,15 +227,19 @@ class PolicyServer(Node):
         out = JointState(name=list(JOINT_NAMES), effort=[float(a) for a in action])
         out.header.stamp = msg.header.stamp
         self.action_pub.publish(out)
+        if self.provenance_pub.get_subscription_count():  # formatting it costs the answer's latency
+            self.publish_provenance(paired.stamp)
+        if self.effort_pub is not None and self.effort_pub.get_subscription_count():
+            self.effort_pub.publish(Float64MultiArray(data=[float(t) for t in torques_from_action(action)]))
+        self.answered += 1
+
+    def publish_provenance(self, stamp: int) -> None:
         cut = self.policy.checkpoint.get("cut_unix")  # when the learner cut these weights (same machine clock)
         self.provenance_pub.publish(String(data=json.dumps({
-            "stamp": paired.stamp, "weights_version": self.policy.weights_version,
+            "stamp": stamp, "weights_version": self.policy.weights_version,
             "trained_through": int(self.policy.checkpoint.get("trained_through", 0) or 0),
             "weights_age_s": None if cut is None else round(time.time() - float(cut), 4),
             "explore": self.actor.explore})))
-        if self.effort_pub is not None:
-            self.effort_pub.publish(Float64MultiArray(data=[float(t) for t in torques_from_action(action)]))
-        self.answered += 1
 
 
 def main(argv: list[str] | None = None) -> int:

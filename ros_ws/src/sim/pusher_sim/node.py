@@ -136,7 +136,9 @@ class PusherSim(Node):
                 return  # the republish timer tries again
             self.wait_for_subscribers = 0  # matched once: never hold again
         stamp = stamp_from_ns(state.stamp_ns)
-        if new:
+        # /clock and joint_states only when someone listens: each publish costs the
+        # lockstep loop as much as a physics step
+        if new and self.clock_pub.get_subscription_count():
             self.clock_pub.publish(ClockMsg(clock=stamp))
         for msg, point in ((self.target_msg, state.target), (self.fingertip_msg, state.fingertip)):
             msg.header.stamp = stamp
@@ -151,7 +153,8 @@ class PusherSim(Node):
         self.target_pub.publish(self.target_msg)
         self.fingertip_pub.publish(self.fingertip_msg)
         self.state_pub.publish(msg)
-        self.joint_states_pub.publish(msg)
+        if self.joint_states_pub.get_subscription_count():
+            self.joint_states_pub.publish(msg)
         self.last_publish = time.monotonic()
 
     def publish_step(self, step: Step | None) -> None:
