@@ -182,10 +182,14 @@ class LoadedPolicy:
 
 def load_policy(path: str | os.PathLike, obs_dim: int = OBS_DIM, act_dim: int = ACT_DIM) -> LoadedPolicy:
     """Load a checkpoint for acting; refuses one whose dims do not match the task."""
-    ckpt = load_checkpoint(path)
+    return policy_for_task(load_checkpoint(path), path, obs_dim, act_dim)
+
+
+def policy_for_task(ckpt: dict, source, obs_dim: int = OBS_DIM, act_dim: int = ACT_DIM) -> LoadedPolicy:
+    """A validated checkpoint as a policy, refused when its dims do not match the task."""
     if int(ckpt["obs_dim"]) != obs_dim or int(ckpt["act_dim"]) != act_dim:
         raise UserError(
-            f"{path}: checkpoint has obs_dim={ckpt['obs_dim']}, act_dim={ckpt['act_dim']}; "
+            f"{source}: checkpoint has obs_dim={ckpt['obs_dim']}, act_dim={ckpt['act_dim']}; "
             f"the pusher task needs obs_dim={obs_dim}, act_dim={act_dim}"
         )
-    return LoadedPolicy(ckpt, source=str(path))
+    return LoadedPolicy(ckpt, source=str(source))
