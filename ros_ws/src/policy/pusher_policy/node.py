@@ -58,7 +58,9 @@ from pusher_common.status import NodeStatus  # noqa: E402
 
 WARN_THROTTLE_S = 2.0
 # The learner publishes reliable and transient local: a late joiner gets the latest version.
-WEIGHTS_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+# Several may wait to be read (a burst, or bad messages among good ones): read in order, the
+# newest good one acts, and none is overwritten unread.
+WEIGHTS_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 def file_signature(path: str):
