@@ -1,0 +1,345 @@
+"""Nodes survive bad input: the policy node, the sim, the corrections mux and the online
+learner each get 10,000 fuzzed messages on every topic they subscribe to, as real
+processes on a private DDS domain.
+
+Each test sends its fuzz (tests/fuzz_messages.py, seeded) in rounds of at most 9 messages
+per topic, closed by a good message whose answer proves the node has read the round
+(DDS keeps messages of one writer in order, and 10 fit the node's queue), then a burst
+faster than the node answers. It checks that the node keeps running, publishes nothing
+non-finite or out of range, counts every refused message by the reason the fuzz case
+names (its ``~/status``), warns about them at a throttled rate, still answers good input
+correctly afterwards, and that its memory (VmRSS) stays flat.
+"""
+
+from __future__ import annotations
+
+import array
+import json
+import math
+import os
+import re
+import shutil
+import sys
+import time
+from collections import Counter
+
+import numpy as np
+import pytest
+
+from fuzz_messages import (JOINT_KINDS, NS, POINT_KINDS, TRANSITION_KINDS, WEIGHTS_KINDS, bad_stamp,
+                           broken_checkpoints, command_case, joint_case, point_case, transition_case, weights_case)
+from ros_helpers import probe_node, require_ros, ros_env, spawn  # noqa: F401 - fixtures
+
+pytestmark = pytest.mark.ros
+
+MESSAGES = 10_000  # per topic
+ROUND = 9  # fuzzed messages per topic before a round's closing message (the node's queue holds 10)
+TICK = NS // 50
+START = 1_700_000_000 * NS
+RSS_SLACK_KIB = 8 * 1024  # growth allowed between the first rounds and the end: a small constant
+DEEP = 5000  # the probe's own queues: it must not drop what the node publishes
+
+
+# ------------------------------------------------------------------ shared pieces
+@pytest.fixture(scope="module")
+def checkpoints(tmp_path_factory):
+    """Two tiny checkpoints whose actions differ."""
+    require_ros()
+    from offline_rl_core.bag import write_transitions
+    from offline_rl_core.collect import collect_transitions
+    from offline_rl_core.learners import TrainConfig
+    from offline_rl_core.training_run import run_training
+
+    root = tmp_path_factory.mktemp("fuzz_ckpt")
+    write_transitions(root / "expert.db3", collect_transitions(2, 1.0, 0))
+    cfg = TrainConfig(algo="bc", steps=30, hidden=16, batch_size=32, log_every=10)
+    quiet = dict(eval_episodes=0, progress=None, log=lambda s: None)
+    return {"bag": root / "expert.db3",
+            "a": run_training([str(root / "expert.db3")], cfg, 0, root / "a", **quiet) / "policy.pt",
+            "b": run_training([str(root / "expert.db3")], cfg, 1, root / "b", **quiet) / "policy.pt"}
+
+
+def rss_kib(pid: int) -> int:
+    with open(f"/proc/{pid}/status") as f:
+        return int(next(line for line in f if line.startswith("VmRSS:")).split()[1])
+
+
+class Status:
+    """A node's ``~/status`` as the probe hears it."""
+
+    def __init__(self, node, name: str):
+        from std_msgs.msg import String
+
+        self.node, self.seen = node, []
+        node.create_subscription(String, f"/{name}/status", lambda m: self.seen.append(json.loads(m.data)), 10)
+
+    def wait(self, predicate, timeout: float = 10.0) -> dict | None:
+        """The first status published from now on that satisfies ``predicate``."""
+        start = len(self.seen)
+        ok = self.node.spin_until(lambda: any(predicate(s) for s in self.seen[start:]), timeout)
+        return next(s for s in self.seen[start:] if predicate(s)) if ok else None
+
+
+def stamp_msg(header, stamp_ns: int, bad=None) -> None:
+    if bad is not None:
+        header.stamp.sec, header.stamp.nanosec = bad
+    else:
+        header.stamp.sec, header.stamp.nanosec = stamp_ns // NS, stamp_ns % NS
+
+
+def joint_msg(fields: dict, stamp_ns: int, rng):
+    from sensor_msgs.msg import JointState
+
+    msg = JointState(name=list(fields["name"]))
+    for f in ("position", "velocity", "effort"):
+        if f in fields:
+            setattr(msg, f, [float(v) for v in fields[f]])
+    stamp_msg(msg.header, stamp_ns, bad_stamp(rng) if fields["bad_stamp"] else None)
+    return msg
+
+
+def point_msg(fields: dict, stamp_ns: int, rng):
+    from geometry_msgs.msg import PointStamped
+
+    msg = PointStamped()
+    msg.point.x, msg.point.y = fields["xy"]
+    stamp_msg(msg.header, stamp_ns, bad_stamp(rng) if fields["bad_stamp"] else None)
+    return msg
+
+
+def warning_lines(log: str) -> list[str]:
+    return [line for line in log.splitlines() if "ignoring " in line and " so far" in line]
+
+
+def assert_counted_and_throttled(status: dict, expected: Counter, proc, allowed: dict | None = None) -> None:
+    """Every refused message counted by its reason; each reason warned about, not each message."""
+    rejected = Counter(status["rejected"])
+    allowed = allowed or {}
+    for reason, (low, high) in allowed.items():
+        assert low <= rejected[reason] <= high, (reason, rejected[reason], low, high)
+        rejected[reason] = expected[reason]
+    assert rejected == expected, (dict(rejected), dict(expected))
+    lines = warning_lines(proc.output())
+    for reason in expected:
+        assert any(f"({reason}: " in line for line in lines), (reason, lines[-5:])
+    assert len(lines) < sum(expected.values()) / 10, len(lines)
+    assert any("not shown" in line for line in lines)
+
+
+class Sender:
+    """Publishers that count what they sent, by topic."""
+
+    def __init__(self, node):
+        self.node, self.pubs, self.sent = node, {}, Counter()
+
+    def add(self, topic: str, msg_type, qos=10) -> None:
+        self.pubs[topic] = self.node.create_publisher(msg_type, "/" + topic, qos)
+
+    def send(self, topic: str, msg) -> None:
+        self.pubs[topic].publish(msg)
+        self.sent[topic] += 1
+
+    def matched(self) -> bool:
+        return all(p.get_subscription_count() > 0 for p in self.pubs.values())
+
+
+# ------------------------------------------------------------------ the policy node
+class StateStamps:
+    """The stamps a fuzz round gives states, and what the node's stamp order makes of them
+    (``offline_rl_core.pairing.StampOrder``: stale and far-future stamps are refused unless
+    the next state confirms them; here no two refused stamps ever confirm each other)."""
+
+    def __init__(self, newest: int):
+        self.newest, self.stale_run, self.jumps = newest, 0, 0
+
+    def admitted(self, stamp: int) -> int:
+        self.newest, self.stale_run = stamp, 0
+        return stamp
+
+    def next(self) -> int:
+        return self.admitted(self.newest + TICK)
+
+    def stale(self) -> int:
+        self.stale_run += 1  # each further back than the last: none confirms another
+        return self.newest - self.stale_run * TICK
+
+    def far(self, ahead: bool) -> int:
+        self.jumps += 1  # 1000 s apart: none confirms another
+        return self.newest + (10 + 1000 * self.jumps) * NS if ahead else self.newest - (10 + 1000 * self.jumps) * NS
+
+
+@pytest.mark.slow
+def test_policy_node_survives_fuzzed_states_targets_fingertips_and_weights(spawn, checkpoints, tmp_path):
+    from geometry_msgs.msg import PointStamped
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String, UInt8MultiArray
+
+    from offline_rl_core.env import observation_from_joints
+    from offline_rl_core.online_service import encode_weights
+    from offline_rl_core.policy import load_checkpoint, load_policy
+
+    served = tmp_path / "policy.pt"
+    shutil.copy(checkpoints["a"], served)
+    policy = {"a": load_policy(checkpoints["a"]), "b": load_policy(checkpoints["b"])}
+    good = load_checkpoint(checkpoints["a"])
+    final_version = 10**6
+    weights = {"v1": encode_weights({**good, "weights_version": 1})}
+    broken = broken_checkpoints(good)
+    proc = spawn([sys.executable, "-m", "pusher_policy.node", "--ros-args", "-p", f"checkpoint:={served}",
+                  "-p", "weights_topic:=learner/weights"], "policy")
+    rng = np.random.default_rng(13)
+    actions, torques, provenance = [], [], {}
+    expected = Counter()
+    flips = 0
+    obs_of: dict[int, np.ndarray] = {}
+    with probe_node() as node:
+        status = Status(node, "policy")
+        node.create_subscription(JointState, "/policy/action", actions.append, DEEP)
+        node.create_subscription(Float64MultiArray, "/effort_controller/commands", torques.append, DEEP)
+        node.create_subscription(String, "/policy/provenance",
+                                 lambda m: provenance.setdefault(json.loads(m.data)["stamp"], []).append(
+                                     json.loads(m.data)["weights_version"]), DEEP)
+        out = Sender(node)
+        out.add("pusher/target", PointStamped)
+        out.add("pusher/fingertip", PointStamped)
+        out.add("pusher/state", JointState)
+        out.add("learner/weights", UInt8MultiArray, QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                                                               durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        assert node.spin_until(lambda: out.matched() and node.count_publishers("/policy/action"), 30), proc.output()
+        stamps = StateStamps(START)
+
+        def weights_msg(label, data: bytes):
+            msg = UInt8MultiArray(data=array.array("B", data))
+            if label is not None:
+                msg.layout.dim = [MultiArrayDimension(label=label, size=len(data), stride=1)]
+            return msg
+
+        def trio(stamp: int):
+            """A good state with its target and fingertip; returns the observation it means."""
+            q, qd = rng.uniform(-3, 3, 2), rng.uniform(-5, 5, 2)
+            target, tip = rng.uniform(-0.2, 0.2, 2), rng.uniform(-0.2, 0.2, 2)
+            out.send("pusher/target", point_msg({"xy": list(target), "bad_stamp": False}, stamp, rng))
+            out.send("pusher/fingertip", point_msg({"xy": list(tip), "bad_stamp": False}, stamp, rng))
+            out.send("pusher/state", joint_msg({"name": ["shoulder", "elbow"], "position": q, "velocity": qd,
+                                                "bad_stamp": False}, stamp, rng))
+            obs_of[stamp] = observation_from_joints(q, qd, target, tip)
+
+        def close_round(version: int | None, timeout: float = 10.0) -> None:
+            """Good states until one is answered (with weights ``version`` or newer)."""
+            while True:
+                stamp = stamps.next()
+                trio(stamp)
+                ok = node.spin_until(lambda: stamp in provenance, timeout)
+                assert ok, f"no answer to {stamp} (node {'running' if proc.running() else 'dead'}):\n" + \
+                    proc.output()[-3000:]
+                if version is None or max(provenance[stamp]) >= version:
+                    return
+
+        # discovery can drop the very first messages: what the node took so far is the baseline
+        deadline = time.monotonic() + 20
+        while not provenance and time.monotonic() < deadline:
+            stamp = stamps.next()
+            trio(stamp)
+            node.spin_until(lambda: stamp in provenance, 1.0)
+        out.send("learner/weights", weights_msg("pusher-rl/weights", weights["v1"]))
+        close_round(1)
+        baseline = status.wait(lambda s: True)
+        assert baseline is not None and not baseline["rejected"], baseline
+        sent_before = Counter(baseline["messages"])
+        out.sent = Counter()
+        rss_start = None
+        version = 1
+        rounds = 0
+        while min(out.sent["pusher/state"], out.sent["learner/weights"]) < MESSAGES - 1000:
+            rounds += 1
+            if rounds == 20:
+                rss_start = rss_kib(proc.pid)
+            states, targets, tips = [], [], []  # (msg, expected reason) in the order sent
+            while len(states) < ROUND - 1:
+                kind = str(rng.choice(list(JOINT_KINDS) + ["stale", "future", "jump ahead", "jump back"]))
+                if kind in ("stale", "future"):
+                    case = joint_case(rng, "valid", ("position", "velocity"), 3.0)
+                    stamp = stamps.stale() if kind == "stale" else stamps.far(True)
+                    states.append((joint_msg(case.fields, stamp, rng), f"{kind} stamp"))
+                elif kind.startswith("jump"):  # a restarted source: refused once, confirmed by the next
+                    case = joint_case(rng, "valid", ("position", "velocity"), 3.0)
+                    stamp = stamps.far(kind == "jump ahead")
+                    msg = joint_msg(case.fields, stamp, rng)
+                    states += [(msg, "future stamp" if kind == "jump ahead" else "stale stamp"), (msg, None)]
+                    stamps.admitted(stamp)
+                else:
+                    case = joint_case(rng, kind, ("position", "velocity"), 3.0)
+                    stamp = stamps.next() if case.expect is None else stamps.newest + 7
+                    msg = joint_msg(case.fields, stamp, rng)
+                    states.append((msg, case.expect))
+                    if case.expect is None:
+                        named = dict(zip(case.fields["name"] or ["shoulder", "elbow"],
+                                         zip(case.fields["position"], case.fields["velocity"])))
+                        q = [named["shoulder"][0], named["elbow"][0]]
+                        qd = [named["shoulder"][1], named["elbow"][1]]
+                        if rng.random() < 0.6 and len(targets) < ROUND:  # its target and fingertip come too
+                            target, tip = rng.uniform(-0.2, 0.2, 2), rng.uniform(-0.2, 0.2, 2)
+                            targets.append((point_msg({"xy": list(target), "bad_stamp": False}, stamp, rng), None))
+                            tips.append((point_msg({"xy": list(tip), "bad_stamp": False}, stamp, rng), None))
+                            obs_of[stamp] = observation_from_joints(q, qd, target, tip)
+                    if rng.random() < 0.15:  # the same message twice
+                        states.append(states[-1])
+            for lst in (targets, tips):
+                while len(lst) < ROUND:
+                    case = point_case(rng, POINT_KINDS[int(rng.integers(len(POINT_KINDS)))])
+                    stray = stamps.newest + int(rng.integers(-10**6, 10**6)) * NS + 7  # never a state's stamp
+                    lst.append((point_msg(case.fields, stray, rng), case.expect))
+            wmsgs = []
+            for _ in range(ROUND):
+                case = weights_case(rng, WEIGHTS_KINDS[int(rng.integers(len(WEIGHTS_KINDS)))], weights["v1"], broken)
+                wmsgs.append((weights_msg(case.fields["label"], case.fields["data"]), case.expect))
+            for i in range(ROUND):
+                for topic, lst in (("pusher/target", targets), ("pusher/fingertip", tips), ("pusher/state", states),
+                                   ("learner/weights", wmsgs)):
+                    if i < len(lst):
+                        msg, expect = lst[i]
+                        out.send(topic, msg)
+                        if expect == "bad weights?":
+                            flips += 1
+                        elif expect is not None:
+                            expected[expect] += 1
+            version += 1
+            out.send("learner/weights", weights_msg("pusher-rl/weights", encode_weights({**good,
+                                                                                          "weights_version": version})))
+            close_round(version)
+            assert proc.running(), proc.output()[-3000:]
+
+        # every message of the rounds taken, every refusal counted by its reason
+        st = status.wait(lambda s: Counter(s["messages"]) - sent_before == out.sent, 10)
+        assert st is not None, (status.seen[-1], dict(out.sent))
+        assert_counted_and_throttled(st, expected, proc, {"bad weights": (expected["bad weights"],
+                                                                          expected["bad weights"] + flips)})
+        # a burst faster than the node answers: good states, and garbage weights
+        for _ in range(MESSAGES - out.sent["pusher/state"]):
+            trio(stamps.next())
+        for _ in range(MESSAGES - 1 - out.sent["learner/weights"]):
+            out.send("learner/weights", weights_msg("pusher-rl/weights", rng.bytes(64)))
+        out.send("learner/weights", weights_msg("pusher-rl/weights", encode_weights(
+            {**load_checkpoint(checkpoints["b"]), "weights_version": final_version})))
+        close_round(final_version)
+        rss_end = rss_kib(proc.pid)
+        st = status.wait(lambda s: True)
+        node.spin_for(0.2)
+
+    assert proc.running(), proc.output()[-3000:]
+    assert min(out.sent.values()) >= MESSAGES
+    assert Counter(st["messages"]) - sent_before <= out.sent
+    assert set(st["rejected"]) - {"bad weights"} == set(expected) - {"bad weights"}  # the burst's were bad weights
+    # what it published: finite, in range, for states it took, the right policy's action
+    assert actions and len(torques) == len(actions)
+    for msg in actions:
+        stamp = msg.header.stamp.sec * NS + msg.header.stamp.nanosec
+        effort = np.array(msg.effort, np.float32)
+        assert np.all(np.isfinite(effort)) and np.all(np.abs(effort) <= 1.0)
+        assert stamp in obs_of, stamp
+        which = "b" if max(provenance[stamp]) >= final_version else "a"
+        assert np.array_equal(effort, policy[which].act(obs_of[stamp])), (stamp, which)
+    for msg in torques:
+        assert all(math.isfinite(t) and abs(t) <= 0.5 for t in msg.data)
+    assert rss_end - rss_start < RSS_SLACK_KIB, (rss_start, rss_end)
