@@ -95,7 +95,9 @@ class SimLoop:
     def _snapshot(self) -> ArmState:
         env = self.env
         self.current = ArmState(self.stamp_ns(), env.qpos.copy(), env.qvel.copy(),
-                                np.array(env.data.actuator_force[:ACT_DIM], np.float64),
+                                # N·m at the joints: the motors' force times their gear (actuator_force
+                                # is in actuation units, the action itself)
+                                np.array(env.data.qfrc_actuator[:ACT_DIM], np.float64),
                                 np.array(env.target, np.float64), np.array(env.fingertip, np.float64))
         return self.current
 

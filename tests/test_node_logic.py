@@ -81,3 +81,10 @@ def test_joint_messages_read_commands_states_and_torques():
 def test_sim_loop_refuses_an_unknown_mode():
     with pytest.raises(ValueError, match="mode must be one of realtime, lockstep"):
         SimLoop("fast")
+
+
+def test_a_state_reports_the_torque_the_motors_applied_in_newton_metres():
+    loop = SimLoop("lockstep", seed=0, start_ns=START)
+    loop.start_episode()
+    loop.command(loop.current.stamp_ns, np.array([1.0, -0.3], np.float32), 2)
+    assert np.allclose(loop.current.torque, [0.5, -0.15])  # action x motor gear (0.5 N·m)

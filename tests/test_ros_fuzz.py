@@ -343,3 +343,177 @@ def test_policy_node_survives_fuzzed_states_targets_fingertips_and_weights(spawn
     for msg in torques:
         assert all(math.isfinite(t) and abs(t) <= 0.5 for t in msg.data)
     assert rss_end - rss_start < RSS_SLACK_KIB, (rss_start, rss_end)
+
+
+# ------------------------------------------------------------------ the sim
+COMMAND_TOPICS = {"pusher/command": 2, "pusher/command/expert": 0, "pusher/command/random": 1,
+                  "pusher/command/policy": 2, "pusher/command/human": 3}
+
+
+def _stamp(msg) -> int:
+    return msg.header.stamp.sec * NS + msg.header.stamp.nanosec
+
+
+def _rows(transitions) -> np.ndarray:
+    return np.array([m.data for m in transitions], np.float32).reshape(len(transitions), -1)
+
+
+@pytest.mark.slow
+def test_sim_survives_fuzzed_commands_on_every_command_topic(spawn):
+    """Lockstep: a command steps the arm only when it answers the current state; anything
+    else on any of the five command topics is refused and counted."""
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import Float32MultiArray
+
+    from offline_rl_core.transitions import LAYOUT_SLICES
+
+    proc = spawn([sys.executable, "-m", "pusher_sim.node", "--ros-args", "-p", "mode:=lockstep",
+                  "-p", f"start_time:={START // NS}", "-p", "republish_period:=5.0"], "sim")
+    rng = np.random.default_rng(17)
+    states, transitions = [], []
+    expected, sent_steps = Counter(), []  # sent_steps: (action, source) of every command that steps
+    with probe_node() as node:
+        status = Status(node, "sim")
+        node.create_subscription(JointState, "/pusher/state", states.append, DEEP)
+        node.create_subscription(Float32MultiArray, "/pusher/transition", transitions.append, DEEP)
+        out = Sender(node)
+        for topic in COMMAND_TOPICS:
+            out.add(topic, JointState)
+        assert node.spin_until(lambda: out.matched() and states, 30), proc.output()
+
+        def step(topic: str, msg, action) -> None:
+            """Send the command that answers the current state; wait for the next state."""
+            before = _stamp(states[-1])
+            out.send(topic, msg)
+            sent_steps.append((action, COMMAND_TOPICS[topic]))
+            assert node.spin_until(lambda: _stamp(states[-1]) != before, 10), proc.output()[-3000:]
+
+        # discovery can drop the first messages: send until one steps; the baseline is what the node took
+        deadline = time.monotonic() + 20
+        while not transitions and time.monotonic() < deadline:
+            msg = joint_msg({"name": ["shoulder", "elbow"], "effort": [0.0, 0.0], "bad_stamp": False},
+                            _stamp(states[-1]), rng)
+            out.send("pusher/command", msg)
+            node.spin_until(lambda: transitions, 1.0)
+        baseline = status.wait(lambda s: True)
+        assert baseline is not None and not baseline["rejected"], baseline
+        sent_before, out.sent, sent_steps = Counter(baseline["messages"]), Counter(), []
+        first_transition = len(transitions)
+        rss_start, rounds = None, 0
+        topics = list(COMMAND_TOPICS)
+        while min(out.sent[t] for t in topics) < MESSAGES - 1000:
+            rounds += 1
+            if rounds == 100:
+                rss_start = rss_kib(proc.pid)
+            topic = topics[rounds % len(topics)]
+            current = _stamp(states[-1])
+            for _ in range(ROUND - 1):
+                case = command_case(rng, JOINT_KINDS[int(rng.integers(len(JOINT_KINDS)))])
+                if case.expect is None:  # a good command, but for another state than the current one
+                    offset = int(rng.integers(1, 500)) * TICK * (1 if rng.random() < 0.5 else -1)
+                    out.send(topic, joint_msg(case.fields, current + offset, rng))
+                    expected["future stamp" if offset > 0 else "stale stamp"] += 1
+                else:
+                    out.send(topic, joint_msg(case.fields, current, rng))
+                    expected[case.expect] += 1
+            case = command_case(rng, str(rng.choice(["valid", "reordered", "unnamed", "huge"])))
+            named = dict(zip(case.fields["name"] or ["shoulder", "elbow"], case.fields["effort"]))
+            action = np.clip(np.float32([named["shoulder"], named["elbow"]]), -1, 1)
+            msg = joint_msg(case.fields, current, rng)
+            step(topic, msg, action)
+            if rng.random() < 0.1:  # the same command again, now for a state already stepped
+                out.send(topic, msg)
+                expected["stale stamp"] += 1
+            assert proc.running(), proc.output()[-3000:]
+        st = status.wait(lambda s: Counter(s["messages"]) - sent_before == out.sent, 10)
+        assert st is not None, (status.seen[-1], dict(out.sent))
+        assert_counted_and_throttled(st, expected, proc)
+        # a burst on every topic faster than the sim takes it: commands for states long gone
+        burst = {t: MESSAGES - out.sent[t] for t in topics}
+        for i in range(max(burst.values())):
+            for t in topics:
+                if i < burst[t]:
+                    out.send(t, joint_msg({"name": [], "effort": [0.1, 0.2], "bad_stamp": False}, START - NS, rng))
+        step("pusher/command/human", joint_msg({"name": [], "effort": [0.5, -0.5], "bad_stamp": False},
+                                               _stamp(states[-1]), rng), np.float32([0.5, -0.5]))
+        rss_end = rss_kib(proc.pid)
+        node.spin_until(lambda: len(transitions) - first_transition >= len(sent_steps), 10)
+        st = status.wait(lambda s: True)
+    assert proc.running(), proc.output()[-3000:]
+    assert min(out.sent.values()) >= MESSAGES
+    assert Counter(st["messages"]) - sent_before <= out.sent
+    rows = _rows(transitions[first_transition:])
+    # every step is one of the commands that answered a state, in order, with its source
+    assert len(rows) == len(sent_steps)
+    assert np.array_equal(rows[:, LAYOUT_SLICES["action"]], np.stack([a for a, _ in sent_steps]))
+    assert rows[:, LAYOUT_SLICES["source"]].ravel().tolist() == [float(s) for _, s in sent_steps]
+    assert np.all(np.isfinite(rows))
+    for msg in states:
+        assert all(math.isfinite(v) for v in [*msg.position, *msg.velocity, *msg.effort])
+        assert all(abs(t) <= 0.5 for t in msg.effort)  # applied torque (N·m): within the motor gear
+    assert rss_end - rss_start < RSS_SLACK_KIB, (rss_start, rss_end)
+
+
+@pytest.mark.slow
+def test_realtime_sim_survives_fuzzed_torques(spawn):
+    """Realtime, torques on effort_topic (no stamps): bad ones are refused and counted, the
+    held command is always a good one, clipped to the action range."""
+    from std_msgs.msg import Float32MultiArray, Float64MultiArray
+
+    from offline_rl_core.transitions import LAYOUT_SLICES
+
+    proc = spawn([sys.executable, "-m", "pusher_sim.node", "--ros-args", "-p", "effort_topic:=effort_controller/commands"],
+                 "sim")
+    rng = np.random.default_rng(19)
+    transitions, expected = [], Counter()
+    topic = "effort_controller/commands"
+    with probe_node() as node:
+        status = Status(node, "sim")
+        node.create_subscription(Float32MultiArray, "/pusher/transition", transitions.append, DEEP)
+        out = Sender(node)
+        out.add(topic, Float64MultiArray)
+        assert node.spin_until(lambda: out.matched() and transitions, 30), proc.output()
+
+        def hold(torques) -> None:
+            """Good torques; wait until a step has applied them."""
+            action = np.clip(np.float32(np.asarray(torques) / 0.5), -1, 1)
+            out.send(topic, Float64MultiArray(data=[float(t) for t in torques]))
+            start = len(transitions)
+            assert node.spin_until(lambda: any(np.array_equal(np.float32(m.data[8:10]), action)
+                                               for m in transitions[start:]), 10), proc.output()[-3000:]
+
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline:
+            try:
+                hold(rng.uniform(-0.4, 0.4, 2))
+                break
+            except AssertionError:
+                continue
+        baseline = status.wait(lambda s: True)
+        assert baseline is not None and not baseline["rejected"], baseline
+        sent_before, out.sent = Counter(baseline["messages"]), Counter()
+        rss_start, rounds = None, 0
+        while out.sent[topic] < MESSAGES - 1000:
+            rounds += 1
+            if rounds == 50:
+                rss_start = rss_kib(proc.pid)
+            for _ in range(ROUND):
+                kind = str(rng.choice(["nan", "inf", "huge", "empty", "short", "long"]))
+                torques = list(rng.uniform(-0.5, 0.5, {"empty": 0, "short": 1, "long": 3}.get(kind, 2)))
+                if kind in ("nan", "inf", "huge"):
+                    torques[int(rng.integers(2))] = {"nan": math.nan, "inf": -math.inf, "huge": 1e38}[kind]
+                out.send(topic, Float64MultiArray(data=[float(t) for t in torques]))
+                expected[{"nan": "non-finite", "inf": "non-finite", "huge": None}.get(kind, "wrong length")] += 1
+            hold(rng.uniform(-0.4, 0.4, 2))
+        expected.pop(None)
+        st = status.wait(lambda s: Counter(s["messages"]) - sent_before == out.sent, 10)
+        assert st is not None, (status.seen[-1], dict(out.sent))
+        assert_counted_and_throttled(st, expected, proc)
+        for _ in range(MESSAGES - out.sent[topic]):  # a burst of NaN torques
+            out.send(topic, Float64MultiArray(data=[math.nan, 0.0]))
+        hold([0.2, -0.2])
+        rss_end = rss_kib(proc.pid)
+    assert proc.running(), proc.output()[-3000:]
+    rows = _rows(transitions)
+    assert np.all(np.isfinite(rows)) and np.all(np.abs(rows[:, LAYOUT_SLICES["action"]]) <= 1.0)
+    assert rss_end - rss_start < RSS_SLACK_KIB, (rss_start, rss_end)
