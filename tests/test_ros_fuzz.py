@@ -517,3 +517,86 @@ def test_realtime_sim_survives_fuzzed_torques(spawn):
     rows = _rows(transitions)
     assert np.all(np.isfinite(rows)) and np.all(np.abs(rows[:, LAYOUT_SLICES["action"]]) <= 1.0)
     assert rss_end - rss_start < RSS_SLACK_KIB, (rss_start, rss_end)
+
+
+# ------------------------------------------------------------------ the corrections mux
+@pytest.mark.slow
+def test_mux_survives_fuzzed_policy_and_teleop_actions(spawn):
+    """Lockstep, with a corrector present: only ever an action that came in for its stamp
+    (clipped), never a refused one. (Stray stamps by the thousand go beyond the last 256
+    decisions the mux remembers, so "one command per stamp" is the unit tests' business.)"""
+    from sensor_msgs.msg import JointState
+
+    proc = spawn([sys.executable, "-m", "pusher_corrections.mux", "--ros-args", "-p", "mode:=lockstep"], "mux")
+    rng = np.random.default_rng(23)
+    commands = []  # (source, msg)
+    sent_actions = {"policy": {}, "human": {}}  # stamp -> clipped actions the test sent for it
+    expected = Counter()
+    with probe_node() as node:
+        status = Status(node, "mux")
+        for source in ("policy", "human"):
+            node.create_subscription(JointState, f"/pusher/command/{source}",
+                                     lambda m, s=source: commands.append((s, m)), DEEP)
+        out = Sender(node)
+        out.add("policy/action", JointState)
+        out.add("teleop/action", JointState)
+        assert node.spin_until(lambda: out.matched() and node.count_publishers("/pusher/command/policy"), 30), \
+            proc.output()
+        stamp = [START]
+
+        def send(topic: str, case, stamp_ns: int) -> None:
+            out.send(topic, joint_msg(case.fields, stamp_ns, rng))
+            if case.expect is None and case.fields["effort"] and not case.fields["bad_stamp"]:
+                named = dict(zip(case.fields["name"] or ["shoulder", "elbow"], case.fields["effort"]))
+                action = np.clip(np.float32([named["shoulder"], named["elbow"]]), -1, 1)
+                source = "policy" if topic == "policy/action" else "human"
+                sent_actions[source].setdefault(stamp_ns, []).append(action)
+
+        def close_round() -> None:
+            """The policy's action for a new stamp and the corrector's yield: forwarded as the policy's."""
+            while True:
+                stamp[0] += TICK
+                s = stamp[0]
+                send("policy/action", command_case(rng, "valid"), s)
+                send("teleop/action", command_case(rng, "empty", allow_empty=True), s)
+                if node.spin_until(lambda: any(_stamp(m) == s for _, m in commands), 2.0):
+                    return
+
+        deadline = time.monotonic() + 20  # discovery can drop the first messages
+        while not commands and time.monotonic() < deadline:
+            close_round()
+        baseline = status.wait(lambda s: True)
+        assert baseline is not None and not baseline["rejected"], baseline
+        sent_before, out.sent = Counter(baseline["messages"]), Counter()
+        rss_start, rounds = None, 0
+        while min(out.sent.values(), default=0) < MESSAGES - 1000:
+            rounds += 1
+            if rounds == 50:
+                rss_start = rss_kib(proc.pid)
+            for topic in ("policy/action", "teleop/action"):
+                for _ in range(ROUND):
+                    case = command_case(rng, JOINT_KINDS[int(rng.integers(len(JOINT_KINDS)))],
+                                        allow_empty=topic == "teleop/action")
+                    # good ones for stamps of their own (stray, stale or future): the rule decides them
+                    send(topic, case, stamp[0] + int(rng.integers(-100, 100)) * TICK + 7)
+                    if case.expect is not None:
+                        expected[case.expect] += 1
+            close_round()
+            assert proc.running(), proc.output()[-3000:]
+        st = status.wait(lambda s: Counter(s["messages"]) - sent_before == out.sent, 10)
+        assert st is not None, (status.seen[-1], dict(out.sent))
+        assert_counted_and_throttled(st, expected, proc)
+        for topic in ("policy/action", "teleop/action"):  # a burst: good actions, each for a stamp of its own
+            for _ in range(MESSAGES - out.sent[topic] - 1):
+                stamp[0] += TICK
+                send(topic, command_case(rng, "valid"), stamp[0])
+        close_round()
+        rss_end = rss_kib(proc.pid)
+    assert proc.running(), proc.output()[-3000:]
+    assert min(out.sent.values()) >= MESSAGES
+    for source, msg in commands:  # only ever an action sent for that stamp, by that side (clipped)
+        action = np.array(msg.effort, np.float32)
+        assert np.all(np.isfinite(action)) and np.all(np.abs(action) <= 1.0)
+        s = _stamp(msg)
+        assert any(np.array_equal(action, a) for a in sent_actions[source].get(s, [])), (source, s, action)
+    assert rss_end - rss_start < RSS_SLACK_KIB, (rss_start, rss_end)
