@@ -29,7 +29,8 @@ def _joint_index(names, n_values: int, what: str) -> tuple[list[int] | None, Rej
     names = list(names)
     if not names:
         if n_values != ACT_DIM:
-            return None, Rejection("wrong length", f"{n_values} {what} without joint names, expected {ACT_DIM} ({_ARM})")
+            return None, Rejection("wrong length",
+                                   f"{n_values} {what} without joint names, expected {ACT_DIM} ({_ARM})")
         return list(range(ACT_DIM)), None
     if len(names) != n_values:
         return None, Rejection("wrong length", f"{len(names)} joint names but {n_values} {what}")

@@ -37,7 +37,8 @@ from .errors import UserError
 from .learners.config import TrainConfig
 from .learners.online import OnlineLearner, OnlineSettings
 from .joint_messages import VALUE_LIMIT
-from .policy import LoadedPolicy, checkpoint_from_bytes, checkpoint_to_bytes, load_checkpoint, policy_for_task, save_checkpoint
+from .policy import (LoadedPolicy, checkpoint_from_bytes, checkpoint_to_bytes, load_checkpoint, policy_for_task,
+                     save_checkpoint)
 from .rejections import Rejection, RejectionCounter
 from .transitions import LAYOUT_SLICES, SOURCE_NAMES, Transitions
 
@@ -69,7 +70,8 @@ def check_row(row: np.ndarray) -> Rejection | None:
     wild = [label for label in ("obs", "reward", "next_obs") if np.any(np.abs(row[LAYOUT_SLICES[label]]) > VALUE_LIMIT)]
     if wild:
         return Rejection("out of range", f"{', '.join(wild)} beyond ±{VALUE_LIMIT:g}")
-    flags = [label for label in ("terminated", "truncated", "success") if row[LAYOUT_SLICES[label]][0] not in (0.0, 1.0)]
+    flags = [label for label in ("terminated", "truncated", "success")
+             if row[LAYOUT_SLICES[label]][0] not in (0.0, 1.0)]
     if flags:
         return Rejection("out of range", f"{', '.join(flags)} not 0 or 1")
     counters = [label for label in ("episode", "step") if not _count(row[LAYOUT_SLICES[label]][0])]

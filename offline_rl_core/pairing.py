@@ -73,8 +73,8 @@ class StampOrder:
         if stamp < self.newest:
             return Rejection("stale stamp", f"stamp {stamp / NS_PER_S:.3f} s is older than the newest, "
                                             f"{self.newest / NS_PER_S:.3f} s")
-        return Rejection("future stamp", f"stamp {stamp / NS_PER_S:.3f} s jumps more than {self.jump_ns / NS_PER_S:g} s "
-                                         f"ahead of {self.newest / NS_PER_S:.3f} s")
+        return Rejection("future stamp", f"stamp {stamp / NS_PER_S:.3f} s jumps more than "
+                                         f"{self.jump_ns / NS_PER_S:g} s ahead of {self.newest / NS_PER_S:.3f} s")
 
     def _confirms(self, stamp: int) -> bool:
         return self.candidate is not None and self.candidate <= stamp <= self.candidate + self.jump_ns

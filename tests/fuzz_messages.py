@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import io
 import math
+import zipfile
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -133,7 +134,8 @@ def transition_case(rng: np.random.Generator, kind: str, rows: np.ndarray) -> Ca
     if kind == "nan":
         row[int(rng.integers(len(row)))], expect = _wild(rng), "non-finite"
     elif kind == "huge action":
-        row[LAYOUT_SLICES["action"].start + int(rng.integers(2))], expect = _pick(rng, [HUGE, -1.5, 3.0]), "out of range"
+        row[LAYOUT_SLICES["action"].start + int(rng.integers(2))] = _pick(rng, [HUGE, -1.5, 3.0])
+        expect = "out of range"
     elif kind == "huge value":
         label = _pick(rng, ["obs", "reward", "next_obs"])
         sl = LAYOUT_SLICES[label]
@@ -188,6 +190,17 @@ def broken_checkpoints(good: dict) -> dict[str, bytes]:
     nan["policy_state"]["4.bias"] = torch.full_like(good["policy_state"]["4.bias"], float("nan"))
     return {"wrong dims": checkpoint_bytes(wrong_dims), "non-finite weights": checkpoint_bytes(nan),
             "not a checkpoint": checkpoint_bytes({"format": "something else", "weights": torch.ones(3)})}
+
+
+def flip_in_tensor_data(data: bytes) -> bytes:
+    """``data`` (a torch.save zip) with one bit flipped inside its largest tensor record:
+    torch.load reads it as other weights; only the zip's CRC tells."""
+    with zipfile.ZipFile(io.BytesIO(data)) as archive:
+        info = max((i for i in archive.infolist() if "/data/" in i.filename), key=lambda i: i.file_size)
+    start = info.header_offset + 30 + len(info.filename.encode()) + len(info.extra)  # past the local header
+    flipped = bytearray(data)
+    flipped[start + info.file_size // 2] ^= 0x10
+    return bytes(flipped)
 
 
 def weights_case(rng: np.random.Generator, kind: str, good: bytes, broken: dict[str, bytes]) -> Case:

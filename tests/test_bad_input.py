@@ -10,7 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fuzz_messages import (JOINT_KINDS, POINT_KINDS, TRANSITION_KINDS, WEIGHTS_KINDS, broken_checkpoints,
-                           checkpoint_bytes, command_case, joint_case, point_case, transition_case, weights_case)
+                           checkpoint_bytes, command_case, flip_in_tensor_data, joint_case, point_case,
+                           transition_case, weights_case)
 from offline_rl_core.joint_messages import action_from_effort, joints_from_state, point_xy
 from offline_rl_core.pairing import NS_PER_S, StampOrder, StatePairing, check_answer_stamp, check_stamp
 from offline_rl_core.rejections import REASONS, Rejection, RejectionCounter
@@ -95,6 +96,8 @@ def test_fuzzed_weights_messages_never_load(tmp_path):
                  "hidden": 32, "policy_state": dict(net.state_dict()), "weights_version": 1}
     good, broken = checkpoint_bytes(good_ckpt), broken_checkpoints(good_ckpt)
     assert policy_from_weights_message("pusher-rl/weights", good, "w")[0] is not None
+    # a flipped bit in a tensor: torch.load would read other weights; the zip's CRC refuses it
+    assert "CRC" in policy_from_weights_message("pusher-rl/weights", flip_in_tensor_data(good), "w")[1]
     rng = np.random.default_rng(4)
     same = 0
     for _ in range(600):

@@ -43,7 +43,7 @@ class NodeStatus:
         self.warn(topic, rejection)
 
     def warn(self, topic: str, rejection: Rejection) -> None:
-        """The throttled warning about a rejection already counted (by the node's logic)."""
+        """Warn (throttled) about a rejection already counted by the node's logic."""
         line = self.rejections.warning(topic, rejection)
         if line is not None:
             self.node.get_logger().warning(line)
