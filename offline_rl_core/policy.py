@@ -143,6 +143,8 @@ class LoadedPolicy:
         # the online learner's Gaussian: exploration samples tanh(mean + std * eps)
         log_std = checkpoint.get("exploration_log_std")
         self.exploration_log_std = None if log_std is None else np.asarray(log_std, np.float32).reshape(-1)
+        # the online learner's weights carry their version; a trained checkpoint has none
+        self.versioned = "weights_version" in checkpoint
         self.weights_version = int(checkpoint.get("weights_version", 0) or 0)
         mean = checkpoint.get("obs_mean")
         std = checkpoint.get("obs_std")

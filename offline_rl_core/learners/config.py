@@ -34,7 +34,7 @@ class TrainConfig:
     alpha: float = _opt(0.01, "SAC entropy weight (fixed unless --target-entropy is set)")
     target_entropy: float | None = _opt(None, "SAC: tune the entropy weight toward this entropy")
     init_log_std: float = _opt(-1.0, "SAC: the Gaussian policy's initial log-std")
-    bc_weight: float = _opt(1.0, "SAC: weight of the squared error to a person's (source human) actions")
+    bc_weight: float = _opt(3.0, "SAC: weight of the squared error to a person's (source human) actions")
     filter_top_frac: float = _opt(0.1, "filtered BC: share of best episodes by return")
     correction_ratio: float | None = _opt(
         None, "share of each batch drawn from correction runs (policy/human transitions); default: uniform")

@@ -22,6 +22,7 @@ The logic lives in ``offline_rl_core.online_service``; this node only moves mess
 from __future__ import annotations
 
 import array
+import os
 import sys
 
 from rclpy.node import Node
@@ -65,6 +66,8 @@ PARAMS = [
     Param("lr", _T.lr, "Adam learning rate", low=1e-8, high=1.0, read_only=True, flag="--lr"),
     Param("batch_size", _T.batch_size, "batch size", low=1, read_only=True, flag="--batch-size"),
     Param("threads", 1, "torch threads while training", low=1, read_only=True, flag="--threads"),
+    Param("nice", 0, "raise the learner's niceness by this much, so a realtime actor on the same machine is "
+          "scheduled first (0-19)", low=0, high=19, read_only=True, flag="--nice"),
     Param("save_every", 2.0, "seconds between resume points (learner_state.pt)", low=0.1, read_only=True,
           flag="--save-every"),
     Param("snapshot_every", 0, "live transitions between kept weights snapshots (OUT/snapshots; 0: none)", low=0,
@@ -81,6 +84,8 @@ class Learner(Node):
         s = Settings(self, PARAMS)
         from offline_rl_core.errors import UserError
 
+        if s.nice:
+            os.nice(s.nice)  # training yields the CPU to the nodes that answer the arm in time
         if not s.bag:
             raise UserError("no offline bag given: pass --bag PATH (repeat for several) or -p bag:=[PATH, ...]")
         train = TrainConfig(algo="sac", alpha=s.alpha, bc_weight=s.bc_weight, init_log_std=s.init_log_std, lr=s.lr,

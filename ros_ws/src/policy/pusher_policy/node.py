@@ -57,6 +57,7 @@ from pusher_common.stamps import stamp_key  # noqa: E402
 from pusher_common.status import NodeStatus  # noqa: E402
 
 WARN_THROTTLE_S = 2.0
+PACED_QUEUE_DEPTH = 10_000
 # The learner publishes reliable and transient local: a late joiner gets the latest version.
 # Several may wait to be read (a burst, or bad messages among good ones): read in order, the
 # newest good one acts, and none is overwritten unread.
@@ -114,9 +115,12 @@ class PolicyServer(Node):
                                                        "weights_version": self.policy.weights_version})
 
         # Target subscription first: when both are ready the executor takes it first.
-        self.create_subscription(PointStamped, "pusher/target", self.on_target, 10)
-        self.create_subscription(PointStamped, "pusher/fingertip", self.on_fingertip, 10)
-        self.create_subscription(JointState, "pusher/state", self.on_state, 10)
+        # Paced, every state counts (it indexes the pacing and the exploration noise), and
+        # while a person holds the arm the sim runs ahead of this node: keep them all.
+        depth = PACED_QUEUE_DEPTH if self.settings.paced_every else 10
+        self.create_subscription(PointStamped, "pusher/target", self.on_target, depth)
+        self.create_subscription(PointStamped, "pusher/fingertip", self.on_fingertip, depth)
+        self.create_subscription(JointState, "pusher/state", self.on_state, depth)
         self.action_pub = self.create_publisher(JointState, "policy/action", 10)
         self.provenance_pub = self.create_publisher(String, "policy/provenance", 10)
         if self.settings.weights_topic:

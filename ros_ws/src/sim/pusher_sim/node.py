@@ -43,14 +43,13 @@ from offline_rl_core.env import CONTROL_HZ, JOINT_NAMES
 from offline_rl_core.joint_messages import action_from_effort, action_from_torques
 from offline_rl_core.pairing import check_answer_stamp, check_stamp
 from offline_rl_core.sim_loop import MODES, ArmState, SimLoop, Step, TickTiming
-from offline_rl_core.transitions import SOURCE_NAMES, SOURCE_POLICY
+from offline_rl_core.transitions import SOURCE_NAMES, SOURCE_POLICY, source_from_tag
 from pusher_common.node_main import run_node
 from pusher_common.params import Param, Settings
 from pusher_common.spin import spin_node_fast
 from pusher_common.stamps import NS_PER_S, stamp_from_ns, stamp_key
 from pusher_common.status import NodeStatus
 
-SOURCE_BY_NAME = {name: code for code, name in SOURCE_NAMES.items()}
 # Transitions must not be dropped by a slow reader: a deep reliable history.
 TRANSITION_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 
@@ -74,16 +73,6 @@ PARAMS = (
           "topic, as an effort controller does (realtime; e.g. effort_controller/commands; empty: off)",
           read_only=True),
 )
-
-
-def source_from_tag(frame_id: str) -> int | None:
-    """Read the source named by a deprecated ``header.frame_id`` tag (None: none)."""
-    tag = frame_id.strip().lower()
-    if tag in SOURCE_BY_NAME:
-        return SOURCE_BY_NAME[tag]
-    if tag.isdigit() and int(tag) in SOURCE_NAMES:
-        return int(tag)
-    return None
 
 
 class PusherSim(Node):
