@@ -133,7 +133,7 @@ def test_the_learner_node_drops_bad_transitions_and_counts_them(spawn, tmp_path,
                                and sum(statuses[-1]["rejected"].values()) == 2, 30), (statuses[-3:], learner.output())
     assert set(statuses[-1]["rejected"]) == {"non-finite", "bad layout"}
     assert statuses[-1]["weights_version"] == 1  # the two good ones were trained on and a version cut
-    assert "dropped a pusher/transition" in learner.output()
+    assert "ignoring pusher/transition" in learner.output()
 
 
 @pytest.mark.slow
