@@ -40,6 +40,7 @@ DEFAULT_BAG = "bags/mix.db3"
 THRESHOLDS = (0.5, 0.8, 0.9, 0.95)
 EPISODE_STEPS = 100
 MAX_LEARNER_RESTARTS = 3
+RECORDER_GRACE_S = 20.0  # after the sim's last episode, for the recorder to write it and end
 
 
 @dataclass
@@ -167,7 +168,7 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
     launched = loop.launch("online.launch.yaml", arguments, out / "logs", ready=ready, timeout=120.0)
     person = _keyboard_corrector(loop, log) if cfg.corrector == "keyboard" else None
     started = time.monotonic()
-    shown, restarts = 0, 0
+    shown, restarts, sim_done = 0, 0, 0.0
     log(f"hil online: learner pid {launched['learner'].pid}")
     while launched.finished() is None:
         if time.monotonic() - started > cfg.timeout:
@@ -177,9 +178,17 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
             _restart_learner(cfg, loop, launched, learner_dir, out, restarts, log)
         for name in ("learner", "policy", "sim"):
             proc = launched[name]
-            if not proc.running() and launched.finished() is None:
-                raise UserError(f"the {name} node stopped (exit {proc.poll()}); see {proc.log_path}:\n"
-                                + "\n".join(proc.output().rstrip().splitlines()[-12:]))
+            if proc.running() or launched.finished() is not None:
+                continue
+            if name == "sim" and proc.poll() == 0:
+                # the sim ran its episodes: the recorder ends once it has written the last one
+                sim_done = sim_done or time.monotonic()
+                if time.monotonic() - sim_done < RECORDER_GRACE_S:
+                    continue
+                raise UserError(f"the sim ran its {episodes} episodes but the recorder did not end within "
+                                f"{RECORDER_GRACE_S:.0f} s; see {out / 'logs' / 'recorder.log'}")
+            raise UserError(f"the {name} node stopped (exit {proc.poll()}); see {proc.log_path}:\n"
+                            + "\n".join(proc.output().rstrip().splitlines()[-12:]))
         if person is not None and person.poll() is not None:
             log("hil online: the person quit the keyboard corrector; ending the session")
             break

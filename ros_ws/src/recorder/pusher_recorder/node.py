@@ -169,6 +169,7 @@ class Recorder(Node):
         self.episodes_done = 0
         self.transitions = 0
         self.last_stamp_ns = 0
+        self.before_clock: list[tuple[str, bytes]] = []  # (topic, message) received before sim time starts
         self.start_time = time.monotonic()
         self.progress_tty = sys.stderr.isatty()
         self.last_progress_decile = -1
@@ -281,9 +282,21 @@ class Recorder(Node):
         if topic not in self.bag_topics:
             self.add_to_bag(topic, self.types[topic], self.get_publishers_info_by_topic(topic))
             self.bag_topics.add(topic)
+        now_ns = self.get_clock().now().nanoseconds
+        if now_ns == 0:
+            # sim time before the first /clock: held until the clock starts, so no message
+            # is stamped at the epoch (ros2 bag record would)
+            self.before_clock.append((topic, raw))
+            return
+        for held_topic, held_raw in self.before_clock:
+            self.write_stamped(held_topic, now_ns, held_raw)
+        self.before_clock.clear()
+        self.write_stamped(topic, now_ns, raw)
+
+    def write_stamped(self, topic: str, now_ns: int, raw: bytes) -> None:
         # The node's clock (sim time when use_sim_time is set), strictly increasing so the
         # bag's order is the arrival order.
-        stamp = max(self.get_clock().now().nanoseconds, self.last_stamp_ns + 1)
+        stamp = max(now_ns, self.last_stamp_ns + 1)
         self.last_stamp_ns = stamp
         self.bag.write(topic, stamp, raw)
 
@@ -380,6 +393,11 @@ class Recorder(Node):
         self.close_bag()
 
     def close_bag(self) -> None:
+        if self.before_clock:  # /clock never came: keep the messages, stamped with the wall clock
+            self.get_logger().warn(f"no /clock came: {len(self.before_clock)} messages stamped with the wall clock")
+            held, self.before_clock = self.before_clock, []
+            for topic, raw in held:
+                self.write_stamped(topic, time.time_ns(), raw)
         try:
             self.bag.close()  # every message received is in the bag, however we got here
         except UserError as exc:

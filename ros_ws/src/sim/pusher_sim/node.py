@@ -65,8 +65,8 @@ PARAMS = (
     Param("republish_period", 0.1, "lockstep: seconds before a state whose command has not come is published again",
           low=0.001, high=60.0),
     # a passive recorder started beside the sim then gets every transition from the first on
-    Param("wait_for_subscribers", 0, "lockstep: hold the first state until this many pusher/transition readers "
-          "are matched", low=0, read_only=True),
+    Param("wait_for_subscribers", 0, "hold the first state (lockstep) or the first tick (realtime) until this "
+          "many pusher/transition readers are matched", low=0, read_only=True),
     Param("start_time", 0.0, "sim time of the first state, in seconds since the epoch (0: the wall clock at start, "
           "whole seconds); every stamp and /clock count 20 ms per tick from it", low=0.0, read_only=True),
     Param("effort_topic", "", "also take commands as std_msgs/Float64MultiArray joint torques in N·m on this "
@@ -137,10 +137,8 @@ class PusherSim(Node):
     # -------------------------------------------------------------- publishing
     def publish_state(self, state: ArmState | None = None, new: bool = True) -> None:
         state = state or self.loop.current
-        if self.wait_for_subscribers > 0 and self.mode == "lockstep":
-            if self.transition_pub.get_subscription_count() < self.wait_for_subscribers:
-                return  # the republish timer tries again
-            self.wait_for_subscribers = 0  # matched once: never hold again
+        if self.mode == "lockstep" and not self.readers_matched():
+            return  # the republish timer tries again
         stamp = stamp_from_ns(state.stamp_ns)
         # /clock and joint_states only when someone listens: each publish costs the
         # lockstep loop as much as a physics step
@@ -224,9 +222,19 @@ class PusherSim(Node):
         self.get_logger().warning(f"ignoring {self.settings.effort_topic}: torques carry no stamp, and lockstep "
                                   "steps on the command for a state's stamp (use pusher/command)", once=True)
 
+    def readers_matched(self) -> bool:
+        """Whether the transition readers asked for are there (matched once: never hold again)."""
+        if self.wait_for_subscribers > 0:
+            if self.transition_pub.get_subscription_count() < self.wait_for_subscribers:
+                return False
+            self.wait_for_subscribers = 0
+        return True
+
     def on_tick(self) -> None:
         if self.finished.done():
             return
+        if not self.readers_matched():
+            return  # the arm waits at its first state: a recorder or learner started beside it gets every step
         self.timing.tick(time.monotonic())
         self.publish_step(self.loop.tick())
 
