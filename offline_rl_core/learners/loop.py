@@ -22,12 +22,13 @@ from ..transitions import Transitions
 from .awac import AWAC
 from .bc import BC
 from .config import TrainConfig
-from .data import IndexSampler, MemberData, correction_pools, top_episode_rows
+from .data import IndexSampler, MemberData, correction_pools, goal_episode_rows, top_episode_rows
 from .filtered_bc import FilteredBC
 from .iql import IQL
 from .naive import NaiveMaxQ
 from .sac import SAC
 from .resume import ResumePoints, learner_training_state, load_learner_training_state
+from .schedule import LearningRates
 from .stepper import make_step
 
 LEARNERS = {"bc": BC, "filtered_bc": FilteredBC, "awac": AWAC, "iql": IQL, "naive": NaiveMaxQ, "sac": SAC}
@@ -75,7 +76,8 @@ def seed_generators(seed: int) -> tuple[torch.Generator, torch.Generator]:
 
 def _member_pools(data: Transitions, cfg: TrainConfig):
     if cfg.algo == "filtered_bc":
-        return (torch.from_numpy(top_episode_rows(data, cfg.filter_top_frac)), None)
+        rows = goal_episode_rows(data) if cfg.filter_by == "goal" else top_episode_rows(data, cfg.filter_top_frac)
+        return (torch.from_numpy(rows), None)
     if cfg.correction_ratio is not None:
         prior, corrections = correction_pools(data)
         if len(corrections) and len(prior):
@@ -90,12 +92,15 @@ def train_seeds(
     progress: Callable[[Progress], None] | None = None,
     init: dict | None = None,
     resume: ResumePoints | None = None,
+    snapshot: Callable[[int, float, object], None] | None = None,
 ) -> list[TrainResult]:
     """Train ``cfg.algo`` once per seed; ``datasets`` is one Transitions for all seeds
     or one per seed. ``init`` (a checkpoint dict) warm-starts every run from it.
     ``resume``: write a resume point every ``resume.every_s`` seconds, and with
     ``resume.resume`` start from the one there (the result is the same bytes as a run
-    that was never stopped)."""
+    that was never stopped). ``snapshot(step, elapsed_s, learner)`` is called at every
+    log point (every ``cfg.log_every`` steps and the last), e.g. to keep the policy
+    of a learning curve; it must not change the learner."""
     seeds = [int(s) for s in seeds]
     if not seeds:
         raise ValueError("no seeds to train")
@@ -131,9 +136,11 @@ def train_seeds(
         load_learner_training_state(learner, saved["learner"])
         sampler.load_state(saved["sampler"])
         histories, first_step, before = saved["histories"], int(saved["step"]) + 1, float(saved["elapsed_s"])
+    rates = LearningRates(learner, cfg.lr_schedule, cfg.steps)  # after a resume point's optimiser state
     start = time.perf_counter() - before
     with torch_threads(cfg.threads), on_device(cfg.device):
         for step in range(first_step, cfg.steps + 1):
+            rates.at(step)
             losses = step_once(sampler.next())
             if step % cfg.log_every == 0 or step == cfg.steps:
                 values = {k: v.float().tolist() for k, v in losses.items()}  # the only host sync
@@ -144,6 +151,8 @@ def train_seeds(
                 if progress is not None:
                     scalars = {k: float(np.mean(v)) for k, v in values.items()}
                     progress(Progress(step, cfg.steps, time.perf_counter() - start, scalars))
+                if snapshot is not None:
+                    snapshot(step, time.perf_counter() - start, learner)
             if resume is not None and step < cfg.steps and resume.due():
                 resume.write({"identity": identity, "step": step, "histories": histories,
                               "elapsed_s": time.perf_counter() - start, "sampler": sampler.state(),
@@ -183,6 +192,6 @@ def train_seeds(
 
 
 def train(dataset: Transitions, cfg: TrainConfig, seed: int, progress=None, init=None,
-          resume: ResumePoints | None = None) -> TrainResult:
+          resume: ResumePoints | None = None, snapshot=None) -> TrainResult:
     """One run: ``train_seeds`` with a single seed."""
-    return train_seeds(dataset, cfg, [seed], progress, init, resume)[0]
+    return train_seeds(dataset, cfg, [seed], progress, init, resume, snapshot)[0]

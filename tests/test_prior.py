@@ -1,0 +1,115 @@
+"""``--algo auto`` picks the learner from what the bag holds; ``--budget-s`` becomes a step
+count before training, reproducibly; the cosine learning rate replays like any step."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from offline_rl_core import cli
+from offline_rl_core.bag import write_transitions
+from offline_rl_core.collect import collect_transitions
+from offline_rl_core.learners import TrainConfig, train_seeds
+from offline_rl_core.learners.data import goal_episode_rows, top_episode_rows
+from offline_rl_core.learners.schedule import lr_factor
+from offline_rl_core.prior import choose_recipe, profile_bag, steps_for_budget
+
+TINY = ["--hidden", "32", "--batch-size", "32", "--eval-episodes", "2", "--log-every", "50"]
+
+
+@pytest.fixture
+def own_cache(tmp_path, monkeypatch):
+    """A fresh measurement cache: the step rate is measured here, then reused."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    return tmp_path / "cache" / "pusher-rl"
+
+
+def _bag(tmp_path, name, episodes, expert_frac):
+    path = tmp_path / f"{name}.db3"
+    write_transitions(path, collect_transitions(episodes, expert_frac, 0))
+    return path
+
+
+def _train(bag, out, *extra):
+    return cli.main(["train", "--bag", str(bag), "--algo", "auto", "--out", str(out), *TINY, *extra])
+
+
+def test_auto_clones_an_expert_only_bag_and_filters_a_mixed_one(tmp_path):
+    expert = _bag(tmp_path, "expert", 12, 1.0)
+    mixed = _bag(tmp_path, "mixed", 40, 0.3)
+    assert _train(expert, tmp_path / "e", "--steps", "100") == 0
+    assert _train(mixed, tmp_path / "m", "--steps", "100") == 0
+    e = json.loads((tmp_path / "e" / "metrics.json").read_text())
+    m = json.loads((tmp_path / "m" / "metrics.json").read_text())
+    assert e["algorithm"] == "bc" and e["plan"]["profile"]["expert_like"] == 12
+    assert m["algorithm"] == "filtered_bc" and m["plan"]["profile"]["expert_like"] == 12
+    assert e["config"]["lr_schedule"] == m["config"]["lr_schedule"] == "cosine"
+    assert e["steps"] == m["steps"] == 100  # --steps given: no budget
+
+
+def test_the_filter_keeps_exactly_the_episodes_that_end_at_the_goal():
+    data = collect_transitions(40, 0.3, 0)
+    profile = profile_bag(data)
+    assert profile.expert_like == 12 and profile.episodes == 40
+    recipe = choose_recipe(profile)
+    assert recipe.algo == "filtered_bc" and recipe.overrides["filter_by"] == "goal"
+    rows = goal_episode_rows(data)
+    assert set(np.unique(data.source[rows])) == {0}  # the expert's 12 episodes
+    assert len(np.unique(data.episode[rows])) == 12
+    # ranking by return instead would let in random episodes that started near the target
+    by_return = top_episode_rows(data, 12 / 40)
+    assert set(np.unique(data.source[by_return])) == {0, 1}
+
+
+def test_too_few_demonstrations_fall_back_to_awac():
+    random_only = profile_bag(collect_transitions(20, 0.0, 0))
+    assert random_only.expert_like < 10
+    assert choose_recipe(random_only).algo == "awac"
+    few = profile_bag(collect_transitions(30, 0.2, 0))  # 6 demonstrations
+    assert choose_recipe(few).algo == "awac"
+
+
+def test_a_budget_becomes_the_same_steps_and_bytes_every_time(tmp_path, own_cache):
+    bag = _bag(tmp_path, "mixed", 40, 0.3)
+    assert _train(bag, tmp_path / "a", "--budget-s", "0.4") == 0
+    assert (own_cache / "step_rates.json").exists()
+    assert _train(bag, tmp_path / "b", "--budget-s", "0.4") == 0
+    a = (tmp_path / "a" / "metrics.json").read_bytes()
+    assert a == (tmp_path / "b" / "metrics.json").read_bytes()
+    plan = json.loads(a)["plan"]
+    assert plan["steps"] == json.loads(a)["steps"] == steps_for_budget(0.4, plan["steps_per_s"])
+    assert plan["budget_s"] == 0.4 and plan["budget_from"] == "--budget-s"
+    # the recorded steps reproduce the run without the budget
+    assert _train(bag, tmp_path / "c", "--steps", str(plan["steps"])) == 0
+    pa = torch.load(tmp_path / "a" / "policy.pt", weights_only=True)["policy_state"]
+    pc = torch.load(tmp_path / "c" / "policy.pt", weights_only=True)["policy_state"]
+    assert all(torch.equal(pa[k], pc[k]) for k in pa)
+
+
+def test_steps_for_budget_spends_a_fixed_share_in_whole_hundreds():
+    assert steps_for_budget(10.0, 1000.0) == 8500
+    assert steps_for_budget(10.0, 1001.0) == 8500
+    assert steps_for_budget(0.01, 1000.0) == 100  # never zero
+
+
+def test_steps_and_budget_together_is_one_clear_error(tmp_path, capsys):
+    bag = _bag(tmp_path, "mixed", 4, 0.5)
+    assert _train(bag, tmp_path / "x", "--steps", "100", "--budget-s", "5") == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == "offline-rl: error: give --steps or --budget-s, not both"
+    assert not (tmp_path / "x").exists()
+
+
+def test_cosine_rate_replays_byte_identically_and_changes_the_run(monkeypatch):
+    assert lr_factor("cosine", 1, 100) == 1.0 and lr_factor("cosine", 100, 100) < 1e-3
+    data = collect_transitions(10, 0.5, 0)
+    cfg = dict(algo="bc", steps=30, log_every=10, batch_size=32, hidden=32)
+
+    def run(mode, schedule):
+        monkeypatch.setenv("PUSHER_RL_STEP", mode)
+        return train_seeds(data, TrainConfig(**cfg, lr_schedule=schedule), [0])[0].checkpoint["policy_state"]
+
+    eager, replayed, constant = run("autograd", "cosine"), run("auto", "cosine"), run("auto", "constant")
+    assert all(torch.equal(eager[k], replayed[k]) for k in eager)
+    assert not all(torch.equal(eager[k], constant[k]) for k in eager)
