@@ -3,23 +3,24 @@ the bag holds and the time the user gives.
 
 What the bag holds (``profile_bag``): its episodes and their returns, and how many of
 them are *expert-like*: they end at the goal (the last observation within the success
-tolerance of the target). A scripted or skilled demonstration ends there; random
-actions almost never do (1 in 70 episodes here), even when they pass through the goal on
-the way. The recipe (``choose_recipe``), chosen on validation data (bench/RESULTS.md,
-"Choosing the prior"):
+tolerance of the target, ``learners.data.episodes_at_goal``). A scripted or skilled
+demonstration ends there; random actions almost never do (1 or 2 episodes in 140 here),
+even those that pass through the goal on the way. Ranking episodes by return instead lets
+in random episodes that merely started near the target (8 of the "top 30 %" of the
+chapter's mix). The recipe (``choose_recipe``), chosen on validation data only
+(bench/RESULTS.md, "Choosing the prior"):
 
-- enough expert-like episodes (``MIN_EXPERT_EPISODES``) and the rest of the bag clearly
-  not: filtered BC on exactly the expert-like share (the top episodes by return), with
-  a cosine learning-rate decay over the whole budget;
-- every episode expert-like: plain BC with the same decay;
-- too few: AWAC (the chapter's settings), which can still learn from poor data.
+- at least ``MIN_EXPERT_EPISODES`` expert-like episodes: filtered BC on exactly those,
+  on z-scored observations (``--normalize-obs``); when every episode is expert-like
+  that is plain BC;
+- fewer: AWAC with the chapter's settings, which can still learn from poor data.
 
-The time (``Budget``) becomes a step count before training starts, from the learner's
-step rate on this machine (``step_rate``: measured once, cached like the kernel choice),
-so a run is reproducible: the steps are recorded in metrics.json, and the same seed and
-steps give the same bytes. The default budget is the wall time of the chapter's own AWAC
-loop (8000 steps, ``benchmarks/reference_chapter.py``) on this machine, measured the
-same way.
+The time (``plan_training``) becomes a step count before training starts, from the
+learner's step rate on this machine (``step_rate``: measured once, then cached like the
+kernel choice), so a run is reproducible: the steps are recorded in metrics.json, and the
+same seed and steps give the same bytes. The default budget is the wall time of the
+chapter's own AWAC loop (8000 steps, ``benchmarks/reference_chapter.py``) on this
+machine, measured the same way.
 """
 
 from __future__ import annotations
@@ -40,8 +41,6 @@ from .transitions import Transitions
 
 # Fewer expert-like episodes than this and the filtered set is too small to clone from.
 MIN_EXPERT_EPISODES = 10
-# At least this share expert-like: every episode is treated as a demonstration.
-ALL_EXPERT_SHARE = 0.9
 # Share of the budget spent in gradient steps; the rest absorbs step-rate noise and the
 # run's set-up (recording the step, evaluation, writing files).
 TRAIN_SHARE = 0.85
@@ -86,12 +85,12 @@ class Recipe:
 
 def choose_recipe(profile: BagProfile) -> Recipe:
     k, n = profile.expert_like, profile.episodes
-    if k >= MIN_EXPERT_EPISODES and profile.expert_like_share >= ALL_EXPERT_SHARE:
-        return Recipe("bc", {"lr_schedule": "cosine"},
-                      f"{k} of {n} episodes end at the goal: clone them all (BC, cosine decay)")
+    if k >= MIN_EXPERT_EPISODES and k == n:
+        return Recipe("bc", {"normalize_obs": True},
+                      f"{k} of {n} episodes end at the goal: clone them all (BC on z-scored observations)")
     if k >= MIN_EXPERT_EPISODES:
-        return Recipe("filtered_bc", {"filter_by": "goal", "lr_schedule": "cosine"},
-                      f"{k} of {n} episodes end at the goal: clone those (filtered BC, cosine decay)")
+        return Recipe("filtered_bc", {"filter_by": "goal", "normalize_obs": True},
+                      f"{k} of {n} episodes end at the goal: clone those (filtered BC on z-scored observations)")
     return Recipe("awac", {},
                   f"only {k} of {n} episodes end at the goal (fewer than {MIN_EXPERT_EPISODES}): "
                   f"AWAC, which learns from poor data too")

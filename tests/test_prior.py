@@ -12,6 +12,7 @@ from offline_rl_core.bag import write_transitions
 from offline_rl_core.collect import collect_transitions
 from offline_rl_core.learners import TrainConfig, train_seeds
 from offline_rl_core.learners.data import goal_episode_rows, top_episode_rows
+from offline_rl_core.learners.normalize import fold, unfold
 from offline_rl_core.learners.schedule import lr_factor
 from offline_rl_core.prior import choose_recipe, profile_bag, steps_for_budget
 
@@ -44,7 +45,7 @@ def test_auto_clones_an_expert_only_bag_and_filters_a_mixed_one(tmp_path):
     m = json.loads((tmp_path / "m" / "metrics.json").read_text())
     assert e["algorithm"] == "bc" and e["plan"]["profile"]["expert_like"] == 12
     assert m["algorithm"] == "filtered_bc" and m["plan"]["profile"]["expert_like"] == 12
-    assert e["config"]["lr_schedule"] == m["config"]["lr_schedule"] == "cosine"
+    assert e["config"]["normalize_obs"] and m["config"]["normalize_obs"] and m["config"]["filter_by"] == "goal"
     assert e["steps"] == m["steps"] == 100  # --steps given: no budget
 
 
@@ -113,3 +114,40 @@ def test_cosine_rate_replays_byte_identically_and_changes_the_run(monkeypatch):
     eager, replayed, constant = run("autograd", "cosine"), run("auto", "cosine"), run("auto", "constant")
     assert all(torch.equal(eager[k], replayed[k]) for k in eager)
     assert not all(torch.equal(eager[k], constant[k]) for k in eager)
+
+
+def test_normalised_training_saves_networks_of_raw_observations():
+    """Folding the z-scoring into the first layer gives the same function of raw
+    observations (policy, and critics whose inputs begin with the observation), and
+    unfolding (a warm start) inverts it."""
+    gen = torch.Generator().manual_seed(0)
+    mean, std = np.array([0.5, -1.0, 0.02], np.float32), np.array([2.0, 0.5, 0.05], np.float32)
+    net = {"0.weight": torch.randn(6, 5, generator=gen), "0.bias": torch.randn(6, generator=gen)}
+    state = {"critic1": net, "other": 3}
+    x = torch.randn(4, 3, generator=gen, dtype=torch.float32)
+    a = torch.randn(4, 2, generator=gen)
+    z = (x - torch.from_numpy(mean)) / torch.from_numpy(std)
+    folded = fold(state, mean, std)
+    want = torch.cat([z, a], 1) @ net["0.weight"].T + net["0.bias"]
+    got = torch.cat([x, a], 1) @ folded["critic1"]["0.weight"].T + folded["critic1"]["0.bias"]
+    torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5)
+    assert folded["other"] == 3
+    back = unfold(folded, mean, std)["critic1"]
+    torch.testing.assert_close(back["0.weight"], net["0.weight"])
+    torch.testing.assert_close(back["0.bias"], net["0.bias"], rtol=1e-5, atol=1e-5)
+
+
+def test_a_normalised_run_acts_on_raw_observations_and_warm_starts(tmp_path):
+    data = collect_transitions(10, 0.5, 0)
+    cfg = TrainConfig(algo="filtered_bc", filter_by="goal", normalize_obs=True, steps=200, log_every=100,
+                      batch_size=32, hidden=32)
+    first = train_seeds(data, cfg, [0])[0]
+    assert first.checkpoint["obs_mean"] is None  # folded into the weights
+    obs = data.obs[:50]
+    imitation = np.abs(first.policy.act(obs) - data.action[:50]).mean()
+    untrained = train_seeds(data, TrainConfig(**{**cfg.to_dict(), "steps": 1}), [0])[0]
+    assert imitation < np.abs(untrained.policy.act(obs) - data.action[:50]).mean()
+    # a warm start from it, at a learning rate too small to move it, gives it back
+    again = train_seeds(data, TrainConfig(**{**cfg.to_dict(), "steps": 1, "lr": 1e-12}), [1],
+                        init=first.checkpoint)[0]
+    np.testing.assert_allclose(again.policy.act(obs), first.policy.act(obs), atol=1e-4)

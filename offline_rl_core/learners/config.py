@@ -38,6 +38,9 @@ class TrainConfig:
     target_entropy: float | None = _opt(None, "SAC: tune the entropy weight toward this entropy")
     init_log_std: float = _opt(-1.0, "SAC: the Gaussian policy's initial log-std")
     bc_weight: float = _opt(1.0, "SAC: weight of the squared error to a person's (source human) actions")
+    normalize_obs: bool = _opt(
+        False, "train on z-scored observations (mean and std of the rows sampled); the checkpoint folds them into "
+               "the networks' first layers, so it takes raw observations as any other")
     filter_top_frac: float = _opt(0.1, "filtered BC: share of best episodes by return")
     filter_by: str = _opt("return", "filtered BC: keep the --filter-top-frac best episodes by return (return), "
                                     "or the episodes that end at the goal (goal)")
