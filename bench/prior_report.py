@@ -60,6 +60,7 @@ def bag_for(seed: int, expert_frac: float) -> Path:
         return ROOT / "bags" / "mix.db3"
     path = ROOT / "runs" / "prior" / "bags" / f"mix_s{seed}_e{expert_frac}.db3"
     if not path.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
         subprocess.run([sys.executable, "-m", "offline_rl_core", "collect", "--episodes", "200", "--expert-frac",
                         str(expert_frac), "--seed", str(seed), "--out", str(path)], check=True)
     return path

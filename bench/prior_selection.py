@@ -68,7 +68,8 @@ CANDIDATES: dict[str, tuple[dict, list[int]]] = {
     "fbc30_b1024": ({"algo": "filtered_bc", "filter_top_frac": 0.3, "batch_size": 1024}, [2000, 4000, 8000, 15000]),
     "fbc30_b1024_lr1e3_cos": ({"algo": "filtered_bc", "filter_top_frac": 0.3, "batch_size": 1024, "lr": 1e-3,
                                "lr_schedule": "cosine"}, [4000, 8000, 15000]),
-    "bc": ({"algo": "bc"}, [2000, 4000, 8000, 15000, 30000]),
+    "bc": ({"algo": "bc"}, [2000, 4000, 8000, 15000, 30000, 50000]),
+    "bc_norm_long": ({"algo": "bc", "normalize": True}, [2000, 4000, 8000, 15000, 30000, 50000]),
     "awac": ({"algo": "awac"}, [2000, 4000, 8000, 15000]),
     "iql": ({"algo": "iql"}, [2000, 4000, 8000, 15000]),
 }

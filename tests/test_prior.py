@@ -14,7 +14,7 @@ from offline_rl_core.learners import TrainConfig, train_seeds
 from offline_rl_core.learners.data import goal_episode_rows, top_episode_rows
 from offline_rl_core.learners.normalize import fold, unfold
 from offline_rl_core.learners.schedule import lr_factor
-from offline_rl_core.prior import choose_recipe, profile_bag, steps_for_budget
+from offline_rl_core.prior import choose_recipe, plan_training, profile_bag, step_rate, steps_for_budget
 
 TINY = ["--hidden", "32", "--batch-size", "32", "--eval-episodes", "2", "--log-every", "50"]
 
@@ -64,11 +64,13 @@ def test_the_filter_keeps_exactly_the_episodes_that_end_at_the_goal():
 
 
 def test_too_few_demonstrations_fall_back_to_awac():
-    random_only = profile_bag(collect_transitions(20, 0.0, 0))
-    assert random_only.expert_like < 10
+    random_only = profile_bag(collect_transitions(40, 0.0, 0))
+    assert random_only.expert_like == 0
     assert choose_recipe(random_only).algo == "awac"
-    few = profile_bag(collect_transitions(30, 0.2, 0))  # 6 demonstrations
-    assert choose_recipe(few).algo == "awac"
+    few = profile_bag(collect_transitions(20, 0.15, 0))  # 3 demonstrations
+    assert few.expert_like == 3 and choose_recipe(few).algo == "awac"
+    enough = profile_bag(collect_transitions(20, 0.25, 0))  # 5
+    assert choose_recipe(enough).algo == "filtered_bc"
 
 
 def test_a_budget_becomes_the_same_steps_and_bytes_every_time(tmp_path, own_cache):
@@ -151,3 +153,11 @@ def test_a_normalised_run_acts_on_raw_observations_and_warm_starts(tmp_path):
     again = train_seeds(data, TrainConfig(**{**cfg.to_dict(), "steps": 1, "lr": 1e-12}), [1],
                         init=first.checkpoint)[0]
     np.testing.assert_allclose(again.policy.act(obs), first.policy.act(obs), atol=1e-4)
+
+
+def test_auto_stops_when_the_cloned_rows_need_no_more_steps(own_cache):
+    data = collect_transitions(10, 0.5, 0)  # 5 demonstrations, 500 rows
+    cfg, plan = plan_training(data, TrainConfig(batch_size=32, hidden=32), True, 1e6, None)
+    assert plan["max_steps"] == 15700 == cfg.steps < plan["budget_steps"]  # 1000 passes over 500 rows
+    bc, _ = plan_training(data, TrainConfig(algo="bc", batch_size=32, hidden=32), False, 1.0, None)
+    assert bc.steps == steps_for_budget(1.0, step_rate(bc, data))  # a learner given by name: the budget alone
