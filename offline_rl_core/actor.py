@@ -38,9 +38,10 @@ class Actor:
         return self.policy.weights_version
 
     def offer(self, policy: LoadedPolicy) -> bool:
-        """Take ``policy`` if it is a newer weights version (or unversioned, e.g. a file
-        replaced by hand); returns whether it now acts."""
-        if policy.weights_version and policy.weights_version <= self.version:
+        """Take ``policy`` if it is a newer weights version than the one acting, the
+        learner's first version, or unversioned (a checkpoint file replaced by hand);
+        returns whether it now acts."""
+        if policy.versioned and self.policy.versioned and policy.weights_version <= self.version:
             return False
         self.policy = policy
         return True
@@ -56,8 +57,13 @@ class Actor:
         return self.states // self.paced_every if self.paced_every else 0
 
     def ready(self) -> bool:
-        """Whether the current state may be answered with the weights held."""
-        return self.version >= self.required_version()
+        """Whether the current state may be answered with the weights held. Paced, only
+        the learner's own weights count: the checkpoint the node started from (the prior)
+        has no exploration std, and acting on it until the learner's first version arrives
+        would make the session depend on how fast that message came."""
+        if not self.paced_every:
+            return True
+        return self.policy.versioned and self.version >= self.required_version()
 
     def act(self, obs: np.ndarray, stamp: int | None = None) -> np.ndarray:
         """The action for the state ``obs`` stamped ``stamp``: in [-1, 1] (a non-finite one

@@ -29,7 +29,6 @@ import mujoco
 import mujoco.batch
 import numpy as np
 
-from .atomic import write_json_atomic  # noqa: F401 - TODO(lead): drop once demo.py and hil.py import it from atomic
 from .env import (  # batch_observations is re-exported: part of this module's API
     ACT_DIM,
     FRAME_SKIP,
@@ -214,8 +213,8 @@ def single_threaded_blas():
     """Run numpy's BLAS on one thread inside the block.
 
     A rollout makes ~100 small matmuls per episode batch; handing each to a thread
-    pool costs more than the maths, and on a busy machine it made evaluation 10x
-    slower. Where the BLAS cannot be reached this does nothing.
+    pool costs more than the maths, and on a busy machine far more (bench/RESULTS.md).
+    Where the BLAS cannot be reached this does nothing.
     """
     controls = _openblas_thread_controls()
     if controls is None:

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Callable
 
 from .collect import collect_transitions
+from . import seeds
 from .atomic import write_json_atomic
 from .evaluation import RolloutResult, format_rate, round6, rollout
 from .learners import Progress, TrainConfig
@@ -25,7 +26,7 @@ from .learners.parallel import TrainJob, available_cores, run_jobs
 from .policy import save_checkpoint
 from .stats import excludes_zero, newcombe_diff_ci, wilson_ci
 
-EVAL_SEED_BASE = 500000
+EVAL_SEED_BASE = seeds.HELD_OUT
 
 METRIC_KEYS = tuple(sorted((
     "beta", "bc_mean_final_dist", "bc_success_rate", "diff_ci_hi", "diff_ci_lo", "episodes", "expert_frac",

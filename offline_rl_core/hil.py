@@ -34,10 +34,11 @@ from typing import Callable
 
 import numpy as np
 
-from .atomic import atomic_path
+from . import seeds
+from .atomic import atomic_path, write_json_atomic
 from .bag import read_transitions
 from .errors import UserError
-from .evaluation import evaluate_policy, write_json_atomic
+from .evaluation import evaluate_policy
 from .policy import load_checkpoint, load_policy
 from .launch import LaunchedProcesses, find_launch_file, load_launch
 from .rosproc import RosProcess, isolated_ros_env, ros2_run
@@ -46,8 +47,8 @@ from .transitions import SOURCE_HUMAN, SOURCE_POLICY
 
 DEFAULT_BAG = "bags/mix.db3"
 DEMO_PRIOR = "runs/demo/awac/policy.pt"
-EVAL_SEED = 500000  # held-out reset seeds (the chapter's)
-TRAIN_SEED_BASE = 100000  # correction runs reset with seeds far from the evaluation's
+EVAL_SEED = seeds.HELD_OUT
+TRAIN_SEED_BASE = seeds.ONLINE
 
 
 @dataclass

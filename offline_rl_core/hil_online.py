@@ -53,7 +53,7 @@ class OnlineHilConfig:
     bags: list[str] = field(default_factory=lambda: [DEFAULT_BAG])
     corrector: str = "scripted"  # scripted | keyboard | none
     mode: str = "lockstep"  # lockstep (paced, reproducible) | realtime (50 Hz)
-    utd: int = 1
+    utd: int = 2
     publish_every: int = 50
     eval_every: int = 2500
     eval_episodes: int = 100
@@ -151,7 +151,7 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
         # until the learner's first weights, the policy serves the prior (or the learner's initial weights)
         "checkpoint": prior_path or learner_dir / "policy.pt",
         "mode": cfg.mode, "paced_every": cfg.publish_every if lockstep else 0, "publish_every": cfg.publish_every,
-        "utd": cfg.utd, "seed": cfg.seed, "reset_seed": TRAIN_SEED_BASE + 10000 * cfg.seed, "episodes": episodes,
+        "utd": cfg.utd, "seed": cfg.seed, "learner_nice": 0 if lockstep else 10, "reset_seed": TRAIN_SEED_BASE + 10000 * cfg.seed, "episodes": episodes,
         "snapshot_every": cfg.eval_every, "corrector": cfg.corrector,
         # a person's corrector runs in the foreground, on this terminal (below)
         "with_corrector": "true" if cfg.corrector == "scripted" else "false",

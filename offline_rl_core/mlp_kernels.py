@@ -50,8 +50,8 @@ def mlp_forward(x, w1, b1, w2, b2, w3, b3, tanh_output: bool, hidden: HiddenLaye
         h1 = torch.addmm(b1[m], x[m], w1[m]).relu_()
         h1c = hidden.cast(h1)
         h2 = hidden.forward_relu(h1c, w2c[m], b2c[m, 0]).float()
-        # the thin output layer as (w.T @ h.T).T: MKL is ~6x slower on a 256x256 by
-        # 256x2 product than on its transpose
+        # the thin output layer as (w.T @ h.T).T: MKL is several times slower on a
+        # 256x256 by 256x2 product than on its transpose
         y[m].copy_(torch.addmm(b3[m].t(), w3[m].t(), h2.t()).t())
         acts.append((h1, h1c, h2))
     if tanh_output:
@@ -94,9 +94,8 @@ def mlp_backward(grad_y, x, w1, w2c, w3, y, acts, tanh_output: bool, hidden: Hid
 
 
 class _EnsembleMLPFunction(torch.autograd.Function):
-    """Members one by one with 2-D products: torch's batched ``bmm`` on CPU is slow for
-    the thin first and last layers (a 256x256 by 256x1 product took 85 us batched,
-    7 us as ``addmm``)."""
+    """Members one by one with 2-D products: torch's batched ``bmm`` on CPU is an order
+    of magnitude slower than ``addmm`` for the thin first and last layers."""
 
     @staticmethod
     def forward(ctx, x, w1, b1, w2, b2, w3, b3, tanh_output: bool, hidden: HiddenLayer):

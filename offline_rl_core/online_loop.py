@@ -21,6 +21,7 @@ from typing import Callable
 
 import numpy as np
 
+from . import seeds
 from .actor import Actor
 from .corrector import CorrectorParams, ScriptedCorrector
 from .env import PusherReachEnv
@@ -31,8 +32,8 @@ from .policy import LoadedPolicy
 from .stats import wilson_ci
 from .transitions import SOURCE_HUMAN, SOURCE_POLICY, Transitions
 
-EVAL_SEED = 500000  # the chapter's held-out reset seeds
-TRAIN_SEED_BASE = 100000  # online episodes reset far from the evaluation's seeds
+EVAL_SEED = seeds.HELD_OUT
+TRAIN_SEED_BASE = seeds.ONLINE
 
 
 @dataclass

@@ -36,7 +36,10 @@ from .bag.cdr import TransitionDecodeError, decode_transition_payloads
 from .errors import UserError
 from .learners.config import TrainConfig
 from .learners.online import OnlineLearner, OnlineSettings
-from .policy import checkpoint_from_bytes, checkpoint_to_bytes, load_checkpoint, save_checkpoint
+from .joint_messages import VALUE_LIMIT
+from .policy import (LoadedPolicy, checkpoint_from_bytes, checkpoint_to_bytes, load_checkpoint, policy_for_task,
+                     save_checkpoint)
+from .rejections import Rejection, RejectionCounter
 from .transitions import LAYOUT_SLICES, SOURCE_NAMES, Transitions
 
 WEIGHTS_LABEL = "pusher-rl/weights"  # the weights message's layout label: what its bytes are
@@ -56,31 +59,33 @@ class LearnerServiceConfig:
     train: TrainConfig = field(default_factory=lambda: TrainConfig(algo="sac"))
 
 
-@dataclass
-class Rejections:
-    """Live transitions refused, by reason (never trained on)."""
-
-    counts: dict[str, int] = field(default_factory=dict)
-
-    def add(self, reason: str) -> None:
-        self.counts[reason] = self.counts.get(reason, 0) + 1
-
-    @property
-    def total(self) -> int:
-        return sum(self.counts.values())
-
-
-def check_row(row: np.ndarray) -> str | None:
+def check_row(row: np.ndarray) -> Rejection | None:
     """Why a decoded transition row must not be trained on, or None."""
     if not np.all(np.isfinite(row)):
         bad = [label for label, sl in LAYOUT_SLICES.items() if not np.all(np.isfinite(row[sl]))]
-        return f"non-finite {', '.join(bad)}"
+        return Rejection("non-finite", f"non-finite {', '.join(bad)}")
     action = row[LAYOUT_SLICES["action"]]
     if np.any(np.abs(action) > 1.0 + 1e-6):
-        return "action outside [-1, 1]"
-    if int(row[LAYOUT_SLICES["source"]][0]) not in SOURCE_NAMES:
-        return f"unknown source {row[LAYOUT_SLICES['source']][0]:g}"
+        return Rejection("out of range", "action outside [-1, 1]")
+    wild = [label for label in ("obs", "reward", "next_obs") if np.any(np.abs(row[LAYOUT_SLICES[label]]) > VALUE_LIMIT)]
+    if wild:
+        return Rejection("out of range", f"{', '.join(wild)} beyond ±{VALUE_LIMIT:g}")
+    flags = [label for label in ("terminated", "truncated", "success")
+             if row[LAYOUT_SLICES[label]][0] not in (0.0, 1.0)]
+    if flags:
+        return Rejection("out of range", f"{', '.join(flags)} not 0 or 1")
+    counters = [label for label in ("episode", "step") if not _count(row[LAYOUT_SLICES[label]][0])]
+    if counters:
+        return Rejection("out of range", f"{', '.join(counters)} not a count")
+    source = row[LAYOUT_SLICES["source"]][0]
+    if source != int(source) or int(source) not in SOURCE_NAMES:
+        return Rejection("unknown source", f"unknown source {source:g}")
     return None
+
+
+def _count(value: float) -> bool:
+    """Whether a float32 field holds a count (a whole number from 0 up, exact in float32)."""
+    return 0.0 <= value < 2.0**24 and value == int(value)
 
 
 def encode_weights(checkpoint: dict) -> bytes:
@@ -100,6 +105,18 @@ def decode_weights(data: bytes, source: str = "weights message") -> dict:
     return checkpoint_from_bytes(data, source)
 
 
+def policy_from_weights_message(label: str, data: bytes, source: str) -> tuple[LoadedPolicy | None, Rejection | None]:
+    """The policy a weights message carries (its layout label and bytes), or (None, why not)."""
+    if label != WEIGHTS_LABEL:
+        return None, Rejection("bad layout", f"layout label {label[:40]!r}, expected {WEIGHTS_LABEL!r}")
+    try:
+        return policy_for_task(decode_weights(data, source), source), None
+    except UserError as exc:
+        return None, Rejection("bad weights", str(exc))
+    except Exception as exc:  # noqa: BLE001 - a validated checkpoint with odd field types; keep serving
+        return None, Rejection("bad weights", f"{source}: {type(exc).__name__}: {str(exc)[:120]}")
+
+
 class LearnerService:
     def __init__(self, cfg: LearnerServiceConfig, log=print):
         from .training_run import load_bags
@@ -111,7 +128,7 @@ class LearnerService:
         if prior is not None and int(prior["hidden"]) != cfg.train.hidden:
             raise UserError(f"{cfg.prior}: the prior's hidden width is {prior['hidden']}, the learner's {cfg.train.hidden}")
         self.learner = OnlineLearner(offline, cfg.train, cfg.settings, cfg.seed, prior)
-        self.rejected = Rejections()
+        self.rejected = RejectionCounter()  # live transitions refused, by reason (never trained on)
         self.received = 0  # live transitions accepted since this process started
         self.started = time.monotonic()
         self.last_save = time.monotonic()
@@ -130,18 +147,17 @@ class LearnerService:
         self.weights = self.learner.weights()  # the version the actor should be acting on
 
     # ---------------------------------------------------------------- input
-    def receive(self, raw: bytes) -> str | None:
-        """One raw ``/pusher/transition``; returns why it was rejected, or None."""
+    def receive(self, raw: bytes) -> Rejection | None:
+        """One raw ``/pusher/transition``; returns why it was rejected (counted), or None."""
         try:
             row = decode_transition_payloads([bytes(raw)])[0]
         except TransitionDecodeError as exc:
-            reason = f"bad layout: {exc}"
-            self.rejected.add("bad layout")
-            return reason
-        reason = check_row(row)
-        if reason is not None:
-            self.rejected.add(reason.split(" ")[0] if reason.startswith("non-finite") else reason)
-            return reason
+            rejection = Rejection("bad layout", f"bad layout: {exc}")
+        else:
+            rejection = check_row(row)
+        if rejection is not None:
+            self.rejected.add(rejection)
+            return rejection
         self.learner.add(Transitions.from_rows(row[None]))
         self.received += 1
         return None

@@ -9,7 +9,6 @@ exporter (``dynamo=False``) needs only ``onnx``, so that is what we use.
 from __future__ import annotations
 
 import os
-import tempfile
 import warnings
 from pathlib import Path
 
@@ -17,6 +16,7 @@ import numpy as np
 import torch
 
 from .errors import UserError
+from .atomic import atomic_path
 from .policy import LoadedPolicy
 
 OPSET = 17
@@ -28,25 +28,18 @@ def export_onnx(policy: LoadedPolicy, out: str | os.PathLike) -> Path:
     out.parent.mkdir(parents=True, exist_ok=True)
     module = policy.torch_module()
     example = torch.zeros(1, policy.obs_dim, dtype=torch.float32)
-    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".onnx", dir=out.parent)
-    os.close(fd)
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # the legacy exporter's deprecation notice
-            torch.onnx.export(
-                module,
-                (example,),
-                tmp,
-                input_names=["obs"],
-                output_names=["action"],
-                dynamic_axes={"obs": {0: "batch"}, "action": {0: "batch"}},
-                opset_version=OPSET,
-                dynamo=False,
-            )
-        os.replace(tmp, out)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_path(out, suffix=".onnx") as tmp, warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the legacy exporter's deprecation notice
+        torch.onnx.export(
+            module,
+            (example,),
+            str(tmp),
+            input_names=["obs"],
+            output_names=["action"],
+            dynamic_axes={"obs": {0: "batch"}, "action": {0: "batch"}},
+            opset_version=OPSET,
+            dynamo=False,
+        )
     return out
 
 

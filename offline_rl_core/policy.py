@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import io
 import os
+import warnings
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -54,10 +56,24 @@ def checkpoint_from_bytes(data: bytes, source: str) -> dict:
 
 def _torch_load(f, source) -> dict:
     try:
-        return torch.load(f, map_location="cpu", weights_only=True)
+        _check_zip_crcs(f)
+        with warnings.catch_warnings():  # a corrupt file's pickle-protocol notes say nothing the error does not
+            warnings.simplefilter("ignore")
+            return torch.load(f, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises many types for corrupt files
         reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise UserError(f"{source}: not a readable pusher-rl checkpoint ({reason[:160]})") from None
+
+
+def _check_zip_crcs(f) -> None:
+    """torch.save writes a zip, but torch.load never checks its CRCs: a flipped bit in the
+    weights would load as other weights. Checked here (a legacy non-zip file is left to torch)."""
+    if zipfile.is_zipfile(f):
+        with zipfile.ZipFile(f) as archive:  # leaves ``f`` open
+            bad = archive.testzip()
+        if bad is not None:
+            raise ValueError(f"record {bad} fails its CRC check")
+    f.seek(0)
 
 
 def load_checkpoint(path: str | os.PathLike) -> dict:
@@ -70,7 +86,12 @@ def load_checkpoint(path: str | os.PathLike) -> dict:
         if not candidate.exists():
             raise UserError(f"{path}: is a directory without policy.pt; expected a checkpoint file")
         path = candidate
-    return _validated(_torch_load(path, path), path)
+    try:
+        f = open(path, "rb")  # one open file for the CRC check and the load, whatever renames meanwhile
+    except OSError as exc:
+        raise UserError(f"{path}: cannot read the checkpoint ({exc.strerror})") from None
+    with f:
+        return _validated(_torch_load(f, path), path)
 
 
 def _validated(ckpt, path) -> dict:
@@ -122,6 +143,8 @@ class LoadedPolicy:
         # the online learner's Gaussian: exploration samples tanh(mean + std * eps)
         log_std = checkpoint.get("exploration_log_std")
         self.exploration_log_std = None if log_std is None else np.asarray(log_std, np.float32).reshape(-1)
+        # the online learner's weights carry their version; a trained checkpoint has none
+        self.versioned = "weights_version" in checkpoint
         self.weights_version = int(checkpoint.get("weights_version", 0) or 0)
         mean = checkpoint.get("obs_mean")
         std = checkpoint.get("obs_std")
@@ -182,10 +205,14 @@ class LoadedPolicy:
 
 def load_policy(path: str | os.PathLike, obs_dim: int = OBS_DIM, act_dim: int = ACT_DIM) -> LoadedPolicy:
     """Load a checkpoint for acting; refuses one whose dims do not match the task."""
-    ckpt = load_checkpoint(path)
+    return policy_for_task(load_checkpoint(path), path, obs_dim, act_dim)
+
+
+def policy_for_task(ckpt: dict, source, obs_dim: int = OBS_DIM, act_dim: int = ACT_DIM) -> LoadedPolicy:
+    """A validated checkpoint as a policy, refused when its dims do not match the task."""
     if int(ckpt["obs_dim"]) != obs_dim or int(ckpt["act_dim"]) != act_dim:
         raise UserError(
-            f"{path}: checkpoint has obs_dim={ckpt['obs_dim']}, act_dim={ckpt['act_dim']}; "
+            f"{source}: checkpoint has obs_dim={ckpt['obs_dim']}, act_dim={ckpt['act_dim']}; "
             f"the pusher task needs obs_dim={obs_dim}, act_dim={act_dim}"
         )
-    return LoadedPolicy(ckpt, source=str(path))
+    return LoadedPolicy(ckpt, source=str(source))

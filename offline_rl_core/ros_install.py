@@ -33,6 +33,7 @@ import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
 
+from .atomic import write_text_atomic
 from .errors import UserError
 
 INDEX_DIR = Path("share", "ament_index", "resource_index", "packages")
@@ -152,9 +153,7 @@ def _write_if_changed(path: Path, text: str, mode: int | None = None) -> None:
     if path.is_symlink():
         path.unlink()
     if not path.exists() or path.read_text() != text:
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text(text)
-        os.replace(tmp, path)
+        write_text_atomic(path, text)
     if mode is not None and (path.stat().st_mode & 0o777) != mode:
         path.chmod(mode)
 

@@ -95,7 +95,9 @@ class SimLoop:
     def _snapshot(self) -> ArmState:
         env = self.env
         self.current = ArmState(self.stamp_ns(), env.qpos.copy(), env.qvel.copy(),
-                                np.array(env.data.actuator_force[:ACT_DIM], np.float64),
+                                # N·m at the joints: the motors' force times their gear (actuator_force
+                                # is in actuation units, the action itself)
+                                np.array(env.data.qfrc_actuator[:ACT_DIM], np.float64),
                                 np.array(env.target, np.float64), np.array(env.fingertip, np.float64))
         return self.current
 
@@ -148,3 +150,36 @@ class SimLoop:
         success, dist, ret = (np.array(col, np.float64) for col in zip(*self.results))
         return {"episodes": n, "success_rate": float(success.mean()), "mean_final_dist": float(dist.mean()),
                 "mean_return": float(ret.mean())}
+
+
+class TickTiming:
+    """Realtime tick periods in running sums (a sim that runs for days keeps no list).
+
+    A missed step is a gap over 1.5 periods (a gap of k periods missed k - 1 steps).
+    """
+
+    def __init__(self, period_s: float = 1.0 / CONTROL_HZ):
+        self.period_ms = period_s * 1000.0
+        self.ticks = 0
+        self.last: float | None = None
+        self.sum_ms = self.sum_sq_ms = self.max_ms = 0.0
+        self.missed = 0
+
+    def tick(self, now_s: float) -> None:
+        if self.last is not None:
+            gap = (now_s - self.last) * 1000.0
+            self.sum_ms += gap
+            self.sum_sq_ms += gap * gap
+            self.max_ms = max(self.max_ms, gap)
+            self.missed += max(int(np.floor(gap / self.period_ms + 0.5)) - 1, 0)
+        self.last = now_s
+        self.ticks += 1
+
+    def report(self) -> str | None:
+        gaps = self.ticks - 1
+        if gaps < 2:
+            return None
+        mean = self.sum_ms / gaps
+        std = float(np.sqrt(max(self.sum_sq_ms / gaps - mean * mean, 0.0)))
+        return (f"{self.ticks} ticks, period mean {mean:.3f} ms, std {std:.3f} ms, "
+                f"max {self.max_ms:.3f} ms, missed steps {self.missed}")

@@ -18,6 +18,7 @@ from typing import Callable
 
 import numpy as np
 
+from . import seeds
 from .bag import read_transitions
 from .errors import UserError
 from .atomic import write_json_atomic
@@ -30,7 +31,7 @@ from .policy import load_checkpoint, save_checkpoint
 from .raw_topics import transitions_from_topics
 from .transitions import SOURCE_NAMES, Transitions
 
-DEFAULT_EVAL_SEED = 500000  # the chapter's held-out reset seeds start here
+DEFAULT_EVAL_SEED = seeds.HELD_OUT
 _CONFIG_FIELDS = {f.name for f in fields(TrainConfig)}
 
 

@@ -19,6 +19,18 @@ SOURCE_RANDOM = 1
 SOURCE_POLICY = 2
 SOURCE_HUMAN = 3
 SOURCE_NAMES = {SOURCE_EXPERT: "expert", SOURCE_RANDOM: "random", SOURCE_POLICY: "policy", SOURCE_HUMAN: "human"}
+SOURCE_BY_NAME = {name: code for code, name in SOURCE_NAMES.items()}
+
+
+def source_from_tag(tag: str) -> int | None:
+    """The source a tag names: 'expert', 'random', 'policy', 'human' or the digit 0-3
+    (a command's deprecated ``header.frame_id`` tag); None for anything else."""
+    tag = tag.strip().lower()
+    if tag in SOURCE_BY_NAME:
+        return SOURCE_BY_NAME[tag]
+    if tag.isdigit() and int(tag) in SOURCE_NAMES:
+        return int(tag)
+    return None
 
 # (label, size) in message order; readers check the labels, not just the length.
 TRANSITION_LAYOUT: tuple[tuple[str, int], ...] = (

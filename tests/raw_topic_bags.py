@@ -24,7 +24,7 @@ TYPES = {
     "/pusher/state": "sensor_msgs/msg/JointState",
     "/pusher/target": "geometry_msgs/msg/PointStamped",
     "/pusher/fingertip": "geometry_msgs/msg/PointStamped",
-    "/pusher/command": "sensor_msgs/msg/JointState",
+    "/pusher/command": "sensor_msgs/msg/JointState",  # written to .../command/<source> (see record_raw_bag)
     "/pusher/transition": "std_msgs/msg/Float32MultiArray",
     "/pusher/reset": "std_msgs/msg/Empty",
 }
@@ -77,6 +77,7 @@ def record_raw_bag(
     jitter_ns: int = 0,
     duplicates: float = 0.0,
     torque_commands: bool = False,
+    source_tags: bool = False,
     noise_seed: int = 1,
 ) -> None:
     """Roll out ``episodes`` as `offline-rl collect` does and write their raw topics.
@@ -85,18 +86,24 @@ def record_raw_bag(
     +/- jitter on every header stamp (targets' included); ``duplicates``: share of states
     and commands written twice; ``torque_commands``: commands as std_msgs/Float64MultiArray
     torques (action * 0.5 N·m, the motors' gear) on /pusher/effort_controller/commands,
-    with receive times equal to the commanded state's stamp (a recording in sim time).
+    with receive times 0.5 ms after the commanded state's (a recording in sim time).
+    Commands go, as the sim takes them, to /pusher/command/<source>; ``source_tags``: to
+    /pusher/command with the source in header.frame_id, as older recorders sent them.
     """
     msgs = _Messages()
     env = PusherReachEnv()
     rng = np.random.default_rng(seed)
     noise = np.random.default_rng(noise_seed)
     n_expert = expert_episode_count(episodes, expert_frac)
-    command_topic = "/pusher/effort_controller/commands" if torque_commands else "/pusher/command"
     types = {t: TYPES[t] for t in topics}
     if "/pusher/command" in types:
         del types["/pusher/command"]
-        types[command_topic] = "std_msgs/msg/Float64MultiArray" if torque_commands else TYPES["/pusher/command"]
+        if torque_commands:
+            types["/effort_controller/commands"] = "std_msgs/msg/Float64MultiArray"
+        elif source_tags:
+            types["/pusher/command"] = TYPES["/pusher/command"]
+        else:
+            types.update({f"/pusher/command/{name}": TYPES["/pusher/command"] for name in ("expert", "random")})
     recv = [START_NS]
 
     def jitter(ns: int) -> int:
@@ -130,9 +137,13 @@ def record_raw_bag(
                 publish_state(ns)
                 action = reach_action(env) if source == SOURCE_EXPERT else rng.uniform(-1, 1, size=ACT_DIM).astype(np.float32)
                 if torque_commands:
-                    write(command_topic, msgs.float64_array(np.asarray(action, np.float64) * 0.5), START_NS + ns + 500_000, True)
+                    torques = np.asarray(action, np.float64) * 0.5
+                    write("/effort_controller/commands", msgs.float64_array(torques), START_NS + ns + 500_000, True)
+                elif source_tags:
+                    write("/pusher/command", msgs.joint_state(jitter(ns), SOURCE_NAMES[source], effort=action), None, True)
                 else:
-                    write(command_topic, msgs.joint_state(jitter(ns), SOURCE_NAMES[source], effort=action), None, True)
+                    command = msgs.joint_state(jitter(ns), "", effort=action)
+                    write(f"/pusher/command/{SOURCE_NAMES[source]}", command, None, True)
                 step = env.steps
                 next_obs, reward, done, info = env.step(action)
                 row = np.empty(TRANSITION_WIDTH, np.float32)

@@ -188,6 +188,7 @@ os._exit(0)  # no close: as a kill leaves it
     subprocess.run([sys.executable, "-c", code], check=True, cwd=REPO)
     assert Path(f"{path}-wal").stat().st_size > 0
     assert np.array_equal(read_transition_rows(path), rows[:150])
+    assert "w.db3-wal holds commits not yet in w.db3" in bag_info(path).format()
     with Reader(path) as reader:
         assert reader.message_count == 100  # immutable: the WAL is invisible to it
     done = repair_bag(path)

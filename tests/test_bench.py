@@ -45,7 +45,8 @@ def test_quick_harness_tiny_writes_the_schema(tmp_path, capsys):
     payload = json.loads(out.read_text())
     check_schema(payload, ["train", "decode", "eval"])
     train = payload["train"]
-    assert any(k.startswith("awac_steps_per_s_fp32_vs_chapter") for k in train)
+    assert any(k.startswith("awac_steps_per_s_deterministic_vs_chapter") for k in train)
+    assert any(k.startswith("awac_steps_per_s_default_vs_chapter") for k in train)
     assert any(k.startswith("experiment_") for k in train)
     assert any("d3rlpy" in k for k in train)  # measured, or skipped with the reason
     assert "bag_decode_transitions_per_s" in payload["decode"]

@@ -72,7 +72,7 @@ def test_joint_messages_read_commands_states_and_torques():
     assert action_from_effort([], [], allow_empty=True) == (None, None)  # a teleop yield
     (q, qd), _ = joints_from_state(["elbow", "shoulder"], [1.0, 2.0], [3.0, 4.0])
     assert list(q) == [2.0, 1.0] and list(qd) == [4.0, 3.0]
-    assert joints_from_state([], [0.1], [0.1])[1].startswith("needs 2 positions")
+    assert joints_from_state([], [0.1], [0.1])[1].reason == "wrong length"
     assert np.allclose(torques_from_action([1.0, -0.4]), [0.5, -0.2])  # motor gear 0.5 N·m
     assert np.allclose(action_from_torques([0.25, -3.0])[0], [0.5, -1.0])  # clipped to the action range
     assert action_from_torques([1.0])[1].startswith("expected 2 torques")
@@ -81,3 +81,10 @@ def test_joint_messages_read_commands_states_and_torques():
 def test_sim_loop_refuses_an_unknown_mode():
     with pytest.raises(ValueError, match="mode must be one of realtime, lockstep"):
         SimLoop("fast")
+
+
+def test_a_state_reports_the_torque_the_motors_applied_in_newton_metres():
+    loop = SimLoop("lockstep", seed=0, start_ns=START)
+    loop.start_episode()
+    loop.command(loop.current.stamp_ns, np.array([1.0, -0.3], np.float32), 2)
+    assert np.allclose(loop.current.torque, [0.5, -0.15])  # action x motor gear (0.5 N·m)

@@ -198,3 +198,23 @@ def test_a_killed_learner_resumes_from_its_state_and_the_session_bag(tmp_path, f
     _drain(resumed)
     assert resumed.learner.version == whole.learner.version == 4
     assert torch.equal(_flat(resumed.learner.weights()), _flat(whole.learner.weights()))
+
+
+def test_a_paced_actor_waits_for_the_learners_own_weights(offline, prior):
+    """Paced, the checkpoint the policy node started from does not count: the session must
+    not depend on how soon the learner's first weights message arrives."""
+    from offline_rl_core.actor import Actor
+    from offline_rl_core.policy import LoadedPolicy
+
+    learner = _learner(offline, prior)
+    actor = Actor(LoadedPolicy(prior), explore=True, seed=0, paced_every=10)
+    actor.see(1000)
+    assert not actor.ready()  # the prior file: no version, no exploration std
+    assert actor.offer(LoadedPolicy(learner.weights()))  # the learner's version 0
+    assert actor.ready()
+    for stamp in range(1001, 1011):
+        actor.see(stamp)
+    assert actor.states == 10 and not actor.ready()  # state 10 needs version 1
+    assert not actor.offer(LoadedPolicy(learner.weights()))  # version 0 again: not newer
+    a = actor.act(np.zeros(8, np.float32), stamp=1010)
+    assert np.array_equal(actor.act(np.zeros(8, np.float32), stamp=1010), a)  # one draw per state

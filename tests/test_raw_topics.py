@@ -47,12 +47,14 @@ def test_the_shipped_spec_holds_the_defaults():
     assert load_spec(SPEC) == TopicSpec()
 
 
-def test_a_sim_bag_gives_the_recorded_transitions_bit_for_bit(tmp_path):
+@pytest.mark.parametrize("source_tags", [False, True], ids=["command-per-source", "frame-id-tags"])
+def test_a_sim_bag_gives_the_recorded_transitions_bit_for_bit(tmp_path, source_tags):
     """The sim's lockstep stream (republished states and resent commands included): every
     transition built equals the recorded one; the sim never publishes the state after an
-    episode's last step, so that step alone cannot be built, and is counted."""
+    episode's last step, so that step alone cannot be built, and is counted. Who acted comes
+    from the command topic (pusher/command/expert ...) or, in older bags, header.frame_id."""
     bag = tmp_path / "sim.db3"
-    record_raw_bag(bag, episodes=4, expert_frac=0.5, seed=7, sim_like=True, duplicates=0.1)
+    record_raw_bag(bag, episodes=4, expert_frac=0.5, seed=7, sim_like=True, duplicates=0.1, source_tags=source_tags)
     built, report = transitions_from_topics(bag, SPEC)
     recorded = rows_by_step(read_transitions(bag))
     assert len(recorded) == 400
@@ -91,7 +93,7 @@ def test_torque_commands_joined_by_receive_time(tmp_path):
     record_raw_bag(raw, episodes=2, expert_frac=0.5, seed=5, sim_like=False, torque_commands=True)
     spec = spec_from_dict({
         "stamps": "receive",
-        "command": {"topic": "/pusher/effort_controller/commands", "scale": 2.0, "source": "human"},
+        "command": {"topic": "/effort_controller/commands", "scale": 2.0, "source": "human"},
     })
     built, report = transitions_from_topics(raw, spec)
     expected = collect_transitions(2, 0.5, 5).to_rows()
@@ -167,7 +169,8 @@ def test_train_takes_the_spec(tmp_path):
      "/pusher/state: joint 'wrist' (spec field state.joints) is not among"),
     ("join: {match: closest}", "{spec}: field join.match: expected one of exact, nearest, got 'closest'"),
     ("command: {gain: 2}", "{spec}: unknown field command.gain"),
-    ("command: {topic: /pusher/effort_controller/commands}", "no topic /pusher/effort_controller/commands"),
+    ("command: {topic: /effort_controller/commands}",
+     "no command topic (/effort_controller/commands: spec {spec}, field command.topic)"),
 ], ids=["missing-topic", "wrong-type", "unknown-joint", "bad-value", "unknown-field", "missing-command"])
 def test_bad_spec_or_bag_is_one_line_and_exit_2(tmp_path, capsys, spec_text, message):
     raw, out = tmp_path / "arm.db3", tmp_path / "out.db3"
@@ -182,7 +185,7 @@ def test_bad_spec_or_bag_is_one_line_and_exit_2(tmp_path, capsys, spec_text, mes
 def test_float64_command_needs_receive_stamps(tmp_path, capsys):
     raw = tmp_path / "torque.db3"
     record_raw_bag(raw, episodes=1, expert_frac=1.0, seed=0, sim_like=False, torque_commands=True)
-    spec = write_spec(tmp_path, "command: {topic: /pusher/effort_controller/commands, scale: 2.0}")
+    spec = write_spec(tmp_path, "command: {topic: /effort_controller/commands, scale: 2.0}")
     assert main(["dataset", "--from-topics", str(spec), str(raw), str(tmp_path / "out.db3")]) == 2
     assert "has no header; set stamps: receive" in capsys.readouterr().err
 

@@ -41,7 +41,8 @@ def test_every_package_declares_node_and_real_dependencies():
 # (package, module with PARAMS, config file): each node's every setting, installed with its package
 CONFIGS = [("sim", "pusher_sim.node", "sim"), ("policy", "pusher_policy.node", "policy"),
            ("trainer", "pusher_trainer.node", "trainer"), ("corrections", "pusher_corrections.mux", "mux"),
-           ("corrections", "pusher_corrections.corrector", "corrector"), ("learner", "pusher_learner.node", "learner")]
+           ("corrections", "pusher_corrections.corrector", "corrector"), ("learner", "pusher_learner.node", "learner"),
+           ("recorder", "pusher_recorder.node", "recorder")]
 
 
 def test_config_files_hold_every_setting_with_its_default():

@@ -105,7 +105,7 @@ def test_policy_answers_rejects_and_hot_reloads(spawn, data, tmp_path):
         bad = [send([float("nan"), 0.0], qd), send([0.1], [0.2]), send(q, [float("inf"), 0.0])]
         node.spin_for(0.5)
         assert not any(a.header.stamp.sec in bad for a in actions)
-        assert "no action for pusher/state" in node_proc.output()
+        assert "ignoring pusher/state" in node_proc.output()
 
         replace_atomically(data["b"].read_bytes(), served)
         want_b = policy_b.act(obs)

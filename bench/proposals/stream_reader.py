@@ -8,7 +8,7 @@ Run: python bench/proposals/stream_reader.py BAG.db3 [check]
 import numpy as np, time, resource, sys, itertools
 from pathlib import Path
 from offline_rl_core.bag import open_bag, decode_transition_payloads
-from offline_rl_core.bag.reader import _sqlite_storages
+from offline_rl_core.bag.reader import sqlite_storages
 from offline_rl_core.transitions import Transitions, TRANSITION_LAYOUT, LAYOUT_SLICES
 
 CHUNK = 65536
@@ -23,7 +23,7 @@ def read_streaming(path):
             dt = np.int64 if label in INT_FIELDS else bool if label in BOOL_FIELDS else np.float32
             out[label] = np.empty((n, size) if label in ("obs", "action", "next_obs") else (n,), dt)
         pos = 0
-        for storage in _sqlite_storages(reader):
+        for storage in sqlite_storages(reader):
             ids = [c.id for c in storage.connections if c.topic == "/pusher/transition"]
             cur = storage.dbconn.execute(f"SELECT data FROM messages WHERE topic_id IN ({','.join('?'*len(ids))}) ORDER BY timestamp, id", ids)
             while True:

@@ -17,7 +17,8 @@ from rosbags.rosbag2.storage_mcap import McapReader
 from ..errors import UserError
 from ..transitions import SOURCE_NAMES, Transitions
 from .cdr import TRANSITION_TOPIC
-from .reader import open_bag, transition_rows_from_reader, transition_topic
+from .reader import sqlite_storages, open_bag, transition_rows_from_reader, transition_topic
+from .storage_sqlite import WalSqlite3Reader
 
 _SERVICE_EVENT_SUFFIX = "/_service_event"
 _INDENT = " " * 19  # aligns continuation lines under the values, as ros2 bag info does
@@ -55,6 +56,7 @@ class BagInfo:
     episodes: int | None = None
     sources: list[SourceSummary] = field(default_factory=list)
     transition_problem: str | None = None  # why /pusher/transition did not decode
+    notes: list[str] = field(default_factory=list)  # the state of a bag being (or cut off while) recorded
 
     @property
     def duration_ns(self) -> int:
@@ -83,6 +85,7 @@ class BagInfo:
                 )
         elif self.transition_problem:
             lines.append(f"Transitions:       not usable: {self.transition_problem}")
+        lines += [f"Note:              {note}" for note in self.notes]
         return "\n".join(lines)
 
 
@@ -167,6 +170,13 @@ def bag_info(path: str | os.PathLike) -> BagInfo:
                 info.services.append(TopicSummary(name[: -len(_SERVICE_EVENT_SUFFIX)], msgtype[: -len("_Event")], topic.msgcount, fmt))
             else:
                 info.topics.append(TopicSummary(name, msgtype, topic.msgcount, fmt))
+        for storage in sqlite_storages(reader) or ():
+            if isinstance(storage, WalSqlite3Reader):
+                name = Path(storage.path).name
+                info.notes.append(
+                    f"{name}-wal holds commits not yet in {name} (a live recording, or one killed inside a flush); "
+                    f"read here, and by rosbags after `offline-rl bag repair {path}`"
+                )
         if transition_topic(reader) is not None:
             try:
                 transitions = Transitions.from_rows(transition_rows_from_reader(reader, path))

@@ -6,11 +6,12 @@ Path rules, for readers and writers alike:
   ``rosbag2`` metadata record, so rosbag2 (``ros2 bag info x.db3``) and rosbags open it
   without a metadata.yaml.
 - any other path: a standard rosbag2 bag directory, ``x/metadata.yaml`` + ``x/x.db3`` (or
-  ``x/x.mcap``).
+  ``x/x.mcap``; the recorder's split files are ``x/x_0.db3``, ``x/x_1.db3``, ...).
 
-Writers build the bag in a hidden temporary directory beside the target and rename it into
-place when it is complete, so an interrupted or failed write leaves nothing half-written and
-an existing bag is replaced only by a complete one.
+``write_transitions`` builds the bag in a hidden temporary directory beside the target and
+renames it into place when it is complete (``StagedBag``), so a failed write leaves nothing
+half-written and an existing bag is replaced only by a complete one. The recorder's
+``BagWriter`` writes in place instead, a bag after every flush (``recording``).
 """
 
 from __future__ import annotations

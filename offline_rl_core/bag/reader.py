@@ -132,7 +132,7 @@ def open_bag(path: str | os.PathLike) -> Iterator[Reader]:
     try:
         reader = BagReader(path)
         reader.open()
-        for storage in _sqlite_storages(reader) or ():
+        for storage in sqlite_storages(reader) or ():
             if not isinstance(storage, WalSqlite3Reader):  # SQLite reads a WAL'd file's size itself
                 check_sqlite_size(Path(storage.path))
     except UserError:
@@ -152,7 +152,7 @@ def open_bag(path: str | os.PathLike) -> Iterator[Reader]:
             pass
 
 
-def _sqlite_storages(reader: Reader) -> list[Sqlite3Reader] | None:
+def sqlite_storages(reader: Reader) -> list[Sqlite3Reader] | None:
     """The sqlite3 storage files of a bag whose payloads can be read straight from SQL."""
     storage = reader.storage
     if isinstance(storage, Sqlite3Reader):
@@ -176,7 +176,7 @@ def topic_payload_chunks(reader: Reader, topic: str, chunk: int = PAYLOAD_CHUNK)
     connections = [c for c in reader.connections if c.topic == topic]
     if not connections:
         return
-    sqlite_files = _sqlite_storages(reader)
+    sqlite_files = sqlite_storages(reader)
     if sqlite_files is None:  # MCAP or compressed: rosbags yields raw bytes
         sources = [(data for _, _, data in reader.messages(connections))]
     else:

@@ -109,7 +109,9 @@ class SqliteFileWriter:
     def __init__(self, path: Path, distro: str):
         self.path = path
         os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644))  # never over a file
-        self.conn = sqlite3.connect(path, isolation_level=None, check_same_thread=False)
+        # timeout=0: a checkpoint never waits for a reader's snapshot (it copies what it can
+        # and the next flush goes on); in WAL mode nothing else here can wait.
+        self.conn = sqlite3.connect(path, isolation_level=None, check_same_thread=False, timeout=0)
         self.conn.execute("PRAGMA journal_mode=WAL")
         self.conn.execute("PRAGMA synchronous=NORMAL")  # fsync at each checkpoint
         self.conn.execute("PRAGMA wal_autocheckpoint=0")  # the flush checkpoints

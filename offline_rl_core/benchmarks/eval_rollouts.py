@@ -15,6 +15,7 @@ import time
 import numpy as np
 
 from ..evaluation import rollout
+from ..seeds import HELD_OUT
 from ..learners import TrainConfig, train_seeds
 from ..transitions import Transitions
 from . import reference_chapter as chapter
@@ -35,7 +36,7 @@ def run(s: BenchSettings, log=print) -> list:
     torch_policy = chapter.Policy(policy.obs_dim, policy.act_dim, policy.hidden)
     torch_policy.net.load_state_dict({k: v.float() for k, v in policy.checkpoint["policy_state"].items()})
     torch_act = chapter.policy_act_fn(torch_policy)
-    seeds = list(range(500000, 500000 + s.eval_episodes))
+    seeds = list(range(HELD_OUT, HELD_OUT + s.eval_episodes))
     batched = rollout(policy.act, seeds, batched=True)
     sequential = rollout(policy.act, seeds, batched=False)
     same = np.array_equal(batched.success, sequential.success) and np.array_equal(batched.lengths, sequential.lengths)

@@ -44,7 +44,7 @@ def realtime_figures(s: BenchSettings, tmp: Path, log=print) -> list:
     nodes = load_launch(find_launch_file("pusher_bringup", "online.launch.yaml"), {
         "bag": str(bag), "prior": str(prior), "checkpoint": str(prior), "out": str(tmp / "online"), "mode": "realtime",
         "paced_every": "0", "publish_every": str(REALTIME_PUBLISH_EVERY), "episodes": str(episodes),
-        "snapshot_every": "0"})
+        "snapshot_every": "0", "learner_nice": "10"})
     env = isolated_ros_env(domain_id=int(os.environ["ROS_DOMAIN_ID"]))  # the probe's domain (isolate() chose it)
     with LaunchedProcesses(nodes, env, tmp / "logs") as launched:
         launched.start(ready={"learner": "learning from", "policy": "serving", "recorder": "recording"}, timeout=120)
@@ -56,6 +56,9 @@ def realtime_figures(s: BenchSettings, tmp: Path, log=print) -> list:
     period_s = 1.0 / CONTROL_HZ
     ticks = sorted(states)[1:-1]  # the first and last may straddle the window
     missed = sum(1 for st in ticks if st not in answers)
+    if missed and os.environ.get("PUSHER_RL_BENCH_DEBUG"):
+        first = ticks[0]
+        log("  unanswered ticks: " + str([(st - first) // 20_000_000 for st in ticks if st not in answers][:60]))
     delays = np.array([answers[st][0] - states[st] for st in ticks if st in answers])
     late = int((delays > period_s).sum())
     ages = np.array([a[2] for a in answers.values() if a[2] is not None])

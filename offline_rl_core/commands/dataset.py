@@ -21,16 +21,19 @@ Build a /pusher/transition dataset from what a robot logs: its joint states
 torques scaled by the spec) and its goal (geometry_msgs/PointStamped), joined by stamp
 as the YAML spec says, with the pusher's reward and success rule. The fingertip comes
 from a fingertip topic when the bag has one, else from the joints' planar kinematics.
-Episodes start where the target moves, after a reset message or after a gap. Every
-message is accounted for: duplicates, commands matched exactly or within the tolerance,
-commands dropped (no state near them, another command nearer the same state, no next
-state) are counted, printed and stored in OUT_BAG's custom metadata under
+Episodes start where the target moves, after a reset message or after a time gap. Who
+acted is the command topic (pusher/command/expert, .../random, .../policy, .../human).
+
+Every message is accounted for: duplicate stamps, commands joined exactly or within the
+tolerance, commands dropped (no state near them, another command nearer the same state,
+no next state) are counted, printed and stored in OUT_BAG's custom metadata under
 "offline_rl.dataset" (--report FILE also writes them as JSON). Nothing is filled in.
 
-The shipped example spec, bags/pusher_topics.yaml, holds every field with its default:
-the sim's topics (/pusher/state, /pusher/command, /pusher/target, /pusher/fingertip),
-joints shoulder and elbow, nearest-stamp join within 5 ms, 50 Hz control.
-`offline-rl train --from-topics SPEC --bag IN_BAG` trains on such a bag directly.
+The shipped example spec, bags/pusher_topics.yaml, lists every field with its default
+and what it does: the sim's topics (/pusher/state, /pusher/command and
+/pusher/command/<source>, /pusher/target, /pusher/fingertip), joints shoulder and elbow,
+the nearest stamp within 5 ms, 50 Hz control. `offline-rl train --from-topics SPEC
+--bag IN_BAG` (and the trainer node) train on such a bag directly.
 """
 
 

@@ -8,6 +8,7 @@ from ..errors import UserError
 from ..atomic import write_json_atomic
 from ..evaluation import evaluate_policy, format_rate
 from ..policy import load_policy
+from ..seeds import HELD_OUT
 
 
 def register(subparsers) -> None:
@@ -19,7 +20,7 @@ def register(subparsers) -> None:
     )
     p.add_argument("--checkpoint", required=True, help="policy checkpoint (.pt, or a directory holding policy.pt)")
     p.add_argument("--episodes", type=int, default=100, help="episodes to roll out (default 100)")
-    p.add_argument("--seed", type=int, default=500000, help="first reset seed (default 500000, the held-out range)")
+    p.add_argument("--seed", type=int, default=HELD_OUT, help=f"first reset seed (default {HELD_OUT}, the held-out range)")
     p.add_argument("--json", metavar="OUT", help="also write the results as JSON to OUT")
     p.add_argument("--sequential", action="store_true", help="one env at a time (reference loop) instead of batched")
     p.set_defaults(func=run)

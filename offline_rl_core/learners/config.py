@@ -37,7 +37,7 @@ class TrainConfig:
     alpha: float = _opt(0.01, "SAC entropy weight (fixed unless --target-entropy is set)")
     target_entropy: float | None = _opt(None, "SAC: tune the entropy weight toward this entropy")
     init_log_std: float = _opt(-1.0, "SAC: the Gaussian policy's initial log-std")
-    bc_weight: float = _opt(1.0, "SAC: weight of the squared error to a person's (source human) actions")
+    bc_weight: float = _opt(3.0, "SAC: weight of the squared error to a person's (source human) actions")
     normalize_obs: bool = _opt(
         False, "train on z-scored observations (mean and std of the rows sampled); the checkpoint folds them into "
                "the networks' first layers, so it takes raw observations as any other")

@@ -18,6 +18,12 @@ from ..transitions import SOURCE_HUMAN, SOURCE_POLICY, Transitions
 
 INDEX_CHUNK_STEPS = 1000
 OBS_GOAL = slice(6, 8)  # (dx, dy) in the observation: target minus fingertip
+# derived columns that are often one value throughout (stored as a broadcast view then)
+CONSTANT_COLUMNS = ("not_done", "actor_mask", "human")
+
+
+def _constant(column: np.ndarray) -> bool:
+    return len(column) > 0 and bool(np.all(column == column[0]))
 
 
 @dataclass
@@ -57,8 +63,13 @@ class MemberData:
         self.capacity = n_max
         columns = [self.columns(d) for d in sources]
         for name in self.FIELDS:
-            if len(columns) == 1 and capacity is None:  # the arrays themselves, no copy
-                out = torch.from_numpy(columns[0][name]).unsqueeze(0)
+            column = columns[0][name]
+            if len(columns) == 1 and capacity is None and name in CONSTANT_COLUMNS and _constant(column):
+                # one value for every row (no terminals, no takeovers, no person): a broadcast
+                # view of it, not a column of a 2M-row bag's length
+                out = torch.from_numpy(column[:1].copy()).unsqueeze(0).expand(1, len(column), column.shape[1])
+            elif len(columns) == 1 and capacity is None:  # the arrays themselves, no copy
+                out = torch.from_numpy(column).unsqueeze(0)
             else:
                 out = torch.zeros(len(sources), n_max, columns[0][name].shape[1])
                 for i, cols in enumerate(columns):

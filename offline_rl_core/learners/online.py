@@ -35,7 +35,7 @@ from .stepper import make_step
 
 @dataclass
 class OnlineSettings:
-    utd: int = 1  # gradient steps per environment step
+    utd: int = 2  # gradient steps per environment step
     offline_ratio: float = 0.5  # share of each batch drawn from the offline data
     publish_every: int = 50  # environment steps between weights versions (1 s at 50 Hz)
     capacity: int = 200_000  # online transitions kept

@@ -92,6 +92,8 @@ def record(fn: Callable[..., list[torch.Tensor]], inputs: list[torch.Tensor]):
         if node.op == "call_function" and node.target is torch.ops.aten.detach.default:
             node.replace_all_uses_with(node.args[0])
             graph.erase_node(node)
+    for node in graph.nodes:  # the recording run's tensors (every activation): not needed to replay
+        node.meta.clear()
     graph.lint()
     gm.recompile()
     return gm, [t.detach() for t in outputs[0]]

@@ -36,24 +36,17 @@ import numpy as np
 from ..bag import TRANSITION_TOPIC, open_bag
 from ..env import SUCCESS_TOL, StepScore, batch_observations, fingertip_from_joints, planar_distances, score_steps
 from ..errors import UserError
-from ..transitions import SOURCE_NAMES, SOURCE_POLICY, Transitions
+from ..transitions import SOURCE_BY_NAME, SOURCE_POLICY, Transitions, source_from_tag
 from .messages import (
     FLOAT64_MULTI_ARRAY, HAS_HEADER, JOINT_STATE, POINT_STAMPED, Decoded, MessageDecodeError, decode_messages,
 )
-from .spec import SOURCE_FROM_FRAME_ID, TopicSpec, load_spec
-
-SOURCE_BY_NAME = {name: code for code, name in SOURCE_NAMES.items()}
+from .spec import SOURCE_AUTO, TopicSpec, load_spec
 
 
-def source_from_tag(frame_id: str) -> int:
-    """A command's source code from its ``header.frame_id``, as the sim node reads it:
-    'expert', 'random', 'policy', 'human' or the digit 0-3; anything else is policy."""
-    tag = frame_id.strip().lower()
-    if tag in SOURCE_BY_NAME:
-        return SOURCE_BY_NAME[tag]
-    if tag.isdigit() and int(tag) in SOURCE_NAMES:
-        return int(tag)
-    return SOURCE_POLICY
+
+def source_of_topic(topic: str) -> int | None:
+    """The source a command topic names (``.../command/expert`` ...), None for another."""
+    return SOURCE_BY_NAME.get(topic.rstrip("/").rsplit("/", 1)[-1])
 
 
 @dataclass
@@ -63,6 +56,7 @@ class JoinReport:
     bag: str
     spec: str
     fingertip: str = "forward kinematics"  # or the fingertip topic used
+    command_topics: dict = field(default_factory=dict)  # topic -> messages
     states: dict = field(default_factory=dict)
     commands: dict = field(default_factory=dict)
     targets: dict = field(default_factory=dict)
@@ -74,7 +68,8 @@ class JoinReport:
 
     def as_dict(self) -> dict:
         return {
-            "bag": self.bag, "spec": self.spec, "fingertip": self.fingertip, "states": self.states,
+            "bag": self.bag, "spec": self.spec, "fingertip": self.fingertip, "command_topics": self.command_topics,
+            "states": self.states,
             "commands": self.commands, "targets": self.targets, "fingertips": self.fingertips,
             "resets": self.resets, "episodes": self.episodes, "episode_starts": self.episode_starts,
             "transitions": self.transitions,
@@ -86,12 +81,13 @@ class JoinReport:
         lines = [
             f"{self.bag} (spec: {self.spec})",
             f"  states      {_messages_text(st)}, {st['malformed']} malformed, {st['without_target']} without a target; "
-            f"{st['used']} used",
+            f"{st['kept']} kept",
             f"  commands    {_messages_text(cmd)}, {cmd['malformed']} malformed; "
             f"joined {cmd['exact'] + cmd['within_tolerance']} ({cmd['exact']} exact, {cmd['within_tolerance']} within "
             f"tolerance), dropped {cmd['without_state']} without a state, {cmd['superseded']} with another command "
             f"nearer the same state, {cmd['no_next_state']} without a next state, {cmd['after_termination']} after "
             f"termination; {cmd['clipped']} clipped to [-1, 1]",
+            f"              on {', '.join(f'{t} ({n})' for t, n in self.command_topics.items())}",
             f"  targets     {_messages_text(self.targets)}",
         ]
         if self.fingertips:
@@ -135,26 +131,32 @@ class _Topic:
 def _read_topics(bag: Path, spec: TopicSpec) -> dict[str, _Topic]:
     """The spec's topics from the bag: type-checked, with payloads and receive times."""
     where = spec.path or "the default spec"
-    wanted = {  # spec field -> (topic, accepted types, required)
-        "state.topic": (spec.state_topic, (JOINT_STATE,), True),
-        "command.topic": (spec.command_topic, (JOINT_STATE, FLOAT64_MULTI_ARRAY), True),
-        "target.topic": (spec.target_topic, (POINT_STAMPED,), True),
-        "fingertip.topic": (spec.fingertip_topic, (POINT_STAMPED,), False),
-        "episodes.reset_topic": (spec.reset_topic, None, True),
-    }
+    commands = (JOINT_STATE, FLOAT64_MULTI_ARRAY)
+    wanted = [  # (spec field, topic, accepted types, required)
+        ("state.topic", spec.state_topic, (JOINT_STATE,), True),
+        *(("command.topic", topic, commands, False) for topic in spec.command_topics),
+        ("target.topic", spec.target_topic, (POINT_STAMPED,), True),
+        ("fingertip.topic", spec.fingertip_topic, (POINT_STAMPED,), False),
+        ("episodes.reset_topic", spec.reset_topic, None, True),
+    ]
     with open_bag(bag) as reader:
         types: dict[str, set] = {}
         for c in reader.connections:
             types.setdefault(c.topic, set()).add(c.msgtype)
+        have = ", ".join(sorted(types)) or "none"
+        hint = ""
+        if TRANSITION_TOPIC in types and spec.state_topic not in types:
+            hint = f"; it holds {TRANSITION_TOPIC}: train on it without --from-topics"
+        if not any(topic in types for topic in spec.command_topics):
+            raise UserError(f"{bag}: no command topic ({', '.join(spec.command_topics)}: spec {where}, field command.topic); "
+                            f"the bag has: {have}{hint}")
         found = {}
-        for label, (topic, accepted, required) in wanted.items():
+        for label, topic, accepted, required in wanted:
             if topic is None:
                 continue
             if topic not in types:
                 if not required:
                     continue
-                have = ", ".join(sorted(types)) or "none"
-                hint = f"; it holds {TRANSITION_TOPIC}: train on it without --from-topics" if TRANSITION_TOPIC in types else ""
                 raise UserError(f"{bag}: no topic {topic} (spec {where}, field {label}); the bag has: {have}{hint}")
             got = sorted(types[topic])
             if accepted is not None and (len(got) != 1 or got[0] not in accepted):
@@ -275,14 +277,16 @@ class _Join:
         kept = kept[finite]
         return stamp[kept], xy[kept]
 
-    def read_commands(self):
+    def read_command_topic(self, topic: _Topic):
+        """Stamps, values (in state.joints order), sources and usability of one command topic."""
         spec = self.spec
-        topic = self.topics[spec.command_topic]
         decoded = _decode(self.bag, topic)
         n = len(topic.payloads)
-        stamp = self.stamps(topic, decoded)
         value = np.zeros((n, 2))
-        source = np.full(n, SOURCE_POLICY if spec.source == SOURCE_FROM_FRAME_ID else SOURCE_BY_NAME[spec.source])
+        topic_source = source_of_topic(topic.name)
+        source = np.full(n, SOURCE_POLICY if topic_source is None else topic_source)
+        if spec.source != SOURCE_AUTO:
+            source[:] = SOURCE_BY_NAME[spec.source]
         ok = np.zeros(n, bool)
         for d in decoded:
             if topic.msgtype == FLOAT64_MULTI_ARRAY:
@@ -293,18 +297,30 @@ class _Join:
                 _, _, count = d.layout.arrays[2]
                 data = d.arrays["effort"]
                 cols = self.joint_columns(topic, d.layout.names, count, spec.command_joints, "command.joints")
-                if spec.source == SOURCE_FROM_FRAME_ID:
-                    source[d.rows] = source_from_tag(d.layout.frame_id)
+                tagged = source_from_tag(d.layout.frame_id)
+                if spec.source == SOURCE_AUTO and topic_source is None and tagged is not None:
+                    source[d.rows] = tagged
             if cols is None:
                 continue
             value[d.rows] = data[:, cols]
             ok[d.rows] = True
+        return self.stamps(topic, decoded), value, source, ok
+
+    def read_commands(self):
+        spec = self.spec
+        topics = [self.topics[t] for t in spec.command_topics if t in self.topics]
+        parts = [self.read_command_topic(topic) for topic in topics]
+        stamp, value, source, ok = (np.concatenate([p[i] for p in parts]) for i in range(4))
+        arrival = np.argsort(np.concatenate([t.recv_ns for t in topics]), kind="stable")  # across topics
+        stamp, value, source, ok = stamp[arrival], value[arrival], source[arrival], ok[arrival]
+        n = stamp.size
         action64 = value * spec.command_scale
         ok &= np.isfinite(action64).all(axis=1)
         kept, dups, differing = _first_per_stamp(stamp, np.hstack([value, source[:, None].astype(np.float64)]))
         malformed = int((~ok[kept]).sum())
         kept = kept[ok[kept]]
         clipped = int((np.abs(action64[kept]) > 1.0).any(axis=1).sum())
+        self.report.command_topics = {t.name: len(t.payloads) for t in topics}
         self.report.commands = {"messages": n, "duplicates": dups, "duplicates_differing": differing,
                                 "malformed": malformed, "clipped": clipped}
         action = np.clip(action64[kept], -1.0, 1.0).astype(np.float32)  # as the sim does: clip, then float32
@@ -390,7 +406,7 @@ class _Join:
         report.commands["after_termination"] = int((~alive).sum())
         c, a, b, step, score = c[alive], a[alive], b[alive], step[alive], StepScore._make(f[alive] for f in score)
         if c.size == 0:
-            raise UserError(f"{self.bag}: no transitions could be built from {spec.state_topic} and {spec.command_topic}; "
+            raise UserError(f"{self.bag}: no transitions could be built from {spec.state_topic} and the commands; "
                             f"commands: {_counts_text(report.commands)}")
 
         obs_all = batch_observations(qpos, qvel, target, fingertip)
@@ -407,7 +423,7 @@ class _Join:
             step=step,
             source=source[c].astype(np.int64),
         )
-        report.states["used"] = int(t_state.size)
+        report.states["kept"] = int(t_state.size)
         report.episodes = int(used_episodes.size)
         report.episode_starts = {k: int(v.sum()) for k, v in starts.items()}
         report.transitions = len(data)

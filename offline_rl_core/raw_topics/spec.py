@@ -17,11 +17,13 @@ from ..env import CONTROL_HZ, JOINT_NAMES
 from ..errors import UserError
 from ..transitions import SOURCE_NAMES
 
-SOURCE_FROM_FRAME_ID = "frame_id"
+SOURCE_AUTO = "auto"
 MATCH_MODES = ("exact", "nearest")
 STAMP_SOURCES = ("header", "receive")
 REWARD_RULES = ("pusher",)
-SOURCE_CHOICES = (SOURCE_FROM_FRAME_ID, *SOURCE_NAMES.values())
+SOURCE_CHOICES = (SOURCE_AUTO, *SOURCE_NAMES.values())
+# The sim's command inputs: plain, and one per source (who acted is the topic).
+SIM_COMMAND_TOPICS = ("/pusher/command", *(f"/pusher/command/{name}" for name in SOURCE_NAMES.values()))
 
 
 @dataclass(frozen=True)
@@ -33,12 +35,16 @@ class TopicSpec:
     stamps: str = "header"
     state_topic: str = "/pusher/state"  # sensor_msgs/msg/JointState
     joints: tuple[str, ...] = JOINT_NAMES  # the state's joints, in the observation's order
-    command_topic: str = "/pusher/command"  # JointState (effort) or std_msgs/msg/Float64MultiArray
+    # JointState (effort) or std_msgs/msg/Float64MultiArray; those of them the bag holds
+    command_topics: tuple[str, ...] = SIM_COMMAND_TOPICS
     # The order of a Float64MultiArray's values (a forward_command_controller's `joints`);
     # also of a JointState command that names no joints.
     command_joints: tuple[str, ...] = JOINT_NAMES
     command_scale: float = 1.0  # action = scale * command value (1 / gear for torques in N·m)
-    source: str = SOURCE_FROM_FRAME_ID  # frame_id: the command's header.frame_id; or a fixed source name
+    # auto: as the sim reads it, the command topic's last name when that names a source
+    # (pusher/command/expert ...), else a source named in header.frame_id (older bags), else
+    # policy; or a fixed source name for every command
+    source: str = SOURCE_AUTO
     target_topic: str = "/pusher/target"  # geometry_msgs/msg/PointStamped
     fingertip_topic: str | None = "/pusher/fingertip"  # PointStamped; planar kinematics when absent
     match: str = "nearest"  # exact: same stamp; nearest: the nearest within `tolerance`
@@ -77,7 +83,7 @@ class TopicSpec:
 # YAML layout: section -> {key: dataclass field}; top-level keys map to fields directly.
 _SECTIONS: dict[str, dict[str, str]] = {
     "state": {"topic": "state_topic", "joints": "joints"},
-    "command": {"topic": "command_topic", "joints": "command_joints", "scale": "command_scale", "source": "source"},
+    "command": {"topic": "command_topics", "joints": "command_joints", "scale": "command_scale", "source": "source"},
     "target": {"topic": "target_topic"},
     "fingertip": {"topic": "fingertip_topic"},
     "join": {"match": "match", "tolerance": "tolerance"},
@@ -151,12 +157,17 @@ def _check(where: str, name: str, label: str, value):
     def bad(expected: str) -> UserError:
         return UserError(f"{where}: field {label}: expected {expected}, got {value!r}")
 
-    if name in ("state_topic", "command_topic", "target_topic", "fingertip_topic", "reset_topic"):
+    if name == "command_topics":
+        names = value if isinstance(value, list) else [value]
+        if not names or not all(_is_topic(t) for t in names):
+            raise bad("a topic name or a list of them")
+        return tuple(dict.fromkeys(_absolute(t) for t in names))
+    if name in ("state_topic", "target_topic", "fingertip_topic", "reset_topic"):
         if value is None and name in ("fingertip_topic", "reset_topic"):
             return None
-        if not isinstance(value, str) or not value.strip() or any(c.isspace() for c in value):
+        if not _is_topic(value):
             raise bad("a topic name")
-        return value if value.startswith("/") else "/" + value  # bags store absolute names
+        return _absolute(value)
     if name in ("joints", "command_joints"):
         if not isinstance(value, list) or not value or not all(isinstance(j, str) and j for j in value):
             raise bad("a list of joint names")
@@ -181,3 +192,11 @@ def _check(where: str, name: str, label: str, value):
     if value not in choices:
         raise bad("one of " + ", ".join(choices))
     return value
+
+
+def _is_topic(value) -> bool:
+    return isinstance(value, str) and bool(value.strip()) and not any(c.isspace() for c in value)
+
+
+def _absolute(topic: str) -> str:
+    return topic if topic.startswith("/") else "/" + topic  # bags store absolute names

@@ -13,6 +13,8 @@ spec = {
  "sim": [("pusher_sim.node", "sim", "ros2 run sim node")],
  "policy": [("pusher_policy.node", "policy", "ros2 run policy node")],
  "trainer": [("pusher_trainer.node", "trainer", "ros2 run trainer node")],
+ "learner": [("pusher_learner.node", "learner", "ros2 run learner node")],
+ "recorder": [("pusher_recorder.node", "recorder", "ros2 run recorder node")],
  "corrections": [("pusher_corrections.mux", "mux", "ros2 run corrections mux"),
                  ("pusher_corrections.corrector", "corrector", "ros2 run corrections corrector")],
 }

@@ -179,6 +179,14 @@ def online_actor(seconds: float) -> dict:
     node.create_subscription(UInt8MultiArray, "/learner/weights", lambda m: weights.append(time.monotonic()),
                              QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                                         durability=DurabilityPolicy.VOLATILE))
+    # the window opens once every publisher is matched (and a second after, so no message of
+    # the first tick is lost to discovery): what is missed then, the node missed
+    topics = ("/pusher/state", "/policy/provenance", "/learner/weights")
+    wait_until(lambda: all(node.count_publishers(t) for t in topics), 60, lambda t: executor.spin_once(timeout_sec=t))
+    settle = time.monotonic() + 1.0
+    while time.monotonic() < settle:
+        executor.spin_once(timeout_sec=0.01)
+    states.clear(), answers.clear(), weights.clear()
     deadline = time.monotonic() + seconds
     while time.monotonic() < deadline:
         executor.spin_once(timeout_sec=0.01)

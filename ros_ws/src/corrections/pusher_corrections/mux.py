@@ -17,6 +17,8 @@ Its parameters:
 The rule in lockstep: exactly one command per stamp. A teleop action for the stamp
 wins; a yield lets the policy's action for the stamp through; a late message for a
 decided stamp only repeats the decided command (see ``pusher_corrections.arbiter``).
+A malformed or non-finite action, or one with a bad stamp, is not forwarded: it is
+counted by reason on ``~/status`` (``pusher_common.status``) with a throttled warning.
 """
 
 from __future__ import annotations
@@ -31,13 +33,14 @@ from std_msgs.msg import Bool
 
 from offline_rl_core.env import JOINT_NAMES
 from offline_rl_core.joint_messages import action_from_effort
+from offline_rl_core.pairing import check_stamp
 from pusher_common.node_main import run_node
 from pusher_common.params import Param, Settings
 from pusher_common.stamps import stamp_key
+from pusher_common.status import NodeStatus
 
 from .arbiter import HUMAN, POLICY, LockstepArbiter, RealtimeArbiter
 
-WARN_THROTTLE_S = 2.0
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
@@ -65,6 +68,8 @@ class Mux(Node):
         self.require_teleop = self.settings.require_teleop
         self.arbiter = LockstepArbiter() if self.mode == "lockstep" else RealtimeArbiter(self.hold_s)
         self.intervening: bool | None = None
+        self.status = NodeStatus(self, fields=lambda: {"forwarded": dict(self.arbiter.counts),
+                                                       "intervening": self.intervening})
         # who acted is the topic: pusher/command/policy or pusher/command/human (the sim logs it)
         self.command_pubs = {source: self.create_publisher(JointState, f"pusher/command/{source}", 10)
                              for source in (POLICY, HUMAN)}
@@ -95,10 +100,12 @@ class Mux(Node):
             self.require_teleop = value
 
     def parse(self, msg: JointState, topic: str, allow_empty: bool) -> np.ndarray | None | bool:
-        """Read the action: None for an empty effort (a yield) when allowed; False if malformed."""
+        """Read the action: None for an empty effort (a yield) when allowed; False if refused."""
+        self.status.took(topic)
         action, problem = action_from_effort(msg.name, msg.effort, allow_empty)
+        problem = check_stamp(msg.header.stamp.sec, msg.header.stamp.nanosec) or problem
         if problem:
-            self.get_logger().warning(f"ignoring {topic}: {problem}", throttle_duration_sec=WARN_THROTTLE_S)
+            self.status.reject(topic, problem)
             return False
         return action
 

@@ -11,9 +11,10 @@ gets the latest). The policy node acts on them (``-p weights_topic:=/learner/wei
 ``OUT/policy.pt`` always holds the latest version; ``OUT/learner_state.pt`` is a resume point
 (every ``save_every`` s and at exit); ``--resume`` continues from it, reading the
 transitions that arrived while it was down from ``--session-bag`` (the session's
-recording). ``~/status`` (``std_msgs/String``, JSON, once a second): counts, losses,
-rejections. A transition with a non-finite value, an action outside [-1, 1] or an
-unknown layout is dropped, counted and warned about (throttled), never trained on.
+recording). ``~/status`` (``std_msgs/String``, JSON, once a second; ``pusher_common.status``):
+counts, losses, rejections by reason. A transition with a non-finite value, an action
+outside [-1, 1], a value out of range or an unknown layout is dropped, counted and warned
+about (throttled), never trained on.
 
 The logic lives in ``offline_rl_core.online_service``; this node only moves messages.
 """
@@ -21,20 +22,20 @@ The logic lives in ``offline_rl_core.online_service``; this node only moves mess
 from __future__ import annotations
 
 import array
-import json
+import os
 import sys
 
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from std_msgs.msg import Float32MultiArray, MultiArrayDimension, String, UInt8MultiArray
+from std_msgs.msg import Float32MultiArray, MultiArrayDimension, UInt8MultiArray
 
 from offline_rl_core.learners.config import TrainConfig
 from offline_rl_core.learners.online import OnlineSettings
 from offline_rl_core.online_service import WEIGHTS_LABEL, LearnerService, LearnerServiceConfig, encode_weights
 from pusher_common.node_main import run_node
 from pusher_common.params import Param, Settings
+from pusher_common.status import NodeStatus
 
-WARN_THROTTLE_S = 2.0
 # Deep and reliable: in lockstep the sim publishes as fast as it is answered, and a
 # transition lost here is a transition the learner never trains on.
 TRANSITION_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
@@ -65,6 +66,8 @@ PARAMS = [
     Param("lr", _T.lr, "Adam learning rate", low=1e-8, high=1.0, read_only=True, flag="--lr"),
     Param("batch_size", _T.batch_size, "batch size", low=1, read_only=True, flag="--batch-size"),
     Param("threads", 1, "torch threads while training", low=1, read_only=True, flag="--threads"),
+    Param("nice", 0, "raise the learner's niceness by this much, so a realtime actor on the same machine is "
+          "scheduled first (0-19)", low=0, high=19, read_only=True, flag="--nice"),
     Param("save_every", 2.0, "seconds between resume points (learner_state.pt)", low=0.1, read_only=True,
           flag="--save-every"),
     Param("snapshot_every", 0, "live transitions between kept weights snapshots (OUT/snapshots; 0: none)", low=0,
@@ -81,6 +84,8 @@ class Learner(Node):
         s = Settings(self, PARAMS)
         from offline_rl_core.errors import UserError
 
+        if s.nice:
+            os.nice(s.nice)  # training yields the CPU to the nodes that answer the arm in time
         if not s.bag:
             raise UserError("no offline bag given: pass --bag PATH (repeat for several) or -p bag:=[PATH, ...]")
         train = TrainConfig(algo="sac", alpha=s.alpha, bc_weight=s.bc_weight, init_log_std=s.init_log_std, lr=s.lr,
@@ -92,11 +97,10 @@ class Learner(Node):
             session_bag=s.session_bag or None, snapshot_every=s.snapshot_every, settings=settings, train=train),
             log=self.get_logger().info)
         self.weights_pub = self.create_publisher(UInt8MultiArray, "~/weights", WEIGHTS_QOS)
-        self.status_pub = self.create_publisher(String, "~/status", 10)
+        self.status = NodeStatus(self, fields=self.service.status, counter=self.service.rejected)
         self.create_subscription(Float32MultiArray, "pusher/transition", self.on_transition, TRANSITION_QOS,
                                  raw=True)
         self.create_timer(0.002, self.work)
-        self.create_timer(1.0, self.report)
         self.publish(self.service.weights)
         self.get_logger().info(
             f"learning from {len(s.bag)} bag(s) + live transitions; weights version "
@@ -104,10 +108,10 @@ class Learner(Node):
             f"utd {s.utd}, new weights every {s.publish_every} transitions")
 
     def on_transition(self, raw: bytes) -> None:
-        reason = self.service.receive(raw)
-        if reason is not None:
-            self.get_logger().warn(f"dropped a pusher/transition: {reason} ({self.service.rejected.total} so far)",
-                                   throttle_duration_sec=WARN_THROTTLE_S)
+        self.status.took("pusher/transition")
+        rejection = self.service.receive(raw)
+        if rejection is not None:
+            self.status.warn("pusher/transition", rejection)
 
     def work(self) -> None:
         for weights in self.service.work(budget_s=0.02):
@@ -117,9 +121,6 @@ class Learner(Node):
         msg = UInt8MultiArray(data=array.array("B", encode_weights(weights)))
         msg.layout.dim = [MultiArrayDimension(label=WEIGHTS_LABEL, size=len(msg.data), stride=1)]
         self.weights_pub.publish(msg)
-
-    def report(self) -> None:
-        self.status_pub.publish(String(data=json.dumps(self.service.status())))
 
     def close(self) -> None:
         self.service.save()

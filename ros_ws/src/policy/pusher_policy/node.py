@@ -4,7 +4,9 @@ Every ``pusher/state`` (with its ``pusher/target``) is answered on ``policy/acti
 a JointState whose effort is the action in [-1, 1], stamped with the state's stamp; and,
 on ``effort_topic`` (default ``effort_controller/commands``), the same action as joint
 torques in N·m (std_msgs/Float64MultiArray), what a ros2_control effort controller
-takes. A malformed or non-finite state gets no action and a throttled warning.
+takes. A malformed, non-finite or out-of-order state (``offline_rl_core.joint_messages``,
+``offline_rl_core.pairing``), target or weights message gets no action: it is counted
+by reason on ``~/status`` (``pusher_common.status``) with a throttled warning.
 The checkpoint (``--checkpoint`` or ``-p checkpoint:=``)
 is polled every ``poll_period`` seconds and hot-swapped when it changes; a file that
 fails to load leaves the previous policy serving, with an error logged. A missing or
@@ -26,7 +28,6 @@ since the learner cut them, explore), so a bag says which weights acted.
 from __future__ import annotations
 
 import json
-import math
 import os
 import sys
 import time
@@ -45,17 +46,22 @@ from std_msgs.msg import Float64MultiArray, String, UInt8MultiArray  # noqa: E40
 from offline_rl_core.actor import Actor  # noqa: E402
 from offline_rl_core.env import JOINT_NAMES, observation_from_joints  # noqa: E402
 from offline_rl_core.errors import UserError  # noqa: E402
-from offline_rl_core.joint_messages import joints_from_state, torques_from_action  # noqa: E402
-from offline_rl_core.online_service import WEIGHTS_LABEL, decode_weights  # noqa: E402
-from offline_rl_core.pairing import Paired, StatePairing  # noqa: E402
+from offline_rl_core.joint_messages import joints_from_state, point_xy, torques_from_action  # noqa: E402
+from offline_rl_core.online_service import policy_from_weights_message  # noqa: E402
+from offline_rl_core.pairing import Paired, StatePairing, check_stamp  # noqa: E402
 from offline_rl_core.policy import LoadedPolicy, load_policy  # noqa: E402
+from offline_rl_core.rejections import Rejection  # noqa: E402
 from pusher_common.node_main import run_node  # noqa: E402
 from pusher_common.params import Param, Settings  # noqa: E402
 from pusher_common.stamps import stamp_key  # noqa: E402
+from pusher_common.status import NodeStatus  # noqa: E402
 
 WARN_THROTTLE_S = 2.0
+PACED_QUEUE_DEPTH = 10_000
 # The learner publishes reliable and transient local: a late joiner gets the latest version.
-WEIGHTS_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+# Several may wait to be read (a burst, or bad messages among good ones): read in order, the
+# newest good one acts, and none is overwritten unread.
+WEIGHTS_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 def file_signature(path: str):
@@ -105,11 +111,16 @@ class PolicyServer(Node):
         self.pairing = StatePairing()
         self.held: Paired | None = None  # a state waiting for the weights version it needs
         self.answered = 0
+        self.status = NodeStatus(self, fields=lambda: {"answered": self.answered,
+                                                       "weights_version": self.policy.weights_version})
 
         # Target subscription first: when both are ready the executor takes it first.
-        self.create_subscription(PointStamped, "pusher/target", self.on_target, 10)
-        self.create_subscription(PointStamped, "pusher/fingertip", self.on_fingertip, 10)
-        self.create_subscription(JointState, "pusher/state", self.on_state, 10)
+        # Paced, every state counts (it indexes the pacing and the exploration noise), and
+        # while a person holds the arm the sim runs ahead of this node: keep them all.
+        depth = PACED_QUEUE_DEPTH if self.settings.paced_every else 10
+        self.create_subscription(PointStamped, "pusher/target", self.on_target, depth)
+        self.create_subscription(PointStamped, "pusher/fingertip", self.on_fingertip, depth)
+        self.create_subscription(JointState, "pusher/state", self.on_state, depth)
         self.action_pub = self.create_publisher(JointState, "policy/action", 10)
         self.provenance_pub = self.create_publisher(String, "policy/provenance", 10)
         if self.settings.weights_topic:
@@ -161,20 +172,19 @@ class PolicyServer(Node):
         try:
             policy = load_policy(self.path)
         except Exception as exc:  # noqa: BLE001 - whatever is wrong with the file, keep serving
+            self.status.rejections.add(Rejection("bad checkpoint", str(exc)))
             self.get_logger().error(f"cannot reload {self.path}, keeping the previous policy: {exc}")
             return
         self.actor.offer(policy)  # one reference swap: a callback sees the old or the new policy
         self.get_logger().info(f"reloaded {self.path} ({policy.algorithm})")
 
     def on_weights(self, msg: UInt8MultiArray) -> None:
+        topic = self.settings.weights_topic
+        self.status.took(topic)
         label = msg.layout.dim[0].label if msg.layout.dim else ""
-        try:
-            if label != WEIGHTS_LABEL:
-                raise UserError(f"layout label {label!r}, expected {WEIGHTS_LABEL!r}")
-            policy = LoadedPolicy(decode_weights(msg.data, self.settings.weights_topic))
-        except Exception as exc:  # noqa: BLE001 - whatever is wrong with the message, keep serving
-            self.get_logger().error(f"ignoring a message on {self.settings.weights_topic}: {exc}",
-                                    throttle_duration_sec=WARN_THROTTLE_S)
+        policy, problem = policy_from_weights_message(label, msg.data, topic)
+        if problem:  # whatever is wrong with the message, the held policy serves on
+            self.status.reject(topic, problem)
             return
         if self.actor.offer(policy):
             self.get_logger().info(f"acting on weights version {policy.weights_version}",
@@ -184,23 +194,31 @@ class PolicyServer(Node):
 
     # -------------------------------------------------------------- serving
     def on_target(self, msg: PointStamped) -> None:
-        if self.finite_point(msg, "pusher/target"):
-            self.answer(self.pairing.on_target(stamp_key(msg.header.stamp), (msg.point.x, msg.point.y)))
+        self.on_point(msg, "pusher/target", self.pairing.on_target)
 
     def on_fingertip(self, msg: PointStamped) -> None:
-        if self.finite_point(msg, "pusher/fingertip"):
-            self.answer(self.pairing.on_fingertip(stamp_key(msg.header.stamp), (msg.point.x, msg.point.y)))
+        self.on_point(msg, "pusher/fingertip", self.pairing.on_fingertip)
+
+    def on_point(self, msg: PointStamped, topic: str, pair) -> None:
+        self.status.took(topic)
+        xy, problem = point_xy(msg.point.x, msg.point.y, topic)
+        problem = check_stamp(msg.header.stamp.sec, msg.header.stamp.nanosec) or problem
+        if problem:
+            self.status.reject(topic, problem)
+            return
+        self.answer(pair(stamp_key(msg.header.stamp), xy))
 
     def on_state(self, msg: JointState) -> None:
+        self.status.took("pusher/state")
+        joints, problem = joints_from_state(msg.name, msg.position, msg.velocity)
+        problem = check_stamp(msg.header.stamp.sec, msg.header.stamp.nanosec) or problem
         stamp = stamp_key(msg.header.stamp)
-        self.actor.see(stamp)  # every state counts, answered or not
-        self.answer(self.pairing.on_state(stamp, msg))
-
-    def finite_point(self, msg: PointStamped, topic: str) -> bool:
-        if math.isfinite(msg.point.x) and math.isfinite(msg.point.y):
-            return True
-        self.get_logger().warning(f"ignoring {topic}: not finite", throttle_duration_sec=WARN_THROTTLE_S)
-        return False
+        problem = problem or self.pairing.admit(stamp)  # stale and future stamps: only for a sound state
+        if problem:
+            self.status.reject("pusher/state", problem)
+            return
+        self.actor.see(stamp)  # every state of the session counts, answered or not
+        self.answer(self.pairing.on_state(stamp, (msg.header.stamp, joints)))
 
     def answer(self, paired: Paired | None) -> None:
         if paired is None:
@@ -208,30 +226,30 @@ class PolicyServer(Node):
         if not self.actor.ready():
             self.held = paired  # answered when the weights version it needs arrives
             return
-        msg = paired.state
-        joints, problem = joints_from_state(msg.name, msg.position, msg.velocity)
-        if joints is None:
-            self.get_logger().warning(f"no action for pusher/state: {problem}", throttle_duration_sec=WARN_THROTTLE_S)
-            return
-        obs = observation_from_joints(joints[0], joints[1], paired.target_xy, paired.fingertip_xy)
+        header_stamp, (position, velocity) = paired.state
+        obs = observation_from_joints(position, velocity, paired.target_xy, paired.fingertip_xy)
         action = self.actor.act(obs, paired.stamp)
         if not np.all(np.isfinite(action)):
-            self.get_logger().warning("the policy produced a non-finite action; none sent",
-                                      throttle_duration_sec=WARN_THROTTLE_S)
+            self.status.reject("pusher/state", Rejection("non-finite action", "the policy's action for this state "
+                                                                              "is not finite; none sent"))
             return
         action = np.clip(action, -1.0, 1.0)
         out = JointState(name=list(JOINT_NAMES), effort=[float(a) for a in action])
-        out.header.stamp = msg.header.stamp
+        out.header.stamp = header_stamp
         self.action_pub.publish(out)
+        if self.provenance_pub.get_subscription_count():  # formatting it costs the answer's latency
+            self.publish_provenance(paired.stamp)
+        if self.effort_pub is not None and self.effort_pub.get_subscription_count():
+            self.effort_pub.publish(Float64MultiArray(data=[float(t) for t in torques_from_action(action)]))
+        self.answered += 1
+
+    def publish_provenance(self, stamp: int) -> None:
         cut = self.policy.checkpoint.get("cut_unix")  # when the learner cut these weights (same machine clock)
         self.provenance_pub.publish(String(data=json.dumps({
-            "stamp": paired.stamp, "weights_version": self.policy.weights_version,
+            "stamp": stamp, "weights_version": self.policy.weights_version,
             "trained_through": int(self.policy.checkpoint.get("trained_through", 0) or 0),
             "weights_age_s": None if cut is None else round(time.time() - float(cut), 4),
             "explore": self.actor.explore})))
-        if self.effort_pub is not None:
-            self.effort_pub.publish(Float64MultiArray(data=[float(t) for t in torques_from_action(action)]))
-        self.answered += 1
 
 
 def main(argv: list[str] | None = None) -> int:

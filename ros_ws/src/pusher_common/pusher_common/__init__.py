@@ -6,6 +6,8 @@
   with the old command-line flags as aliases.
 - :mod:`pusher_common.stamps`: ``stamp_key`` (a stamp as integer nanoseconds).
 - :mod:`pusher_common.spin`: a message-fast ``spin_until_future_complete``.
+- :mod:`pusher_common.status`: ``NodeStatus``, a node's ``~/status`` (messages taken,
+  rejections by reason) and its throttled warnings about refused messages.
 """
 
 from .stamps import stamp_from_ns, stamp_key

@@ -1,18 +1,26 @@
-"""``ros2 run recorder node``: record a pusher-reach dataset as a rosbag2 bag.
+"""``ros2 run recorder node``: record a rosbag2 bag; by default also drive the sim to record
+a pusher-reach dataset.
 
 Active (default): drives the sim with the scripted expert for the first
 ``round(expert_frac * episodes)`` episodes and uniform random actions after, exactly as
-``offline-rl collect`` does in process, and records ``/pusher/transition`` plus
-``/pusher/state``, ``/pusher/target`` and the ``/pusher/command`` messages it sends.
-Against a lockstep sim started with the same seed the bag's transitions equal
-``offline-rl collect``'s bit for bit.
+``offline-rl collect`` does in process, and records ``pusher/transition`` plus
+``pusher/state``, ``pusher/target`` and the ``pusher/command`` messages it sends (and any
+``topics`` given). Against a lockstep sim started with the same seed the bag's
+transitions equal ``offline-rl collect``'s bit for bit.
 
   ros2 run recorder node --out bags/mix.db3 --episodes 200 --expert-frac 0.3 --seed 0
 
-``--passive`` records whatever flows (e.g. a policy or a human driving) until Ctrl-C,
-or until ``--episodes`` episodes have ended when given. Ctrl-C or SIGTERM at any time
-closes the bag with every message received so far; a SIGKILL loses at most the last
-``--flush-interval`` (1 s) of messages (``offline_rl_core.bag.recording``).
+``--passive`` records what flows (a policy or a person driving): the ``topics`` given,
+or every topic as it appears (like ``ros2 bag record -a``), until Ctrl-C, or until
+``episodes`` episodes have ended when given. Each topic is subscribed with a QoS its
+publishers offer (reliable only when they all are, transient local likewise), and the
+bag keeps their offered QoS, as ``ros2 bag record`` does. Topic names are relative:
+``--ros-args -r __ns:=/arm2`` records that namespace's pipeline.
+
+Messages are stamped with the node's clock (sim time with ``-p use_sim_time:=true``),
+strictly increasing so the bag's order is the arrival order. Ctrl-C or SIGTERM close the
+bag with every message received; a SIGKILL loses at most the last ``flush_interval``
+(1 s) of messages (``offline_rl_core.bag.recording``).
 
 Protocol of the active loop: a command answers the latest state whose target (same stamp)
 has arrived, and only once the transition caused by the previous command is in, so
@@ -21,91 +29,150 @@ episode boundaries are known before the next action is chosen.
 
 from __future__ import annotations
 
-import argparse
+import importlib
 import struct
 import sys
 import time
 
 import numpy as np
-import rclpy
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from geometry_msgs.msg import PointStamped
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message, serialize_message
 from rclpy.task import Future
-from rclpy.utilities import remove_ros_args
-from geometry_msgs.msg import PointStamped
+from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float32MultiArray
 
-from offline_rl_core.bag import TRANSITION_CDR_HEADER, BagWriter, decode_transition_payloads
+from offline_rl_core.bag import TRANSITION_CDR_HEADER, BagWriter, decode_transition_payloads, typestore
+from offline_rl_core.bag.recording import MIN_SQLITE_SPLIT_SIZE
 from offline_rl_core.collect import expert_episode_count
 from offline_rl_core.env import ACT_DIM, JOINT_NAMES
-from offline_rl_core.errors import UserError, caused_by_interrupt
+from offline_rl_core.errors import UserError
 from offline_rl_core.expert import expert_action
-from offline_rl_core.transitions import LAYOUT_SLICES, SOURCE_NAMES, SOURCE_EXPERT, SOURCE_RANDOM
+from offline_rl_core.transitions import LAYOUT_SLICES, SOURCE_EXPERT, SOURCE_NAMES, SOURCE_RANDOM
+from pusher_common.node_main import run_node
+from pusher_common.params import Param, Settings
 from pusher_common.spin import spin_until_future_complete
+from pusher_common.stamps import stamp_key
 
-TOPICS = {
-    "/pusher/transition": ("std_msgs/msg/Float32MultiArray", Float32MultiArray),
-    "/pusher/state": ("sensor_msgs/msg/JointState", JointState),
-    "/pusher/target": ("geometry_msgs/msg/PointStamped", PointStamped),
-    "/pusher/command": ("sensor_msgs/msg/JointState", JointState),
+# The loop's topics, relative to the node's namespace, and their types.
+TRANSITION, STATE, TARGET, COMMAND = "pusher/transition", "pusher/state", "pusher/target", "pusher/command"
+LOOP_TYPES = {
+    TRANSITION: ("std_msgs/msg/Float32MultiArray", Float32MultiArray),
+    STATE: ("sensor_msgs/msg/JointState", JointState),
+    TARGET: ("geometry_msgs/msg/PointStamped", PointStamped),
+    COMMAND: ("sensor_msgs/msg/JointState", JointState),
 }
-TRANSITION_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+DISCOVERY_PERIOD_S = 0.5
 DONE = (LAYOUT_SLICES["terminated"].start, LAYOUT_SLICES["truncated"].start)
 # Byte offsets of those two float32 flags in a transition carrying the sim's header.
 DONE_AT = tuple(len(TRANSITION_CDR_HEADER) + 4 * column for column in DONE)
 
-
-def stamp_key(stamp) -> int:
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+PARAMS = (
+    Param("out", "", "bag to write: x.db3 / x.mcap (one file) or a directory (metadata.yaml + x_0.db3, x_1.db3, ...)",
+          read_only=True, flag="--out"),
+    Param("passive", False, "only record what flows, until stopped (or until `episodes` episodes end)",
+          read_only=True, flag="--passive"),
+    Param("episodes", 0, "episodes to record (required when driving; passive: 0 = until stopped)", low=0,
+          read_only=True, flag="--episodes"),
+    Param("expert_frac", 0.3, "fraction of expert episodes, first (driving)", low=0.0, high=1.0, read_only=True,
+          flag="--expert-frac"),
+    Param("seed", 0, "seed of the random-action generator (driving)", read_only=True, flag="--seed"),
+    Param("storage", "", "sqlite3 or mcap (default: from out's suffix, else sqlite3)", choices=("", "sqlite3", "mcap"),
+          read_only=True, flag="--storage"),
+    Param("overwrite", False, "replace an existing bag at out (it is deleted at start)", read_only=True,
+          flag="--overwrite"),
+    Param("topics", [], "topics to record (relative names resolve in the node's namespace); none: every topic when "
+          "passive, the loop's when driving", read_only=True, flag="--topics", kind=list),
+    Param("flush_interval", 1.0, "seconds between writes to disk: a kill loses at most this much", low=0.001,
+          high=3600.0, flag="--flush-interval"),
+    Param("max_bag_size", 0, "start a new file of the bag directory past this many bytes (0: never)", low=0,
+          flag="--max-bag-size"),
+    Param("max_bag_duration", 0.0, "start a new file of the bag directory after this many seconds of stamps (0: never)",
+          low=0.0, flag="--max-bag-duration"),
+)
+TRANSITION_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 
 
 def ends_episode(raw: bytes) -> bool:
-    """Whether a raw /pusher/transition is its episode's last (terminated or truncated)."""
+    """Whether a raw transition is its episode's last (terminated or truncated)."""
     if raw.startswith(TRANSITION_CDR_HEADER):  # the sim's own bytes: read the flags in place
         return any(struct.unpack_from("<f", raw, at)[0] for at in DONE_AT)
     row = decode_transition_payloads([raw])[0]  # another writer's header
     return bool(row[DONE[0]] or row[DONE[1]])
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="ros2 run recorder node",
-        description="Drive the pusher sim with the scripted expert / random actions (or listen) and record a rosbag2 bag.",
+def message_class(msgtype: str):
+    """The Python class of 'pkg/msg/Name', or None when its package is not installed."""
+    package, _, name = msgtype.split("/")
+    try:
+        return getattr(importlib.import_module(f"{package}.msg"), name)
+    except (ImportError, AttributeError):
+        return None
+
+
+def _qos_time(duration) -> QosTime:
+    ns = duration.nanoseconds
+    if ns >= 2**63 - 1 or ns < 0:  # rmw's "infinite", as rosbag2 writes it
+        return QosTime(2147483647, 4294967295)
+    return QosTime(*divmod(ns, 10**9))
+
+
+def _enum(enum, policy):
+    return enum.__members__.get(getattr(policy, "name", ""), enum.__members__["UNKNOWN"])
+
+
+def offered_qos(infos) -> list[Qos]:
+    """The publishers' QoS profiles, as the bag's metadata records them."""
+    return [
+        Qos(
+            _enum(QosHistory, q.history), q.depth, _enum(QosReliability, q.reliability),
+            _enum(QosDurability, q.durability), _qos_time(q.deadline), _qos_time(q.lifespan),
+            _enum(QosLiveliness, q.liveliness), _qos_time(q.liveliness_lease_duration),
+            q.avoid_ros_namespace_conventions,
+        )
+        for q in (info.qos_profile for info in infos)
+    ]
+
+
+def subscription_qos(infos, depth: int) -> QoSProfile:
+    """A QoS every publisher's offer matches: reliable / transient local only if all are."""
+    profiles = [info.qos_profile for info in infos]
+    reliable = profiles and all(q.reliability == ReliabilityPolicy.RELIABLE for q in profiles)
+    latched = profiles and all(q.durability == DurabilityPolicy.TRANSIENT_LOCAL for q in profiles)
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST, depth=depth,
+        reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE,
     )
-    parser.add_argument("--out", required=True, help="bag to write: x.db3 / x.mcap (one file) or a directory")
-    parser.add_argument("--episodes", type=int, default=None, help="episodes to record (required unless --passive)")
-    parser.add_argument("--expert-frac", type=float, default=0.3, help="fraction of expert episodes, first (default 0.3)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the random-action generator (default 0)")
-    parser.add_argument("--storage", choices=("sqlite3", "mcap"), default=None, help="storage (default: from --out, else sqlite3)")
-    parser.add_argument("--passive", action="store_true", help="only record what flows, until Ctrl-C (or --episodes)")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing bag at --out (deleted at start)")
-    parser.add_argument("--flush-interval", type=float, default=1.0,
-                        help="seconds between writes to disk: a kill loses at most this much (default 1.0)")
-    parser.add_argument("--max-bag-size", type=int, default=0,
-                        help="start a new file of the bag directory past this many bytes (0: never)")
-    parser.add_argument("--max-bag-duration", type=float, default=0.0,
-                        help="start a new file of the bag directory after this many seconds (0: never)")
-    return parser
+
+
+def hidden(topic: str) -> bool:
+    return any(part.startswith("_") for part in topic.split("/"))
 
 
 class Recorder(Node):
-    def __init__(self, bag: BagWriter, args: argparse.Namespace):
-        super().__init__("recorder")
-        self.bag = bag
-        self.active = not args.passive
-        self.episodes = args.episodes
-        self.n_expert = expert_episode_count(args.episodes, args.expert_frac) if self.active else 0
-        self.rng = np.random.default_rng(args.seed)
+    def __init__(self, overrides=()):
+        super().__init__("recorder", parameter_overrides=list(overrides))
+        self.settings = s = Settings(self, PARAMS, on_change=self.on_parameter_change, check=self.check_parameter)
+        if not s.out:
+            raise UserError("no bag given: pass --out PATH or -p out:=PATH")
+        self.active = not s.passive
+        if self.active and s.episodes < 1:
+            raise UserError("--episodes is required when driving the sim (or --passive to only record)")
+        self.episodes = s.episodes or None
+        self.n_expert = expert_episode_count(s.episodes, s.expert_frac) if self.active else 0
+        self.rng = np.random.default_rng(s.seed)
         self.finished = Future()
+        self.exit_code = 0
         self.episodes_done = 0
         self.transitions = 0
         self.last_stamp_ns = 0
         self.start_time = time.monotonic()
         self.progress_tty = sys.stderr.isatty()
         self.last_progress_decile = -1
+        self.warned: set[str] = set()
 
         # Active-loop state.
         self.state: JointState | None = None
@@ -114,28 +181,96 @@ class Recorder(Node):
         self.last_command: JointState | None = None
         self.matched = False
 
-        for topic, (type_name, msg_type) in TOPICS.items():
-            bag.add_topic(topic, type_name)
-            if self.active and topic == "/pusher/command":
-                continue  # written as sent (see send): no loop back over DDS
-            qos = TRANSITION_QOS if topic == "/pusher/transition" else 10
-            self.create_subscription(msg_type, topic, self.make_callback(topic), qos, raw=True)
-        self.subs = {s.topic_name: s for s in self.subscriptions}
+        self.bag = BagWriter(s.out, storage=s.storage or None, overwrite=s.overwrite, flush_interval=s.flush_interval,
+                             max_bag_size=s.max_bag_size, max_bag_duration=s.max_bag_duration)
+        self.record_all = self.active is False and not s.topics
+        self.wanted = {self.resolve(t) for t in s.topics or ()}
+        self.subs: dict[str, object] = {}  # resolved name -> subscription
+        self.bag_topics: set[str] = set()  # added to the bag (at their first message)
+        self.types: dict[str, str] = {}  # resolved name -> message type
+        self.transition_topic = self.resolve(TRANSITION)
         if self.active:
-            self.command_pub = self.create_publisher(JointState, "/pusher/command", 10)
+            loop = (TRANSITION, STATE, TARGET)
+        else:  # the dataset's topic from the start, not after discovery
+            loop = (TRANSITION,) if self.record_all or self.transition_topic in self.wanted else ()
+        for topic in loop:
+            self.subscribe(self.resolve(topic), *LOOP_TYPES[topic], TRANSITION_QOS if topic == TRANSITION else 10)
+        if self.active:
+            self.command_pub = self.create_publisher(JointState, COMMAND, 10)
+            self.command_topic = self.command_pub.topic_name
             self.create_timer(0.1, self.try_act)
+        # Other topics are subscribed as discovery finds their publishers (and types).
+        self.dynamic = self.record_all or bool(self.wanted - set(self.subs))
+        if self.dynamic:
+            self.create_timer(DISCOVERY_PERIOD_S, self.discover)
+            self.discover()
         what = f"{self.episodes} episodes ({self.n_expert} expert)" if self.active else "passively"
-        self.get_logger().info(f"recording {what} to {bag.path}")
+        which = "every topic" if self.record_all else ", ".join(sorted(self.wanted | set(self.subs)))
+        self.get_logger().info(f"recording {what} to {self.bag.path}: {which}")
+
+    def resolve(self, topic: str) -> str:
+        return self.resolve_topic_name(topic)
+
+    # -------------------------------------------------------------- parameters
+    def check_parameter(self, name: str, value) -> str | None:
+        if name in ("max_bag_size", "max_bag_duration") and value and self.bag.target.single_file:
+            return f"splitting needs a bag directory as output, not {self.bag.path}"
+        if name == "max_bag_size" and self.bag.storage_id == "sqlite3" and 0 < value < MIN_SQLITE_SPLIT_SIZE:
+            return f"below the sqlite3 minimum of {MIN_SQLITE_SPLIT_SIZE} bytes"
+        return None
+
+    def on_parameter_change(self, name: str, value) -> None:
+        if name == "flush_interval":
+            self.bag.flush_interval = float(value)
+        elif name == "max_bag_size":
+            self.bag.max_bag_size = int(value)
+        elif name == "max_bag_duration":
+            self.bag.max_bag_duration_ns = int(value * 1e9)
+
+    # -------------------------------------------------------------- subscribing
+    def subscribe(self, topic: str, msgtype: str, msg_class, qos) -> None:
+        self.types[topic] = msgtype
+        self.subs[topic] = self.create_subscription(msg_class, topic, self.make_callback(topic), qos, raw=True)
+
+    def warn_once(self, key: str, text: str) -> None:
+        if key not in self.warned:
+            self.warned.add(key)
+            self.get_logger().warn(text)
+
+    def discover(self) -> None:
+        for topic, types in self.get_topic_names_and_types():
+            if topic in self.subs or not (topic in self.wanted or (self.record_all and not hidden(topic))):
+                continue
+            if self.active and topic == self.command_topic:
+                continue  # written as sent (see send)
+            if len(types) != 1:
+                self.warn_once(topic, f"not recording {topic}: published with several types ({', '.join(types)})")
+                continue
+            msg_class = message_class(types[0])
+            if msg_class is None:
+                self.warn_once(topic, f"not recording {topic}: its type {types[0]} is not installed here")
+                continue
+            infos = self.get_publishers_info_by_topic(topic)
+            if infos:  # subscribe with what they offer
+                depth = 1000 if topic == self.transition_topic else 100
+                self.subscribe(topic, types[0], msg_class, subscription_qos(infos, depth))
+                self.get_logger().info(f"subscribed to {topic} ({types[0]})")  # as ros2 bag record says
+
+    def add_to_bag(self, topic: str, msgtype: str, infos) -> None:
+        msgdef = rihs01 = None
+        if msgtype not in typestore().fielddefs:  # not a standard type: its hash, no definition
+            msgdef, rihs01 = "", str(infos[0].topic_type_hash) if infos else ""
+        self.bag.add_topic(topic, msgtype, msgdef=msgdef, rihs01=rihs01, offered_qos_profiles=offered_qos(infos))
 
     # -------------------------------------------------------------- recording
     def make_callback(self, topic: str):
         def on_raw(raw: bytes) -> None:
             self.write(topic, raw)
-            if topic == "/pusher/transition":
+            if topic == self.transition_topic:
                 self.on_transition(raw)
-            elif self.active and topic == "/pusher/state":
+            elif self.active and topic == self.resolve(STATE):
                 self.on_state(deserialize_message(raw, JointState))
-            elif self.active and topic == "/pusher/target":
+            elif self.active and topic == self.resolve(TARGET):
                 self.on_target(deserialize_message(raw, PointStamped))
 
         return on_raw
@@ -143,8 +278,12 @@ class Recorder(Node):
     def write(self, topic: str, raw: bytes) -> None:
         if self.finished.done():
             return
-        # Receive time, kept strictly increasing so the bag's order is the arrival order.
-        stamp = max(time.time_ns(), self.last_stamp_ns + 1)
+        if topic not in self.bag_topics:
+            self.add_to_bag(topic, self.types[topic], self.get_publishers_info_by_topic(topic))
+            self.bag_topics.add(topic)
+        # The node's clock (sim time when use_sim_time is set), strictly increasing so the
+        # bag's order is the arrival order.
+        stamp = max(self.get_clock().now().nanoseconds, self.last_stamp_ns + 1)
         self.last_stamp_ns = stamp
         self.bag.write(topic, stamp, raw)
 
@@ -158,7 +297,7 @@ class Recorder(Node):
             self.episodes_done += 1
             self.show_progress()
             if self.episodes and self.episodes_done >= self.episodes:
-                self.finished.set_result(True)
+                self.finish()
                 return
         self.try_act()
 
@@ -202,9 +341,7 @@ class Recorder(Node):
         """Sim and recorder have matched on every topic of the loop (checked until true)."""
         if not self.matched:
             self.matched = (
-                self.subs["/pusher/transition"].get_publisher_count() > 0
-                and self.subs["/pusher/state"].get_publisher_count() > 0
-                and self.subs["/pusher/target"].get_publisher_count() > 0
+                all(self.subs[self.resolve(t)].get_publisher_count() > 0 for t in (TRANSITION, STATE, TARGET))
                 and self.command_pub.get_subscription_count() > 0
             )
         return self.matched
@@ -231,59 +368,70 @@ class Recorder(Node):
 
     def send(self, command: JointState) -> None:
         self.command_pub.publish(command)
-        self.write("/pusher/command", serialize_message(command))
+        if self.command_topic not in self.types:
+            self.types[self.command_topic] = LOOP_TYPES[COMMAND][0]
+        self.write(self.command_topic, serialize_message(command))
+
+    # -------------------------------------------------------------- the end
+    def finish(self) -> None:
+        """All episodes are in: close the bag now, so its outcome sets the exit status."""
+        if not self.finished.done():
+            self.finished.set_result(True)
+        self.close_bag()
+
+    def close_bag(self) -> None:
+        try:
+            self.bag.close()  # every message received is in the bag, however we got here
+        except UserError as exc:
+            print(f"recorder: error: {exc}", file=sys.stderr)
+            self.exit_code = 2
+
+    def close(self) -> None:
+        """Called by run_node on every way out (done, Ctrl-C, SIGTERM, an error)."""
+        interrupted = not self.finished.done()
+        self.close_bag()
+        elapsed = time.monotonic() - self.start_time
+        print(
+            f"recorder: {'interrupted; ' if interrupted else ''}wrote {self.transitions} transitions "
+            f"({self.episodes_done} episodes, {self.bag.message_count} messages) to {self.bag.path} in {elapsed:.1f} s",
+            file=sys.stderr,
+        )
+
+
+def spin_recorder(executor, node: Recorder) -> None:
+    """The fast spin when every subscription exists from the start; rclpy's own when
+    discovery adds subscriptions while recording."""
+    if node.dynamic:
+        executor.spin_until_future_complete(node.finished)
+    else:
+        spin_until_future_complete(executor, node.finished)
+
+
+def expand_topics(argv: list[str]) -> list[str]:
+    """``--topics a b c`` (as ``ros2 bag record`` takes it) -> ``--topics a --topics b ...``."""
+    out, i = [], 0
+    while i < len(argv):
+        out.append(argv[i])
+        if argv[i] == "--ros-args":
+            return out + argv[i + 1 :]
+        if argv[i] == "--topics":
+            i += 1
+            names = []
+            while i < len(argv) and not argv[i].startswith("-"):
+                names.append(argv[i])
+                i += 1
+            out.pop()
+            for name in names or [""]:
+                out += ["--topics", name] if name else ["--topics"]
+            continue
+        i += 1
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv if argv is None else argv
-    args = build_parser().parse_args(remove_ros_args(argv)[1:])
-    if not args.passive and args.episodes is None:
-        build_parser().error("--episodes is required (or --passive)")
-    if args.episodes is not None and args.episodes < 1:
-        build_parser().error(f"--episodes must be >= 1, got {args.episodes}")
-    if not 0.0 <= args.expert_frac <= 1.0:
-        build_parser().error(f"--expert-frac must be in [0, 1], got {args.expert_frac}")
-    try:
-        bag = BagWriter(args.out, storage=args.storage, overwrite=args.overwrite, flush_interval=args.flush_interval,
-                        max_bag_size=args.max_bag_size, max_bag_duration=args.max_bag_duration)
-    except UserError as exc:
-        print(f"recorder: error: {exc}", file=sys.stderr)
-        return 2
-    rclpy.init(args=argv)
-    node = None
-    interrupted = False
-    rc = 0
-    try:
-        node = Recorder(bag, args)
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        spin_until_future_complete(executor, node.finished)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        interrupted = True
-    except UserError as exc:  # the disk failed under the bag: what was flushed stays
-        print(f"recorder: error: {exc}", file=sys.stderr)
-        rc = 2
-    except Exception as exc:
-        if rclpy.ok() and not caused_by_interrupt(exc):
-            raise
-        interrupted = True  # a signal shut the context down mid-wait (rclpy may raise RCLError)
-    finally:
-        try:
-            bag.close()  # every message received is in the bag, however we got here
-        except UserError as exc:
-            print(f"recorder: error: {exc}", file=sys.stderr)
-            rc = 2
-        if node is not None:
-            interrupted = interrupted or not node.finished.done()  # SIGTERM: spin just returns
-            elapsed = time.monotonic() - node.start_time
-            print(
-                f"recorder: {'interrupted; ' if interrupted else ''}wrote {node.transitions} transitions "
-                f"({node.episodes_done} episodes, {bag.message_count} messages) to {bag.path} in {elapsed:.1f} s",
-                file=sys.stderr,
-            )
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return rc
+    argv = expand_topics(list(sys.argv if argv is None else argv))
+    return run_node(Recorder, prog="recorder", command="ros2 run recorder node", flags=PARAMS, argv=argv,
+                    spin=spin_recorder, description=__doc__.split("\n\n")[0])
 
 
 if __name__ == "__main__":

@@ -13,7 +13,10 @@ Who acted (the transition's ``source``) is the command topic a command came on:
 ``header.frame_id``, which is deprecated: frame_id names a TF frame).
 
 The protocol (realtime / lockstep, sim time, episodes) is ``offline_rl_core.sim_loop``;
-this node moves messages to it and publishes what it returns.
+this node moves messages to it and publishes what it returns. A command it cannot take
+(malformed, non-finite, a bad stamp; in lockstep, a stamp other than the current
+state's) is counted by reason on ``~/status`` (``pusher_common.status``) with a
+throttled warning.
 """
 
 from __future__ import annotations
@@ -23,7 +26,6 @@ import json
 import sys
 import time
 
-import numpy as np
 import rclpy
 from geometry_msgs.msg import PointStamped
 from rclpy.clock import Clock, ClockType
@@ -39,15 +41,15 @@ from offline_rl_core.atomic import atomic_path
 from offline_rl_core.bag import encode_transition_rows
 from offline_rl_core.env import CONTROL_HZ, JOINT_NAMES
 from offline_rl_core.joint_messages import action_from_effort, action_from_torques
-from offline_rl_core.sim_loop import MODES, ArmState, SimLoop, Step
-from offline_rl_core.transitions import SOURCE_NAMES, SOURCE_POLICY
+from offline_rl_core.pairing import check_answer_stamp, check_stamp
+from offline_rl_core.sim_loop import MODES, ArmState, SimLoop, Step, TickTiming
+from offline_rl_core.transitions import SOURCE_NAMES, SOURCE_POLICY, source_from_tag
 from pusher_common.node_main import run_node
 from pusher_common.params import Param, Settings
 from pusher_common.spin import spin_node_fast
 from pusher_common.stamps import NS_PER_S, stamp_from_ns, stamp_key
+from pusher_common.status import NodeStatus
 
-SOURCE_BY_NAME = {name: code for code, name in SOURCE_NAMES.items()}
-WARN_THROTTLE_S = 2.0
 # Transitions must not be dropped by a slow reader: a deep reliable history.
 TRANSITION_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 
@@ -73,16 +75,6 @@ PARAMS = (
 )
 
 
-def source_from_tag(frame_id: str) -> int | None:
-    """Read the source named by a deprecated ``header.frame_id`` tag (None: none)."""
-    tag = frame_id.strip().lower()
-    if tag in SOURCE_BY_NAME:
-        return SOURCE_BY_NAME[tag]
-    if tag.isdigit() and int(tag) in SOURCE_NAMES:
-        return int(tag)
-    return None
-
-
 class PusherSim(Node):
     def __init__(self, overrides=()):
         super().__init__("sim", parameter_overrides=list(overrides))
@@ -93,7 +85,9 @@ class PusherSim(Node):
         self.wait_for_subscribers = s.wait_for_subscribers
         self.finished = Future()  # done when `episodes` episodes have run
         self.last_publish = 0.0
-        self.tick_times: list[float] = []
+        self.timing = TickTiming()
+        self.status = NodeStatus(self, fields=lambda: {"episode": self.loop.episode,
+                                                       "episodes_done": len(self.loop.results)})
 
         self.clock_pub = self.create_publisher(ClockMsg, "/clock", 10)
         self.state_pub = self.create_publisher(JointState, "pusher/state", 10)
@@ -103,9 +97,10 @@ class PusherSim(Node):
         # lets a ROS policy rebuild the training observation exactly.
         self.fingertip_pub = self.create_publisher(PointStamped, "pusher/fingertip", 10)
         self.transition_pub = self.create_publisher(Float32MultiArray, "pusher/transition", TRANSITION_QOS)
-        self.create_subscription(JointState, "pusher/command", lambda m: self.on_command(m, None), 10)
+        self.create_subscription(JointState, "pusher/command", lambda m: self.on_command(m, None, "pusher/command"), 10)
         for code, name in SOURCE_NAMES.items():
-            self.create_subscription(JointState, f"pusher/command/{name}", lambda m, c=code: self.on_command(m, c), 10)
+            topic = f"pusher/command/{name}"
+            self.create_subscription(JointState, topic, lambda m, c=code, t=topic: self.on_command(m, c, t), 10)
         if s.effort_topic:
             self.create_subscription(Float64MultiArray, s.effort_topic, self.on_effort, 10)
         self.create_service(Trigger, "pusher/reset", self.on_reset)
@@ -147,7 +142,9 @@ class PusherSim(Node):
                 return  # the republish timer tries again
             self.wait_for_subscribers = 0  # matched once: never hold again
         stamp = stamp_from_ns(state.stamp_ns)
-        if new:
+        # /clock and joint_states only when someone listens: each publish costs the
+        # lockstep loop as much as a physics step
+        if new and self.clock_pub.get_subscription_count():
             self.clock_pub.publish(ClockMsg(clock=stamp))
         for msg, point in ((self.target_msg, state.target), (self.fingertip_msg, state.fingertip)):
             msg.header.stamp = stamp
@@ -162,7 +159,8 @@ class PusherSim(Node):
         self.target_pub.publish(self.target_msg)
         self.fingertip_pub.publish(self.fingertip_msg)
         self.state_pub.publish(msg)
-        self.joint_states_pub.publish(msg)
+        if self.joint_states_pub.get_subscription_count():
+            self.joint_states_pub.publish(msg)
         self.last_publish = time.monotonic()
 
     def publish_step(self, step: Step | None) -> None:
@@ -184,14 +182,19 @@ class PusherSim(Node):
             self.finished.set_result(True)
 
     # -------------------------------------------------------------- callbacks
-    def on_command(self, msg: JointState, source: int | None) -> None:
+    def on_command(self, msg: JointState, source: int | None, topic: str) -> None:
+        self.status.took(topic)
         if self.finished.done():
             return
-        if self.mode == "lockstep" and stamp_key(msg.header.stamp) != self.loop.current.stamp_ns:
-            return  # stale: checked first, so a late duplicate costs no parsing
-        action, problem = action_from_effort(msg.name, msg.effort)
-        if action is None:
-            self.get_logger().warning(f"ignoring a command: {problem}", throttle_duration_sec=WARN_THROTTLE_S)
+        stamp = msg.header.stamp
+        problem = check_stamp(stamp.sec, stamp.nanosec)
+        if problem is None and self.mode == "lockstep":
+            # checked before parsing: a late duplicate costs no more than a count
+            problem = check_answer_stamp(stamp_key(stamp), self.loop.current.stamp_ns)
+        if problem is None:
+            action, problem = action_from_effort(msg.name, msg.effort)
+        if problem:
+            self.status.reject(topic, problem)
             return
         if source is None:
             source = source_from_tag(msg.header.frame_id)
@@ -207,13 +210,13 @@ class PusherSim(Node):
                                   "pusher/command/<expert|random|policy|human> instead", once=True)
 
     def on_effort(self, msg: Float64MultiArray) -> None:
+        self.status.took(self.settings.effort_topic)
         if self.mode != "realtime":
             self.warn_effort_in_lockstep()
             return
         action, problem = action_from_torques(msg.data)
         if action is None:
-            self.get_logger().warning(f"ignoring {self.settings.effort_topic}: {problem}",
-                                      throttle_duration_sec=WARN_THROTTLE_S)
+            self.status.reject(self.settings.effort_topic, problem)
             return
         self.loop.command(None, action, SOURCE_POLICY)
 
@@ -224,7 +227,7 @@ class PusherSim(Node):
     def on_tick(self) -> None:
         if self.finished.done():
             return
-        self.tick_times.append(time.monotonic())
+        self.timing.tick(time.monotonic())
         self.publish_step(self.loop.tick())
 
     def on_republish_timer(self) -> None:
@@ -242,20 +245,11 @@ class PusherSim(Node):
         return response
 
     # -------------------------------------------------------------- on exit
-    def timing_report(self) -> str | None:
-        """Realtime tick periods, for the log (a missed step is a gap over 1.5 periods)."""
-        if len(self.tick_times) < 3:
-            return None
-        gaps = np.diff(np.array(self.tick_times)) * 1000.0
-        missed = int(np.clip(np.floor(gaps / (1000.0 / CONTROL_HZ) + 0.5) - 1, 0, None).sum())
-        return (f"{len(self.tick_times)} ticks, period mean {gaps.mean():.3f} ms, std {gaps.std():.3f} ms, "
-                f"max {gaps.max():.3f} ms, missed steps {missed}")
-
     def close(self) -> None:
         if self.settings.summary:
             with atomic_path(self.settings.summary) as tmp:
                 tmp.write_text(json.dumps(self.loop.summary(), indent=2) + "\n")
-        report = self.timing_report()
+        report = self.timing.report()
         if report:
             self.get_logger().info(f"realtime timing: {report}")
 

@@ -1,0 +1,11 @@
+"""Reset-seed ranges: which episodes train, which are held out, which choose settings.
+
+Every evaluation in the project draws its reset seeds from ``HELD_OUT`` (the chapter's:
+``HELD_OUT + seed + suite * episodes + e``), so no episode it scores was ever trained on
+or tuned against. Correction and online runs reset from ``ONLINE`` on (far from both);
+choices made by measuring (``--algo auto``) score on ``VALIDATION``, never on ``HELD_OUT``.
+"""
+
+HELD_OUT = 500_000  # the chapter's held-out reset seeds: 500000 .. 500099 for seed 0
+ONLINE = 100_000  # correction and online runs: ONLINE + 10000 * seed + episode
+VALIDATION = 600_000  # settings chosen by measuring are scored here
