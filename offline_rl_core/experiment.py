@@ -40,7 +40,7 @@ class ExperimentConfig:
     """The experiment's knobs; defaults are the chapter's full run."""
 
     seeds: list[int] = field(default_factory=lambda: [0])
-    algo: str = "awac"  # the offline learner compared against BC ('naive' = Break-It)
+    algo: str = "awac"  # the offline learner compared against BC ('naive' = Break-It, 'auto' = prior.py's choice)
     expert_frac: float = 0.3
     episodes: int = 200
     steps: int = 8000
@@ -52,6 +52,9 @@ class ExperimentConfig:
     smoke: bool = False
     deterministic: bool = False  # True: fp32 everywhere (see TrainConfig); smoke always
     workers: int | None = None  # training processes; None: one per core (smoke: 1)
+    # the offline learner's training time, as steps from its measured rate (prior.py);
+    # None: ``steps`` (for 'auto': the chapter's AWAC loop time on this machine)
+    budget_s: float | None = None
 
     @classmethod
     def smoke_settings(cls, **overrides) -> "ExperimentConfig":
@@ -65,7 +68,7 @@ class ExperimentConfig:
 
     @property
     def mode(self) -> str:
-        return {"awac": "AWAC", "naive": "naive-maxQ"}.get(self.algo, self.algo.upper())
+        return {"awac": "AWAC", "naive": "naive-maxQ", "auto": "auto"}.get(self.algo, self.algo.upper())
 
     @property
     def n_pooled(self) -> int:
@@ -78,9 +81,20 @@ class ExperimentConfig:
 
     def train_config(self, algo: str) -> TrainConfig:
         return TrainConfig(
-            algo=algo, steps=self.steps, batch_size=self.batch_size, hidden=self.hidden, beta=self.beta,
-            deterministic=self.deterministic or self.smoke,
+            algo="awac" if algo == "auto" else algo, steps=self.steps, batch_size=self.batch_size, hidden=self.hidden,
+            beta=self.beta, deterministic=self.deterministic or self.smoke,
         )
+
+    def offline_config(self, data, log: Callable[[str], None]) -> tuple[TrainConfig, dict | None]:
+        """The offline arm's config for one seed's dataset: ``algo``, or for 'auto' the
+        learner ``prior`` picks; trained ``steps``, or what ``budget_s`` allows."""
+        from .prior import plan_training
+
+        auto = self.algo == "auto"
+        # a budget sets the steps; without one, 'auto' takes the chapter's AWAC time, except in
+        # the smoke run, which keeps its fixed small steps
+        fixed = self.steps if self.budget_s is None and (not auto or self.smoke) else None
+        return plan_training(data, self.train_config(self.algo), auto, self.budget_s, fixed, log)
 
 
 def eval_reset_seeds(seed: int, n_seeds: int, eval_episodes: int) -> list[int]:
@@ -88,14 +102,16 @@ def eval_reset_seeds(seed: int, n_seeds: int, eval_episodes: int) -> list[int]:
     return [EVAL_SEED_BASE + seed + s * eval_episodes + e for s in range(n_seeds) for e in range(eval_episodes)]
 
 
-def seed_metrics(cfg: ExperimentConfig, seed: int, bc: RolloutResult, offline: RolloutResult, mean_abs_q) -> dict:
-    """metrics.json of one seed: exactly the chapter's keys, floats to 6 places."""
+def seed_metrics(cfg: ExperimentConfig, seed: int, bc: RolloutResult, offline: RolloutResult, mean_abs_q,
+                 offline_steps: int | None = None) -> dict:
+    """metrics.json of one seed: exactly the chapter's keys, floats to 6 places.
+    ``steps`` is the offline learner's (BC trains ``cfg.steps``; they differ with a budget)."""
     lo, hi = newcombe_diff_ci(offline.successes, offline.episodes, bc.successes, bc.episodes)
     metrics = {
         "mode": cfg.mode,
         "episodes": cfg.episodes,
         "expert_frac": round6(cfg.expert_frac),
-        "steps": cfg.steps,
+        "steps": cfg.steps if offline_steps is None else int(offline_steps),
         "beta": round6(cfg.beta),
         "n_pooled": cfg.n_pooled,
         "bc_success_rate": round6(bc.success_rate),
@@ -157,7 +173,8 @@ def run_experiment(cfg: ExperimentConfig, out_dir: str | Path, log: Callable[[st
         log(f"seed {s}: collected {cfg.episodes} episodes ({len(data)} transitions, expert_frac {cfg.expert_frac})")
     log(f"collection took {time.perf_counter() - t0:.1f}s")
 
-    trained = train_all(cfg, seeds, datasets, log)
+    plans = [cfg.offline_config(data, log) for data in datasets]
+    trained = train_all(cfg, seeds, datasets, log, [p[0] for p in plans])
     outcomes = []
     for m, s in enumerate(seeds):
         reset_seeds = eval_reset_seeds(s, cfg.n_seeds, cfg.eval_episodes)
@@ -165,9 +182,12 @@ def run_experiment(cfg: ExperimentConfig, out_dir: str | Path, log: Callable[[st
         off_res = trained["offline"][m]
         bc_roll = rollout(bc_res.policy.act, reset_seeds)
         off_roll = rollout(off_res.policy.act, reset_seeds)
-        metrics = seed_metrics(cfg, s, bc_roll, off_roll, off_res.mean_abs_q)
+        offline_cfg, plan = plans[m]
+        metrics = seed_metrics(cfg, s, bc_roll, off_roll, off_res.mean_abs_q, offline_cfg.steps)
         d = seed_dirs[s]
         d.mkdir(parents=True, exist_ok=True)
+        if plan is not None:  # what 'auto' / the budget decided, beside the chapter's metrics
+            write_json_atomic(d / "plan.json", {**plan, "algorithm": offline_cfg.algo, "config": offline_cfg.to_dict()})
         save_checkpoint(d / "bc.pt", bc_res.checkpoint)
         save_checkpoint(d / "offline.pt", off_res.checkpoint)
         plot_training_curve(off_res.history, d / "offline_training.png", title=f"{cfg.mode}, seed {s}")
@@ -180,25 +200,31 @@ def run_experiment(cfg: ExperimentConfig, out_dir: str | Path, log: Callable[[st
     return outcomes
 
 
-def train_all(cfg: ExperimentConfig, seeds: list[int], datasets: list, log: Callable[[str], None]) -> dict:
+def train_all(cfg: ExperimentConfig, seeds: list[int], datasets: list, log: Callable[[str], None],
+              offline_cfgs: list[TrainConfig] | None = None) -> dict:
     """{"bc": [TrainResult per seed], "offline": [...]}: BC and the offline learner for
-    every seed, one process per core."""
-    roles = (("offline", cfg.algo), ("bc", "bc"))  # the heavier learner first: it starts first
+    every seed, one process per core. ``offline_cfgs``: the offline learner's config per
+    seed (default: ``cfg.train_config(cfg.algo)``)."""
+    offline_cfgs = offline_cfgs or [cfg.train_config(cfg.algo)] * len(seeds)
+    per_seed = {"offline": offline_cfgs, "bc": [cfg.train_config("bc")] * len(seeds)}
+    roles = ("offline", "bc")  # the heavier learner first: it starts first
     workers = cfg.worker_count()
-    if workers == 1:
-        jobs = [TrainJob(algo, datasets, cfg.train_config(algo), seeds) for _, algo in roles]
+    if workers == 1 and all(c == offline_cfgs[0] for c in offline_cfgs):
+        jobs = [TrainJob(per_seed[role][0].algo, datasets, per_seed[role][0], seeds) for role in roles]
     else:
-        jobs = [TrainJob(f"{algo} s{s}", [datasets[m]], cfg.train_config(algo), [s])
-                for _, algo in roles for m, s in enumerate(seeds)]
+        jobs = [TrainJob(f"{per_seed[role][m].algo} s{s}", [datasets[m]], per_seed[role][m], [s])
+                for role in roles for m, s in enumerate(seeds)]
     workers = min(workers, len(jobs))
     where = "together in this process" if workers == 1 else f"in {workers} worker processes"
-    log(f"training {cfg.algo} and bc ({cfg.steps} steps each, {len(seeds)} seed(s)) {where}")
+    steps = sorted({c.steps for c in offline_cfgs})
+    log(f"training {' / '.join(sorted({c.algo for c in offline_cfgs}))} ({' / '.join(map(str, steps))} steps) "
+        f"and bc ({cfg.steps} steps), {len(seeds)} seed(s) {where}")
     t1 = time.perf_counter()
     results = run_jobs(jobs, workers, progress_for=lambda job: _progress_printer(job.label, log))
     log(f"  training took {time.perf_counter() - t1:.1f}s")
     trained = {}
     per_role = len(jobs) // len(roles)
-    for r, (role, _) in enumerate(roles):
+    for r, role in enumerate(roles):
         trained[role] = [res for job_results in results[r * per_role:(r + 1) * per_role] for res in job_results]
     return trained
 

@@ -144,32 +144,39 @@ def measure(hidden: int, batch: int, allow_bf16: bool) -> dict:
     return {"best": best, "totals": totals, "timings": timings}
 
 
-def _cache_path() -> Path:
+def _cache_path(name: str = "kernels.json") -> Path:
     root = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
-    return Path(root) / "pusher-rl" / "kernels.json"
+    return Path(root) / "pusher-rl" / name
+
+
+def machine_key(*what) -> str:
+    """A cache key for a measurement on this machine: the CPU model and flags, the torch
+    build, and ``what`` was measured."""
+    model, flags = cpu_model_and_flags()
+    text = f"{CACHE_VERSION}|{model}|{sorted(flags)}|{torch.__version__}|{torch.__config__.show()}|" + "|".join(map(str, what))
+    return hashlib.sha256(text.encode()).hexdigest()[:24]
 
 
 def _cache_key(hidden: int, batch: int, threads: int, deterministic: bool) -> str:
-    model, flags = cpu_model_and_flags()
-    what = f"{CACHE_VERSION}|{model}|{sorted(flags)}|{torch.__version__}|{torch.__config__.show()}|" \
-           f"{hidden}x{batch}|threads={threads}|deterministic={deterministic}"
-    return hashlib.sha256(what.encode()).hexdigest()[:24]
+    return machine_key(f"{hidden}x{batch}", f"threads={threads}", f"deterministic={deterministic}")
 
 
-def _read_cache() -> dict:
+def read_cache(name: str = "kernels.json") -> dict:
+    """The measurements cached in ``~/.cache/pusher-rl/NAME`` ({} when none)."""
     try:
-        return json.loads(_cache_path().read_text())
+        return json.loads(_cache_path(name).read_text())
     except (OSError, ValueError):
         return {}
 
 
-def _write_cache(key: str, entry: dict) -> None:
+def write_cache(key: str, entry: dict, name: str = "kernels.json") -> None:
+    """Add ``entry`` under ``key`` to ``~/.cache/pusher-rl/NAME`` (atomically; best effort)."""
     from .atomic import write_text_atomic
 
-    path = _cache_path()
+    path = _cache_path(name)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        cache = _read_cache()
+        cache = read_cache(name)
         cache[key] = entry
         write_text_atomic(path, json.dumps(cache, indent=1, sort_keys=True))
     except OSError:
@@ -190,7 +197,7 @@ def choose(deterministic: bool, hidden: int = 256, batch: int = 256, threads: in
 @functools.lru_cache(maxsize=None)
 def _measured(deterministic: bool, hidden: int, batch: int, threads: int) -> Kernels:
     key = _cache_key(hidden, batch, threads, deterministic)
-    entry = _read_cache().get(key)
+    entry = read_cache().get(key)
     if entry is None:
         previous = torch.get_num_threads()
         torch.set_num_threads(threads)
@@ -202,7 +209,7 @@ def _measured(deterministic: bool, hidden: int, batch: int, threads: int) -> Ker
         dtype = "bf16" if "bf16" in totals and totals["fp32"] > BF16_MARGIN * totals["bf16"] else "fp32"
         entry = {"dtype": dtype, **result["best"][dtype], "totals_us": {k: round(v * 1e6, 1) for k, v in totals.items()},
                  "measured": time.strftime("%Y-%m-%dT%H:%M:%S"), "cpu": cpu_model_and_flags()[0], "isa": isa_flags()}
-        _write_cache(key, entry)
+        write_cache(key, entry)
     return Kernels(entry["dtype"], entry["forward"], entry["grad_weight"], entry["grad_input"])
 
 

@@ -26,6 +26,7 @@ from .evaluation import evaluate_policy
 from .learners import ALGORITHMS, Progress, TrainConfig, train
 from .learners.resume import ResumePoints
 from .plots import plot_training_curve
+from .prior import plan_training
 from .policy import load_checkpoint, save_checkpoint
 from .raw_topics import transitions_from_topics
 from .transitions import SOURCE_NAMES, Transitions
@@ -42,8 +43,15 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--from-topics", metavar="SPEC",
                         help="build the transitions from each bag's raw robot topics as this YAML spec says "
                              "(see `offline-rl dataset --help`, e.g. bags/pusher_topics.yaml)")
-    parser.add_argument("--algo", choices=ALGORITHMS, default=d.algo, help="learner (default: %(default)s)")
-    parser.add_argument("--steps", type=int, default=d.steps, help="gradient steps (default: %(default)s)")
+    parser.add_argument("--algo", choices=ALGORITHMS + ("auto",), default=d.algo,
+                        help="learner; auto: chosen from what the bag holds, trained for --budget-s "
+                             "(README, 'The best prior') (default: %(default)s)")
+    parser.add_argument("--steps", type=int, default=None,
+                        help=f"gradient steps (default: {d.steps}, or what --budget-s allows)")
+    parser.add_argument("--budget-s", type=float, default=None, metavar="S",
+                        help="train for about S seconds: converted to steps before training from the learner's step "
+                             "rate on this machine (measured once, cached), and recorded in metrics.json; "
+                             "--algo auto's default is the chapter's AWAC loop time on this machine")
     parser.add_argument("--seed", type=int, default=0, help="seed of init and batch sampling (default: %(default)s)")
     parser.add_argument("--out", metavar="DIR",
                         help="output directory for policy.pt, metrics.json, training_curve.png (default: runs/ALGO-seedS)")
@@ -70,7 +78,13 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def config_from_args(args: argparse.Namespace) -> TrainConfig:
+    """The flags as a TrainConfig; for ``--algo auto`` the learner is a placeholder until
+    ``prior.plan_training`` has seen the bag."""
     values = {k: v for k, v in vars(args).items() if k in _CONFIG_FIELDS}
+    if values.get("steps") is None:
+        values.pop("steps", None)
+    if values.get("algo") == "auto":
+        values["algo"] = TrainConfig.algo
     try:
         return TrainConfig(**values)
     except ValueError as exc:
@@ -115,13 +129,20 @@ def run_training(
     resume: bool = False,
     resume_every: float = 1.0,
     from_topics: str | None = None,
+    auto: bool = False,
+    budget_s: float | None = None,
+    steps: int | None = None,
 ) -> Path:
+    """Train ``cfg`` on the bags and write the run's files to ``out_dir``. ``auto``: the
+    learner is the one ``prior.plan_training`` picks for the bag; ``auto`` or ``budget_s``:
+    as many steps as the budget allows, unless ``steps`` is given (then ``steps``)."""
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise UserError(f"{out}: exists and is not a directory; --out needs a directory")
     if eval_episodes < 0:
         raise UserError(f"--eval-episodes must be >= 0, got {eval_episodes}")
     data, bag_summary = load_bags(bags, from_topics)
+    cfg, plan = plan_training(data, cfg, auto, budget_s, steps, log)
     init_ckpt = None
     if init:
         init_ckpt = load_checkpoint(init)
@@ -153,6 +174,8 @@ def run_training(
         "final_losses": {k: round(float(v[-1]), 6) for k, v in result.history.items() if k != "step"},
         "mean_abs_q": None if result.mean_abs_q is None else round(result.mean_abs_q, 6),
     }
+    if plan is not None:
+        metrics["plan"] = plan  # what --algo auto / --budget-s decided, and from what
     if eval_episodes:
         log(f"evaluating on {eval_episodes} held-out rollouts (reset seeds {eval_seed}..{eval_seed + eval_episodes - 1})")
         metrics["eval"] = evaluate_policy(result.policy, eval_episodes, eval_seed)
@@ -174,7 +197,8 @@ def run_training_from_args(args: argparse.Namespace, progress: Callable[[Progres
     out = args.out or default_out_dir(args.algo, args.seed)
     return run_training(args.bag, cfg, args.seed, out, args.eval_episodes, args.eval_seed, args.init,
                         progress=progress or console_progress(), resume=args.resume, resume_every=args.resume_every,
-                        from_topics=args.from_topics)
+                        from_topics=args.from_topics, auto=args.algo == "auto", budget_s=args.budget_s,
+                        steps=args.steps)
 
 
 def summary_line(out: Path) -> str:

@@ -7,7 +7,7 @@ import argparse
 from ..errors import UserError
 from ..experiment import ExperimentConfig, format_table, run_experiment, summary_rows, verdict
 
-OFFLINE_ALGOS = ("awac", "iql", "filtered_bc", "naive")
+OFFLINE_ALGOS = ("awac", "iql", "filtered_bc", "naive", "auto")
 
 
 def register(subparsers) -> None:
@@ -21,11 +21,16 @@ def register(subparsers) -> None:
     seeds = p.add_mutually_exclusive_group()
     seeds.add_argument("--seed", type=int, default=None, help="one experiment seed (default 0)")
     seeds.add_argument("--seeds", type=int, nargs="+", help="several seeds")
-    p.add_argument("--algo", choices=OFFLINE_ALGOS, default=None, help="offline learner compared with BC (default awac)")
+    p.add_argument("--algo", choices=OFFLINE_ALGOS, default=None,
+                   help="offline learner compared with BC (default awac); auto: the learner and budget chosen from "
+                        "each seed's dataset (README, 'The best prior')")
     p.add_argument("--naive", action="store_true", help="Break-It: naive max-Q instead of AWAC (same as --algo naive)")
     p.add_argument("--expert-frac", type=float, default=0.3, help="share of expert episodes in the dataset (default 0.3)")
     p.add_argument("--episodes", type=int, default=None, help="dataset episodes (default 200; smoke 20)")
     p.add_argument("--steps", type=int, default=None, help="gradient steps per learner (default 8000; smoke 400)")
+    p.add_argument("--budget-s", type=float, default=None, metavar="S",
+                   help="train the offline learner for about S seconds (steps from its measured rate; BC keeps "
+                        "--steps); --algo auto's default is the chapter's AWAC loop time on this machine")
     p.add_argument("--smoke", action="store_true", help="the chapter's smoke settings: 20 episodes, 400 steps, "
                    "batch 64, hidden 64, 2 suites x 4 eval episodes")
     p.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=False,
@@ -47,7 +52,10 @@ def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
         raise UserError(f"--seeds has duplicates: {' '.join(map(str, seeds))}")
     if not 0.0 <= args.expert_frac <= 1.0:
         raise UserError(f"--expert-frac must be in [0, 1], got {args.expert_frac}")
-    overrides = {"seeds": seeds, "algo": algo, "expert_frac": args.expert_frac, "deterministic": args.deterministic}
+    overrides = {"seeds": seeds, "algo": algo, "expert_frac": args.expert_frac, "deterministic": args.deterministic,
+                 "budget_s": args.budget_s}
+    if args.budget_s is not None and not args.budget_s > 0:
+        raise UserError(f"--budget-s must be > 0 seconds, got {args.budget_s}")
     if args.workers is not None:
         if args.workers < 1:
             raise UserError(f"--workers must be >= 1, got {args.workers}")

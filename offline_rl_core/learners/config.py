@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 
+from .schedule import SCHEDULES
+
 ALGORITHMS = ("bc", "filtered_bc", "awac", "iql", "naive", "sac")
 
 
@@ -23,6 +25,7 @@ class TrainConfig:
     batch_size: int = _opt(256, "batch size")
     hidden: int = _opt(256, "hidden layer width")
     lr: float = _opt(3e-4, "Adam learning rate")
+    lr_schedule: str = _opt("constant", "learning rate over the run: constant, or cosine (from --lr down to 0 at the last step)")
     gamma: float = _opt(0.99, "discount")
     tau: float = _opt(0.005, "Polyak rate of the target critics")
     beta: float = _opt(0.3, "AWAC temperature")
@@ -35,7 +38,12 @@ class TrainConfig:
     target_entropy: float | None = _opt(None, "SAC: tune the entropy weight toward this entropy")
     init_log_std: float = _opt(-1.0, "SAC: the Gaussian policy's initial log-std")
     bc_weight: float = _opt(3.0, "SAC: weight of the squared error to a person's (source human) actions")
+    normalize_obs: bool = _opt(
+        False, "train on z-scored observations (mean and std of the rows sampled); the checkpoint folds them into "
+               "the networks' first layers, so it takes raw observations as any other")
     filter_top_frac: float = _opt(0.1, "filtered BC: share of best episodes by return")
+    filter_by: str = _opt("return", "filtered BC: keep the --filter-top-frac best episodes by return (return), "
+                                    "or the episodes that end at the goal (goal)")
     correction_ratio: float | None = _opt(
         None, "share of each batch drawn from correction runs (policy/human transitions); default: uniform")
     log_every: int = _opt(100, "steps between progress reports (and loss read-backs)", "run")
@@ -57,6 +65,10 @@ class TrainConfig:
         for name in ("steps", "batch_size", "hidden", "log_every", "threads"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.lr_schedule not in SCHEDULES:
+            raise ValueError(f"lr_schedule: expected one of {', '.join(SCHEDULES)}, got '{self.lr_schedule}'")
+        if self.filter_by not in ("return", "goal"):
+            raise ValueError(f"filter_by: expected return or goal, got '{self.filter_by}'")
         if not 0.0 < self.filter_top_frac <= 1.0:
             raise ValueError(f"filter_top_frac must be in (0, 1], got {self.filter_top_frac}")
         if self.alpha <= 0:

@@ -13,9 +13,11 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from ..env import SUCCESS_TOL
 from ..transitions import SOURCE_HUMAN, SOURCE_POLICY, Transitions
 
 INDEX_CHUNK_STEPS = 1000
+OBS_GOAL = slice(6, 8)  # (dx, dy) in the observation: target minus fingertip
 # derived columns that are often one value throughout (stored as a broadcast view then)
 CONSTANT_COLUMNS = ("not_done", "actor_mask", "human")
 
@@ -180,6 +182,26 @@ def top_episode_rows(data: Transitions, top_frac: float) -> np.ndarray:
     # stable sort on -return: ties keep episode order, so the choice is reproducible
     best = ids[np.argsort(-returns, kind="stable")[:keep]]
     return np.flatnonzero(np.isin(data.episode, best))
+
+
+def episodes_at_goal(data: Transitions) -> tuple[np.ndarray, np.ndarray]:
+    """(episode ids sorted, whether each ends at the goal): its last observation within
+    the success tolerance of the target. A demonstration ends there; random actions that
+    pass through the goal on the way almost never do."""
+    order = np.lexsort((data.step, data.episode))
+    ep = data.episode[order]
+    last = order[np.r_[ep[1:] != ep[:-1], True]] if len(data) else order
+    goal = data.next_obs[last, OBS_GOAL].astype(np.float64)
+    return data.episode[last], np.hypot(goal[:, 0], goal[:, 1]) < SUCCESS_TOL
+
+
+def goal_episode_rows(data: Transitions) -> np.ndarray:
+    """Row indices of the episodes that end at the goal: the filtered-BC dataset of
+    ``--filter-by goal``."""
+    ids, at_goal = episodes_at_goal(data)
+    if not at_goal.any():
+        raise ValueError("filtered BC by goal: no episode of the data ends at the goal")
+    return np.flatnonzero(np.isin(data.episode, ids[at_goal]))
 
 
 # How many policy steps before a takeover count as the failure the person corrected.

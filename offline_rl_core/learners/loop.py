@@ -22,12 +22,14 @@ from ..transitions import Transitions
 from .awac import AWAC
 from .bc import BC
 from .config import TrainConfig
-from .data import IndexSampler, MemberData, correction_pools, top_episode_rows
+from .data import IndexSampler, MemberData, correction_pools, goal_episode_rows, top_episode_rows
 from .filtered_bc import FilteredBC
 from .iql import IQL
 from .naive import NaiveMaxQ
 from .sac import SAC
 from .resume import ResumePoints, learner_training_state, load_learner_training_state
+from .normalize import fold, normalized, obs_stats, unfold
+from .schedule import LearningRates
 from .stepper import make_step
 
 LEARNERS = {"bc": BC, "filtered_bc": FilteredBC, "awac": AWAC, "iql": IQL, "naive": NaiveMaxQ, "sac": SAC}
@@ -75,7 +77,8 @@ def seed_generators(seed: int) -> tuple[torch.Generator, torch.Generator]:
 
 def _member_pools(data: Transitions, cfg: TrainConfig):
     if cfg.algo == "filtered_bc":
-        return (torch.from_numpy(top_episode_rows(data, cfg.filter_top_frac)), None)
+        rows = goal_episode_rows(data) if cfg.filter_by == "goal" else top_episode_rows(data, cfg.filter_top_frac)
+        return (torch.from_numpy(rows), None)
     if cfg.correction_ratio is not None:
         prior, corrections = correction_pools(data)
         if len(corrections) and len(prior):
@@ -90,12 +93,15 @@ def train_seeds(
     progress: Callable[[Progress], None] | None = None,
     init: dict | None = None,
     resume: ResumePoints | None = None,
+    snapshot: Callable[[int, float, Callable[[int], dict]], None] | None = None,
 ) -> list[TrainResult]:
     """Train ``cfg.algo`` once per seed; ``datasets`` is one Transitions for all seeds
     or one per seed. ``init`` (a checkpoint dict) warm-starts every run from it.
     ``resume``: write a resume point every ``resume.every_s`` seconds, and with
     ``resume.resume`` start from the one there (the result is the same bytes as a run
-    that was never stopped)."""
+    that was never stopped). ``snapshot(step, elapsed_s, policy_state)`` is called at every
+    log point (every ``cfg.log_every`` steps and the last), e.g. to keep the policies of
+    a learning curve: ``policy_state(m)`` is member m's policy as a checkpoint holds it."""
     seeds = [int(s) for s in seeds]
     if not seeds:
         raise ValueError("no seeds to train")
@@ -110,12 +116,25 @@ def train_seeds(
 
     gens = [seed_generators(s) for s in seeds]
     learner = LEARNERS[cfg.algo](cfg, len(seeds), [g[0] for g in gens], obs_dim, act_dim)
+    pools = [_member_pools(d, cfg) for d in datasets]
+    # --normalize-obs: train on z-scored observations (stats of the rows each member samples),
+    # save networks with the stats folded in; identity otherwise
+    norms = [obs_stats(d, None if p is None else p[0].numpy()) for d, p in zip(datasets, pools)] \
+        if cfg.normalize_obs else None
+    to_raw = (lambda m, state: fold(state, *norms[m])) if norms else (lambda m, state: state)
     if init is not None:
         for m in range(len(seeds)):
-            learner.policy.load_member_state(m, init["policy_state"])
-            learner.load_learner_state(m, init.get("learner_state") or {})
-    data = MemberData(datasets, cfg.device)
-    pools = [_member_pools(d, cfg) for d in datasets]
+            policy_state, learner_state = init["policy_state"], init.get("learner_state") or {}
+            if norms:  # the warm start's networks take raw observations: unfold them
+                policy_state, learner_state = unfold(policy_state, *norms[m]), unfold(learner_state, *norms[m])
+            learner.policy.load_member_state(m, policy_state)
+            learner.load_learner_state(m, learner_state)
+    if norms:
+        copies: dict = {}  # members sharing a dataset (and so its stats) share its copy
+        train_sets = [copies.setdefault(id(d), normalized(d, *n)) for d, n in zip(datasets, norms)]
+    else:
+        train_sets = datasets
+    data = MemberData(train_sets, cfg.device)
     sampler = IndexSampler(data.sizes, cfg.batch_size, [g[1] for g in gens],
                            pools if any(p is not None for p in pools) else None, cfg.correction_ratio, cfg.device)
     step_once = make_step(learner.update, data, (len(seeds), cfg.batch_size), cfg.device, cfg.cuda_graph)
@@ -131,9 +150,11 @@ def train_seeds(
         load_learner_training_state(learner, saved["learner"])
         sampler.load_state(saved["sampler"])
         histories, first_step, before = saved["histories"], int(saved["step"]) + 1, float(saved["elapsed_s"])
+    rates = LearningRates(learner, cfg.lr_schedule, cfg.steps)  # after a resume point's optimiser state
     start = time.perf_counter() - before
     with torch_threads(cfg.threads), on_device(cfg.device):
         for step in range(first_step, cfg.steps + 1):
+            rates.at(step)
             losses = step_once(sampler.next())
             if step % cfg.log_every == 0 or step == cfg.steps:
                 values = {k: v.float().tolist() for k, v in losses.items()}  # the only host sync
@@ -144,6 +165,8 @@ def train_seeds(
                 if progress is not None:
                     scalars = {k: float(np.mean(v)) for k, v in values.items()}
                     progress(Progress(step, cfg.steps, time.perf_counter() - start, scalars))
+                if snapshot is not None:
+                    snapshot(step, time.perf_counter() - start, lambda m: to_raw(m, learner.policy.member_state(m)))
             if resume is not None and step < cfg.steps and resume.due():
                 resume.write({"identity": identity, "step": step, "histories": histories,
                               "elapsed_s": time.perf_counter() - start, "sampler": sampler.state(),
@@ -164,10 +187,10 @@ def train_seeds(
             "obs_dim": obs_dim,
             "act_dim": act_dim,
             "hidden": cfg.hidden,
-            "policy_state": learner.policy.member_state(m),
+            "policy_state": to_raw(m, learner.policy.member_state(m)),
             "obs_mean": None,
             "obs_std": None,
-            "learner_state": learner.learner_state(m),
+            "learner_state": to_raw(m, learner.learner_state(m)),
             "config": cfg.to_dict(),
             "seed": seed,
             "dataset_hash": hashes[key],
@@ -183,6 +206,6 @@ def train_seeds(
 
 
 def train(dataset: Transitions, cfg: TrainConfig, seed: int, progress=None, init=None,
-          resume: ResumePoints | None = None) -> TrainResult:
+          resume: ResumePoints | None = None, snapshot=None) -> TrainResult:
     """One run: ``train_seeds`` with a single seed."""
-    return train_seeds(dataset, cfg, [seed], progress, init, resume)[0]
+    return train_seeds(dataset, cfg, [seed], progress, init, resume, snapshot)[0]
