@@ -23,6 +23,7 @@ summarise the rounds. No ROS import here: nodes are subprocesses, stopped by pid
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import signal
@@ -158,10 +159,14 @@ class Loop:
             time.sleep(0.2)
 
     # ------------------------------------------------------------ steps
-    def train(self, name: str, bags: list[str], steps: int, seed: int, out_dir: Path, init: str | None = None,
+    def train(self, name: str, bags: list[str], steps: int | None, seed: int, out_dir: Path, init: str | None = None,
               correction_ratio: float | None = None, algo: str | None = None) -> Path:
-        args = ["--algo", algo or self.cfg.algo, "--steps", steps, "--seed", seed, "--out", out_dir,
-                "--eval-episodes", 0, "--log-every", max(100, steps // 8)]
+        """Train with the trainer node; ``steps`` None: as many as ``--algo auto`` plans."""
+        args = ["--algo", algo or self.cfg.algo, "--seed", seed, "--out", out_dir, "--eval-episodes", 0]
+        if steps is not None:
+            args += ["--steps", steps, "--log-every", max(100, steps // 8)]
+        else:
+            args += ["--log-every", 2000]
         for bag in bags:
             args += ["--bag", bag]
         if init:
@@ -277,14 +282,41 @@ def reusable_prior(path: str | os.PathLike, bags: list[str], cfg: HilConfig, see
     return ckpt.get("dataset_hash") == data.content_hash()
 
 
+def reusable_auto_prior(path: Path, bags: list[str], seed: int) -> bool:
+    """True when ``path`` was trained by ``--algo auto`` (its default budget) on exactly
+    ``bags`` with ``seed``: its metrics.json holds the plan."""
+    try:
+        ckpt = load_checkpoint(path)
+        metrics = json.loads((path.parent / "metrics.json").read_text())
+    except Exception:  # noqa: BLE001 - not reusable, whatever is wrong
+        return False
+    plan = metrics.get("plan") or {}
+    if plan.get("choice") != ckpt.get("algorithm") or not str(plan.get("budget_from", "")).startswith("the chapter"):
+        return False
+    if int(ckpt.get("seed", -1)) != int(seed) or (ckpt.get("config") or {}).get("init") or metrics.get("init"):
+        return False
+    from .training_run import load_bags
+
+    data, _ = load_bags(bags)
+    return ckpt.get("dataset_hash") == data.content_hash()
+
+
 def resolve_prior(loop: Loop, given: str | None, bags: list[str], seed: int, prior_steps: int, out: Path,
-                  log: Callable[[str], None]) -> tuple[Path, str]:
-    """(the prior checkpoint, how it was had: given / reused / trained). The chapter's AWAC
-    prior: ``make demo``'s or an earlier run's when it was trained so on these bags,
-    else trained now with the trainer node."""
-    spec = HilConfig(prior_steps=prior_steps, algo="awac")
+                  log: Callable[[str], None], algo: str = "awac") -> tuple[Path, str]:
+    """(the prior checkpoint, how it was had: given / reused / trained). ``algo`` awac: the
+    chapter's AWAC prior, ``make demo``'s or an earlier run's when it was trained so on these
+    bags; auto: ``offline-rl train --algo auto``'s (README, "The best prior"), an earlier
+    run's when it was trained so. Otherwise trained now with the trainer node."""
     if given:
         return Path(given), "given"
+    if algo == "auto":
+        candidate = out / "prior" / "policy.pt"
+        if candidate.exists() and reusable_auto_prior(candidate, bags, seed):
+            log(f"prior: reusing {candidate} (--algo auto, same data and seed)")
+            return candidate, "reused"
+        log(f"prior: training --algo auto on {', '.join(bags)}, seed {seed} (trainer node)")
+        return loop.train("prior", bags, None, seed, out / "prior", algo="auto"), "trained"
+    spec = HilConfig(prior_steps=prior_steps, algo="awac")
     for candidate in (Path(DEMO_PRIOR), out / "prior" / "policy.pt"):
         if candidate.exists() and reusable_prior(candidate, bags, spec, seed):
             log(f"prior: reusing {candidate} (AWAC, {prior_steps} steps, same data and seed)")

@@ -48,9 +48,10 @@ class OnlineHilConfig:
     out: str = "runs/hil-online"
     env_steps: int = 20_000
     seed: int = 0
-    prior: str | None = None  # a checkpoint; None: the chapter's AWAC prior (reused or trained)
+    prior: str | None = None  # a checkpoint; None: trained as prior_algo says (or reused)
     no_prior: bool = False  # the learner starts from scratch
-    prior_steps: int = 8000
+    prior_algo: str = "auto"  # auto: the best prior (README, "The best prior"); awac: the chapter's
+    prior_steps: int = 8000  # of an AWAC prior
     bags: list[str] = field(default_factory=lambda: [DEFAULT_BAG])
     corrector: str = "scripted"  # scripted | keyboard | none
     mode: str = "lockstep"  # lockstep (paced, reproducible) | realtime (50 Hz)
@@ -80,6 +81,8 @@ class OnlineHilConfig:
             raise UserError("--corrector keyboard needs --mode realtime over ROS (a person acts in real time)")
         if self.corrector == "keyboard" and not sys.stdin.isatty():
             raise UserError("--corrector keyboard needs a terminal on stdin")
+        if self.prior_algo not in ("auto", "awac"):
+            raise UserError(f"--prior-algo must be auto or awac, got {self.prior_algo!r}")
         if self.prior and self.no_prior:
             raise UserError("--prior and --no-prior contradict each other")
         for bag in self.bags:
@@ -101,7 +104,7 @@ def run_hil_online(cfg: OnlineHilConfig, log: Callable[[str], None] = lambda s: 
     t0 = time.monotonic()
     try:
         prior_path, prior_from = (None, "none") if cfg.no_prior else resolve_prior(
-            loop, cfg.prior, cfg.bags, cfg.seed, cfg.prior_steps, out, log)
+            loop, cfg.prior, cfg.bags, cfg.seed, cfg.prior_steps, out, log, cfg.prior_algo)
         if cfg.in_process:
             result = _in_process(cfg, prior_path, log)
         else:

@@ -161,3 +161,19 @@ def test_auto_stops_when_the_cloned_rows_need_no_more_steps(own_cache):
     assert plan["max_steps"] == 15700 == cfg.steps < plan["budget_steps"]  # 1000 passes over 500 rows
     bc, _ = plan_training(data, TrainConfig(algo="bc", batch_size=32, hidden=32), False, 1.0, None)
     assert bc.steps == steps_for_budget(1.0, step_rate(bc, data))  # a learner given by name: the budget alone
+
+
+def test_the_online_stage_reuses_an_auto_prior_only_of_the_same_data_and_seed(tmp_path, own_cache, monkeypatch):
+    from offline_rl_core import prior
+    from offline_rl_core.hil import reusable_auto_prior
+
+    monkeypatch.setattr(prior, "chapter_awac_seconds", lambda data, log=None: 0.5)  # the default budget, short
+    mixed, other = _bag(tmp_path, "mixed", 40, 0.3), tmp_path / "other.db3"
+    write_transitions(other, collect_transitions(40, 0.3, 1))
+    assert _train(mixed, tmp_path / "auto", "--seed", "2") == 0
+    assert _train(mixed, tmp_path / "fixed", "--seed", "2", "--steps", "100") == 0
+    ckpt = tmp_path / "auto" / "policy.pt"
+    assert reusable_auto_prior(ckpt, [str(mixed)], 2)
+    assert not reusable_auto_prior(ckpt, [str(mixed)], 3)
+    assert not reusable_auto_prior(ckpt, [str(other)], 2)
+    assert not reusable_auto_prior(tmp_path / "fixed" / "policy.pt", [str(mixed)], 2)  # not the default budget

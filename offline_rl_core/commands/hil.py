@@ -27,6 +27,7 @@ def _run_online(args) -> int:
     cfg = OnlineHilConfig(
         out=args.out if args.out != HilConfig().out else OnlineHilConfig().out, env_steps=args.env_steps,
         seed=args.seed, prior=args.prior, no_prior=args.no_prior, prior_steps=args.prior_steps,
+        prior_algo=args.prior_algo,
         bags=args.bag or [DEFAULT_BAG], corrector=args.corrector, mode=args.mode, utd=args.utd,
         publish_every=args.publish_every, eval_every=args.eval_every, eval_episodes=args.eval_episodes,
         eval_seed=args.eval_seed, in_process=args.in_process)
@@ -51,7 +52,7 @@ def register(subparsers) -> None:
     p.add_argument("--out", default=d.out, metavar="DIR", help="output directory (default: %(default)s)")
     p.add_argument("--rounds", type=int, default=d.rounds, help="correction rounds (default: %(default)s)")
     p.add_argument("--episodes", type=int, default=d.episodes, help="corrected episodes per round (default: %(default)s)")
-    p.add_argument("--prior", metavar="CKPT", help="checkpoint to start from (default: train AWAC on --bag, or reuse "
+    p.add_argument("--prior", metavar="CKPT", help="checkpoint to start from (default: train AWAC on --bag (--online: see --prior-algo), or reuse "
                    "runs/demo/awac/policy.pt when it was trained so)")
     p.add_argument("--bag", action="append", metavar="PATH", help=f"offline bag(s) of the prior (default: {DEFAULT_BAG})")
     p.add_argument("--seed", type=int, default=d.seed, help="seed of training and of the corrector (default: %(default)s)")
@@ -81,6 +82,9 @@ def register(subparsers) -> None:
                         "(default: %(default)s)")
     o.add_argument("--mode", choices=("lockstep", "realtime"), default=od.mode,
                    help="lockstep: paced by the learner, reproducible; realtime: 50 Hz, as a robot (default: %(default)s)")
+    o.add_argument("--prior-algo", choices=("auto", "awac"), default=od.prior_algo,
+                   help="without --prior: train the prior with --algo auto (the best prior from the bag; README, "
+                        "'The best prior') or the chapter's AWAC for --prior-steps (default: %(default)s)")
     o.add_argument("--no-prior", action="store_true", help="the learner starts from scratch (an ablation)")
     o.add_argument("--utd", type=int, default=od.utd, help="gradient steps per environment step (default: %(default)s)")
     o.add_argument("--publish-every", type=int, default=od.publish_every,
