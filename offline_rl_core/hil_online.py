@@ -40,6 +40,7 @@ DEFAULT_BAG = "bags/mix.db3"
 THRESHOLDS = (0.5, 0.8, 0.9, 0.95)
 EPISODE_STEPS = 100
 MAX_LEARNER_RESTARTS = 3
+REALTIME_THREAD_PRIORITY = 50  # as ros2_control's controller manager
 RECORDER_GRACE_S = 20.0  # after the sim's last episode, for the recorder to write it and end
 
 
@@ -155,7 +156,9 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
         # until the learner's first weights, the policy serves the prior (or the learner's initial weights)
         "checkpoint": prior_path or learner_dir / "policy.pt",
         "mode": cfg.mode, "paced_every": cfg.publish_every if lockstep else 0, "publish_every": cfg.publish_every,
-        "utd": cfg.utd, "seed": cfg.seed, "learner_nice": 0 if lockstep else 10, "reset_seed": TRAIN_SEED_BASE + 10000 * cfg.seed, "episodes": episodes,
+        "utd": cfg.utd, "seed": cfg.seed, "learner_nice": 0 if lockstep else 10,
+        # realtime: the nodes that answer the arm go first (where the user may use SCHED_FIFO)
+        "thread_priority": 0 if lockstep else REALTIME_THREAD_PRIORITY, "reset_seed": TRAIN_SEED_BASE + 10000 * cfg.seed, "episodes": episodes,
         "snapshot_every": cfg.eval_every, "corrector": cfg.corrector,
         # a person's corrector runs in the foreground, on this terminal (below)
         "with_corrector": "true" if cfg.corrector == "scripted" else "false",

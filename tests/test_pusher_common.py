@@ -122,3 +122,45 @@ def test_train_flags_become_read_only_parameters():
     assert params["deterministic"].type is bool and params["deterministic"].flag == "--deterministic"
     assert params["init"].default is None and params["init"].type is str
     assert all(p.read_only for p in params.values())
+
+
+def test_thread_priority_puts_every_thread_under_fifo_or_says_why_not():
+    """Where SCHED_FIFO is permitted every thread of the process (those started before
+    too) runs under it; where it is not, one warning says how to permit it and nothing
+    changes. Run in a child process: pytest itself must not become real-time."""
+    import subprocess
+    import sys
+
+    require_ros()
+    code = r"""
+import os, threading
+from pusher_common.scheduling import apply_thread_priority
+DROP
+class Log:
+    def info(self, text): print("info:", text)
+    def warn(self, text): print("warn:", text)
+started = threading.Event(); stop = threading.Event()
+def other():
+    started.set(); stop.wait()
+t = threading.Thread(target=other); t.start(); started.wait()
+assert apply_thread_priority(0, Log()) is False
+done = apply_thread_priority(20, Log())
+policies = {os.sched_getscheduler(int(tid)) for tid in os.listdir("/proc/self/task")}
+stop.set(); t.join()
+print("done", done, "policies", sorted(policies))
+"""
+    import os
+
+    def check(drop: str) -> None:
+        out = subprocess.run([sys.executable, "-c", code.replace("DROP", drop)], capture_output=True, text=True,
+                             timeout=60)
+        assert out.returncode == 0, out.stderr
+        if "done True" in out.stdout:
+            assert f"policies [{os.SCHED_FIFO}]" in out.stdout and "SCHED_FIFO priority 20" in out.stdout
+        else:
+            assert "not permitted" in out.stdout and "rtprio" in out.stdout
+            assert f"policies [{os.SCHED_OTHER}]" in out.stdout
+
+    check("")
+    if os.geteuid() == 0:  # as an unprivileged user too (no rtprio limit: refused)
+        check("import resource; resource.setrlimit(resource.RLIMIT_RTPRIO, (0, 0)); os.setuid(65534)")

@@ -24,7 +24,7 @@ from ..transitions import Transitions
 from .cdr import TRANSITION_MSGTYPE, TRANSITION_TOPIC, TransitionDecodeError, decode_transition_payloads
 from .paths import SUFFIX_STORAGE
 from .storage_mcap import has_footer, summary_problem
-from .storage_sqlite import MessageDigest, WalSqlite3Reader, has_pending_wal, stored_digest
+from .storage_sqlite import MessageDigest, WalSqlite3Reader, stored_digest, wal_path
 from .writer import field_of_column
 
 RECORD_HINT = "record one with `offline-rl collect` or `ros2 run recorder node`"
@@ -65,9 +65,10 @@ def check_sqlite_size(path: Path) -> None:
 
 
 def sqlite_storage(path: Path) -> Sqlite3Reader:
-    """rosbags' sqlite3 reader, WAL-aware when the file's WAL holds commits (a live
-    recording, or one killed inside a flush)."""
-    return WalSqlite3Reader(path) if has_pending_wal(Path(path)) else Sqlite3Reader(path)
+    """rosbags' sqlite3 reader, WAL-aware while the file has a WAL (a live recording, or
+    one killed): rosbags opens files immutable, which a recorder's next flush would change
+    under it, even when its WAL was just emptied into the file."""
+    return WalSqlite3Reader(path) if wal_path(Path(path)).exists() else Sqlite3Reader(path)
 
 
 class CheckedMcapReader(McapReader):

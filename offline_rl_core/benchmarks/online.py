@@ -33,6 +33,7 @@ def realtime_figures(s: BenchSettings, tmp: Path, log=print) -> list:
     from ..launch import LaunchedProcesses, find_launch_file, load_launch
     from ..learners import TrainConfig, train
     from ..policy import save_checkpoint
+    from ..hil_online import REALTIME_THREAD_PRIORITY
     from ..rosproc import isolated_ros_env
 
     bag = Path("bags/mix.db3")
@@ -44,7 +45,7 @@ def realtime_figures(s: BenchSettings, tmp: Path, log=print) -> list:
     nodes = load_launch(find_launch_file("pusher_bringup", "online.launch.yaml"), {
         "bag": str(bag), "prior": str(prior), "checkpoint": str(prior), "out": str(tmp / "online"), "mode": "realtime",
         "paced_every": "0", "publish_every": str(REALTIME_PUBLISH_EVERY), "episodes": str(episodes),
-        "snapshot_every": "0", "learner_nice": "10"})
+        "snapshot_every": "0", "learner_nice": "10", "thread_priority": str(REALTIME_THREAD_PRIORITY)})
     env = isolated_ros_env(domain_id=int(os.environ["ROS_DOMAIN_ID"]))  # the probe's domain (isolate() chose it)
     with LaunchedProcesses(nodes, env, tmp / "logs") as launched:
         launched.start(ready={"learner": "learning from", "policy": "serving", "recorder": "recording"}, timeout=120)

@@ -36,6 +36,7 @@ from offline_rl_core.joint_messages import action_from_effort
 from offline_rl_core.pairing import check_stamp
 from pusher_common.node_main import run_node
 from pusher_common.params import Param, Settings
+from pusher_common.scheduling import THREAD_PRIORITY, apply_thread_priority
 from pusher_common.stamps import stamp_key
 from pusher_common.status import NodeStatus
 
@@ -51,6 +52,7 @@ PARAMS = (
           "are dropped", low=0.0, high=60_000.0),
     Param("require_teleop", False, "lockstep: always wait for the corrector's word on each stamp (otherwise only "
           "while a teleop/action publisher is matched)"),
+    THREAD_PRIORITY,
 )
 ONLY_IN = {"hold_ms": "realtime", "require_teleop": "lockstep"}
 
@@ -63,6 +65,7 @@ class Mux(Node):
     def __init__(self, overrides=()):
         super().__init__("mux", parameter_overrides=list(overrides))
         self.settings = Settings(self, PARAMS, on_change=self.on_parameter_change, check=self.check_parameter)
+        apply_thread_priority(self.settings.thread_priority, self.get_logger())
         self.mode = self.settings.mode
         self.hold_s = self.settings.hold_ms / 1000.0
         self.require_teleop = self.settings.require_teleop

@@ -53,6 +53,7 @@ from offline_rl_core.policy import LoadedPolicy, load_policy  # noqa: E402
 from offline_rl_core.rejections import Rejection  # noqa: E402
 from pusher_common.node_main import run_node  # noqa: E402
 from pusher_common.params import Param, Settings  # noqa: E402
+from pusher_common.scheduling import THREAD_PRIORITY, apply_thread_priority  # noqa: E402
 from pusher_common.stamps import stamp_key  # noqa: E402
 from pusher_common.status import NodeStatus  # noqa: E402
 
@@ -87,6 +88,7 @@ PARAMS = (
     Param("seed", 0, "seed of the exploration noise", read_only=True, flag="--seed"),
     Param("paced_every", 0, "answer state n only with weights version n // paced_every or newer (the learner's "
           "publish_every; 0: never wait)", low=0, read_only=True, flag="--paced-every"),
+    THREAD_PRIORITY,
 )
 
 
@@ -99,6 +101,7 @@ class PolicyServer(Node):
     def __init__(self, overrides=()):
         super().__init__("policy", parameter_overrides=list(overrides))
         self.settings = Settings(self, PARAMS, on_change=self.on_parameter_change, check=self.check_parameter)
+        apply_thread_priority(self.settings.thread_priority, self.get_logger())
         self.poll_period = self.settings.poll_period
         if not self.settings.checkpoint:
             raise UserError("no checkpoint given: pass --checkpoint PATH or -p checkpoint:=PATH")

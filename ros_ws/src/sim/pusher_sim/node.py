@@ -46,6 +46,7 @@ from offline_rl_core.sim_loop import MODES, ArmState, SimLoop, Step, TickTiming
 from offline_rl_core.transitions import SOURCE_NAMES, SOURCE_POLICY, source_from_tag
 from pusher_common.node_main import run_node
 from pusher_common.params import Param, Settings
+from pusher_common.scheduling import THREAD_PRIORITY, apply_thread_priority
 from pusher_common.spin import spin_node_fast
 from pusher_common.stamps import NS_PER_S, stamp_from_ns, stamp_key
 from pusher_common.status import NodeStatus
@@ -72,6 +73,7 @@ PARAMS = (
     Param("effort_topic", "", "also take commands as std_msgs/Float64MultiArray joint torques in N·m on this "
           "topic, as an effort controller does (realtime; e.g. effort_controller/commands; empty: off)",
           read_only=True),
+    THREAD_PRIORITY,
 )
 
 
@@ -79,6 +81,7 @@ class PusherSim(Node):
     def __init__(self, overrides=()):
         super().__init__("sim", parameter_overrides=list(overrides))
         self.settings = s = Settings(self, PARAMS, on_change=self.on_parameter_change)
+        apply_thread_priority(self.settings.thread_priority, self.get_logger())
         start_ns = int(s.start_time * NS_PER_S) if s.start_time > 0 else time.time_ns() // NS_PER_S * NS_PER_S
         self.loop = SimLoop(s.mode, s.seed, s.episodes, s.terminate_on_success, start_ns)
         self.mode = s.mode
