@@ -202,7 +202,8 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
         if progress and progress["trained_through"] >= shown + cfg.env_steps // 20:
             shown = progress["trained_through"]
             log(f"  {shown:>6}/{cfg.env_steps} environment steps  weights v{progress['weights_version']}  "
-                f"{progress['updates']} updates  {time.monotonic() - started:6.0f} s  "
+                f"{progress['updates']} updates  {progress.get('human', 0)} taken over  "
+                f"{time.monotonic() - started:6.0f} s  "
                 f"critic loss {progress.get('critic_loss', float('nan')):.4f}  "
                 f"Q {progress.get('q_policy', float('nan')):+.3f}")
         time.sleep(0.5)

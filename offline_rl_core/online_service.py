@@ -186,7 +186,7 @@ class LearnerService:
                     "train_s": round(self.learner.train_seconds, 3)}
             save_checkpoint(self.out / "snapshots" / f"policy_{n:06d}.pt", snap)
         line = {"weights_version": weights["weights_version"], "trained_through": weights["trained_through"],
-                "updates": self.learner.updates, "received": self.learner.n_online,
+                "updates": self.learner.updates, "received": self.learner.n_online, "human": self.learner.n_human,
                 "rejected": self.rejected.total, "train_s": round(self.learner.train_seconds, 3),
                 "wall_s": round(time.monotonic() - self.started, 3),
                 **{k: round(v, 6) for k, v in self.learner.losses.items() if math.isfinite(v)}}

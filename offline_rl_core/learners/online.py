@@ -102,6 +102,11 @@ class OnlineLearner:
             self.n_online += len(rows)
 
     @property
+    def n_human(self) -> int:
+        """Live transitions a person chose (source human): their takeovers' steps."""
+        return int(self.data.human[0, self.n_offline: self.n_offline + self.n_online].sum())
+
+    @property
     def updates_owed(self) -> int:
         return self.settings.utd * self.n_online - self.updates
 
