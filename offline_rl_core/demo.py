@@ -2,11 +2,13 @@
 
 1. record a small bag: sim node (lockstep) + recorder node, over real DDS
    (``pusher_bringup/launch/record.launch.yaml``);
-2. train BC and AWAC from ``bags/mix.db3`` with the trainer node (both at once);
+2. train BC and AWAC from ``bags/mix.db3`` with the trainer node (both at once), then
+   the best prior (``--algo auto``);
 3. serve AWAC with the policy node and run the sim closed loop on the chapter's
    100 held-out reset seeds (``serve.launch.yaml``);
 4. print the comparison: BC vs AWAC with Wilson intervals and the Newcombe
-   difference interval, and AWAC over ROS next to AWAC in-process.
+   difference interval (the chapter's experiment), AWAC over ROS next to AWAC
+   in-process, and the best prior beside them.
 
 Everything lands in ``runs/demo/``. The nodes run as separate processes on a private
 DDS domain and are stopped by pid at the end, also on errors and Ctrl-C. This module
@@ -20,6 +22,7 @@ import json
 import subprocess
 import sys
 import time
+from contextlib import ExitStack
 from pathlib import Path
 
 from . import seeds
@@ -83,25 +86,30 @@ def run_demo(out: Path, bag: Path, steps: int, record_episodes: int, seed: int) 
     info = subprocess.run([ros2, "bag", "info", str(recorded)], env=env, capture_output=True, text=True, timeout=60)
     say(info.stdout.rstrip() or info.stderr.rstrip())
 
-    # 2. train BC and AWAC with the trainer node, side by side (one core each)
-    say(f"[2/4] training BC and AWAC on {bag} with the trainer node ({steps} steps each, in parallel)")
-    trainers = {}
-    for algo in ("bc", "awac"):
-        run_dir = out / algo
-        trainers[algo] = RosProcess(
-            ros2_run("trainer", "node", "--bag", bag, "--algo", algo, "--steps", steps, "--seed", seed,
-                     "--out", run_dir, "--eval-episodes", EVAL_EPISODES, "--eval-seed", EVAL_SEED + seed),
-            env, logs / f"trainer_{algo}.log")
-    with trainers["bc"], trainers["awac"]:
-        last = time.perf_counter()
-        while any(t.running() for t in trainers.values()):
-            time.sleep(0.5)
-            if time.perf_counter() - last > 15:
-                last = time.perf_counter()
-                say("      " + " | ".join(f"{algo}: {last_progress(t)}" for algo, t in trainers.items()))
-        for algo, t in trainers.items():
-            wait_for(t, 10, f"the trainer node ({algo})")
-    metrics = {algo: json.loads((out / algo / "metrics.json").read_text()) for algo in trainers}
+    # 2. train BC and AWAC with the trainer node side by side (one core each), then the best
+    # prior alone (the first time on a machine it times the chapter's loop for its budget)
+    say(f"[2/4] training BC and AWAC on {bag} with the trainer node ({steps} steps each, in parallel), "
+        f"then the best prior (--algo auto)")
+    for group in (("bc", "awac"), ("auto",)):
+        trainers = {}
+        for algo in group:
+            length = [] if algo == "auto" else ["--steps", steps]  # auto: as many as it plans
+            trainers[algo] = RosProcess(
+                ros2_run("trainer", "node", "--bag", bag, "--algo", algo, *length, "--seed", seed,
+                         "--out", out / algo, "--eval-episodes", EVAL_EPISODES, "--eval-seed", EVAL_SEED + seed),
+                env, logs / f"trainer_{algo}.log")
+        with ExitStack() as running:
+            for t in trainers.values():
+                running.enter_context(t)
+            last = time.perf_counter()
+            while any(t.running() for t in trainers.values()):
+                time.sleep(0.5)
+                if time.perf_counter() - last > 15:
+                    last = time.perf_counter()
+                    say("      " + " | ".join(f"{algo}: {last_progress(t)}" for algo, t in trainers.items()))
+            for algo, t in trainers.items():
+                wait_for(t, 10, f"the trainer node ({algo})")
+    metrics = {algo: json.loads((out / algo / "metrics.json").read_text()) for algo in ("bc", "awac", "auto")}
 
     # 3. serve AWAC and close the loop over DDS
     closed_loop = out / "closed_loop_awac.json"
@@ -120,13 +128,15 @@ def run_demo(out: Path, bag: Path, steps: int, record_episodes: int, seed: int) 
     ros_summary = json.loads(closed_loop.read_text())
 
     # 4. the table
-    bc, awac = metrics["bc"]["eval"], metrics["awac"]["eval"]
+    bc, awac, auto = metrics["bc"]["eval"], metrics["awac"]["eval"], metrics["auto"]["eval"]
     lo, hi = newcombe_diff_ci(awac["successes"], awac["episodes"], bc["successes"], bc["episodes"])
     verdict = "AWAC beats BC" if lo > 0 else ("BC beats AWAC" if hi < 0 else "no significant difference")
     rows = [
         ("BC (in-process)", bc["success_rate"], bc["wilson_ci_lo"], bc["wilson_ci_hi"], bc["mean_final_dist"]),
         ("AWAC (in-process)", awac["success_rate"], awac["wilson_ci_lo"], awac["wilson_ci_hi"], awac["mean_final_dist"]),
         ("AWAC over ROS (closed loop)", ros_summary["success_rate"], None, None, ros_summary["mean_final_dist"]),
+        (f"best prior (auto: {metrics['auto']['algorithm']})", auto["success_rate"], auto["wilson_ci_lo"],
+         auto["wilson_ci_hi"], auto["mean_final_dist"]),
     ]
     say(f"\n[4/4] results on {EVAL_EPISODES} held-out rollouts (trained on {bag})")
     say(f"  {'policy':<30} {'success':>8}  {'95% Wilson CI':>15}  {'final dist (m)':>14}")
@@ -136,12 +146,12 @@ def run_demo(out: Path, bag: Path, steps: int, record_episodes: int, seed: int) 
     say(f"  AWAC - BC success: {awac['success_rate'] - bc['success_rate']:+.2f}, "
         f"Newcombe 95% CI [{lo:+.2f}, {hi:+.2f}] -> {verdict}")
     summary = {
-        "bc": bc, "awac": awac, "awac_closed_loop": ros_summary,
+        "bc": bc, "awac": awac, "awac_closed_loop": ros_summary, "auto": auto, "auto_plan": metrics["auto"].get("plan"),
         "diff_ci_lo": round(lo, 6), "diff_ci_hi": round(hi, 6), "gap_significant": bool(lo > 0 or hi < 0),
         "recorded_bag": str(recorded), "wall_seconds": round(time.perf_counter() - t_start, 1),
     }
     write_json_atomic(out / "summary.json", summary)
-    say(f"\nwrote {out}/summary.json, {out}/{{bc,awac}}/policy.pt + metrics.json + training_curve.png, "
+    say(f"\nwrote {out}/summary.json, {out}/{{bc,awac,auto}}/policy.pt + metrics.json + training_curve.png, "
         f"{recorded}; logs in {logs}/  ({summary['wall_seconds']:.0f} s)")
     return 0
 

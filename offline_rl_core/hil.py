@@ -48,6 +48,7 @@ from .transitions import SOURCE_HUMAN, SOURCE_POLICY
 
 DEFAULT_BAG = "bags/mix.db3"
 DEMO_PRIOR = "runs/demo/awac/policy.pt"
+DEMO_AUTO_PRIOR = "runs/demo/auto/policy.pt"  # make demo's --algo auto prior
 EVAL_SEED = seeds.HELD_OUT
 TRAIN_SEED_BASE = seeds.ONLINE
 
@@ -305,15 +306,15 @@ def resolve_prior(loop: Loop, given: str | None, bags: list[str], seed: int, pri
                   log: Callable[[str], None], algo: str = "awac") -> tuple[Path, str]:
     """(the prior checkpoint, how it was had: given / reused / trained). ``algo`` awac: the
     chapter's AWAC prior, ``make demo``'s or an earlier run's when it was trained so on these
-    bags; auto: ``offline-rl train --algo auto``'s (README, "The best prior"), an earlier
-    run's when it was trained so. Otherwise trained now with the trainer node."""
+    bags; auto: ``offline-rl train --algo auto``'s (README, "The best prior"), ``make demo``'s
+    or an earlier run's when it was trained so. Otherwise trained now with the trainer node."""
     if given:
         return Path(given), "given"
     if algo == "auto":
-        candidate = out / "prior" / "policy.pt"
-        if candidate.exists() and reusable_auto_prior(candidate, bags, seed):
-            log(f"prior: reusing {candidate} (--algo auto, same data and seed)")
-            return candidate, "reused"
+        for candidate in (Path(DEMO_AUTO_PRIOR), out / "prior" / "policy.pt"):
+            if candidate.exists() and reusable_auto_prior(candidate, bags, seed):
+                log(f"prior: reusing {candidate} (--algo auto, same data and seed)")
+                return candidate, "reused"
         log(f"prior: training --algo auto on {', '.join(bags)}, seed {seed} (trainer node)")
         return loop.train("prior", bags, None, seed, out / "prior", algo="auto"), "trained"
     spec = HilConfig(prior_steps=prior_steps, algo="awac")
