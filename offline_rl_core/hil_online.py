@@ -210,6 +210,8 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
     ended = launched.finished()
     rc = 0 if ended is None else ended.poll()
     wall = time.monotonic() - started
+    if ended is not None and rc == 0:
+        _wait_for_the_learner(cfg, launched, learner_dir, out / "session.db3", log)
     loop.stop_all()  # the learner saves its resume point and final weights on the way out
     if person is not None:
         _stop(person)
@@ -227,6 +229,23 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
               "episodes": int(len(np.unique(session.episode)))}
     counts["learner_restarts"] = restarts
     return {"curve": curve, "counts": counts, "learner_seconds": round(wall, 2), "where": "over ROS"}
+
+
+def _wait_for_the_learner(cfg, launched, learner_dir: Path, session_bag: Path, log, timeout: float = 300.0) -> None:
+    """The session is recorded: let the learner cut the version that holds its last whole
+    ``publish_every`` transitions before it is stopped (a restarted learner can be behind),
+    so the final weights are those of a learner that never stopped."""
+    from .bag import read_transitions
+
+    recorded = len(read_transitions(session_bag))
+    last = recorded - recorded % cfg.publish_every
+    deadline = time.monotonic() + timeout
+    while launched["learner"].running() and time.monotonic() < deadline:
+        progress = _last_progress(learner_dir / "progress.jsonl")
+        if progress and progress["trained_through"] >= last:
+            return
+        time.sleep(0.2)
+    log(f"hil online: the learner had not trained through the session's {last} transitions when stopped")
 
 
 def _restart_learner(cfg, loop, launched, learner_dir: Path, out: Path, attempt: int, log) -> None:

@@ -22,6 +22,7 @@
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import gc
 import signal
 import sys
@@ -62,6 +63,7 @@ def run_node(
     ``prog`` names the node in error lines; ``command`` is how it is started, for
     ``--help`` (default ``ros2 run PROG node``).
     """
+    faulthandler.enable()  # a crash in native code (rclpy, sqlite) leaves the Python stack in the node's log
     argv = list(sys.argv if argv is None else argv)
     parser = argparse.ArgumentParser(prog=command or f"ros2 run {prog} node", description=description,
                                      epilog="Every option is also a ROS parameter: --ros-args -p NAME:=VALUE "
