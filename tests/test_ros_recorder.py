@@ -94,9 +94,12 @@ def test_sigkilled_recording_keeps_what_it_flushed(spawn, tmp_path, passive, nam
         repair_bag(bag)
         recorded = read_transitions(bag)
     assert len(recorded) > 0
-    if passive:  # a directory: metadata.yaml follows its storage file, so it may lag one flush behind
+    if passive:
+        # a directory opens in rosbags as left, but its metadata.yaml may be a flush behind or
+        # ahead of what rosbags reads (rosbags opens sqlite immutable: a commit the kill left in
+        # the WAL is not seen until repair folds it in); `bag repair` makes them agree
         with Reader(bag) as reader:
-            assert reader.message_count <= sum(1 for _ in reader.messages())
+            assert sum(1 for _ in reader.messages()) > 0
         repair_bag(bag)
     with Reader(bag) as reader:
         assert reader.message_count == sum(1 for _ in reader.messages()) >= len(recorded) > 0
