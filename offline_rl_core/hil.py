@@ -277,6 +277,11 @@ def reusable_prior(path: str | os.PathLike, bags: list[str], cfg: HilConfig, see
         return False
     if seed is not None and int(ckpt.get("seed", -1)) != int(seed):
         return False
+    return _trained_on(ckpt, bags)
+
+
+def _trained_on(ckpt: dict, bags: list[str]) -> bool:
+    """Whether ``ckpt`` was trained on exactly the transitions of ``bags``."""
     from .training_run import load_bags
 
     data, _ = load_bags(bags)
@@ -291,15 +296,14 @@ def reusable_auto_prior(path: Path, bags: list[str], seed: int) -> bool:
         metrics = json.loads((path.parent / "metrics.json").read_text())
     except Exception:  # noqa: BLE001 - not reusable, whatever is wrong
         return False
+    from .prior import DEFAULT_BUDGET_FROM
+
     plan = metrics.get("plan") or {}
-    if plan.get("choice") != ckpt.get("algorithm") or not str(plan.get("budget_from", "")).startswith("the chapter"):
+    if plan.get("choice") != ckpt.get("algorithm") or plan.get("budget_from") != DEFAULT_BUDGET_FROM:
         return False
     if int(ckpt.get("seed", -1)) != int(seed) or (ckpt.get("config") or {}).get("init") or metrics.get("init"):
         return False
-    from .training_run import load_bags
-
-    data, _ = load_bags(bags)
-    return ckpt.get("dataset_hash") == data.content_hash()
+    return _trained_on(ckpt, bags)
 
 
 def resolve_prior(loop: Loop, given: str | None, bags: list[str], seed: int, prior_steps: int, out: Path,

@@ -219,10 +219,10 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
         raise UserError(f"the recorder failed (exit {rc}); see {out / 'logs' / 'recorder.log'}")
     log(f"hil online: session done in {wall:.0f} s; scoring the learner's snapshots on {cfg.eval_episodes} "
         f"held-out resets each")
-    curve = _score_snapshots(cfg, learner_dir, out / "session.db3")
     from .bag import read_transitions
 
     session = read_transitions(out / "session.db3")
+    curve = _score_snapshots(cfg, learner_dir, session)
     human = session.source == SOURCE_HUMAN
     counts = {"steps": len(session), "human": int(human.sum()),
               "takeovers": int(np.sum(human[1:] & ~human[:-1] & (session.episode[1:] == session.episode[:-1]))),
@@ -315,10 +315,9 @@ def _last_progress(path: Path) -> dict | None:
         return None
 
 
-def _score_snapshots(cfg: OnlineHilConfig, learner_dir: Path, session_bag: Path) -> list[dict]:
-    from .bag import read_transitions
-
-    session = read_transitions(session_bag)
+def _score_snapshots(cfg: OnlineHilConfig, learner_dir: Path, session) -> list[dict]:
+    """The learning curve: each kept snapshot scored on the held-out resets, with the
+    intervention rate of the ``session`` transitions (the recording) before it."""
     human = session.source == SOURCE_HUMAN
     progress = {}
     for line in (learner_dir / "progress.jsonl").read_text().splitlines():

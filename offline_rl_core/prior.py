@@ -51,6 +51,7 @@ CHAPTER_STEPS = 8000  # the chapter's AWAC run
 # 0.99-1.00 from there to 4000 passes): auto stops at this many, budget or not.
 CLONE_PASSES = 1000
 CACHE_FILE = "step_rates.json"
+DEFAULT_BUDGET_FROM = "the chapter's 8000-step AWAC loop on this machine (measured, cached)"  # plan["budget_from"]
 
 
 @dataclass(frozen=True)
@@ -209,7 +210,7 @@ def plan_training(data: Transitions, cfg: TrainConfig, auto: bool, budget_s: flo
         budget_from = "--budget-s"
         if budget_s is None:
             budget_s = chapter_awac_seconds(data, log)
-            budget_from = "the chapter's 8000-step AWAC loop on this machine (measured, cached)"
+            budget_from = DEFAULT_BUDGET_FROM
         rate = step_rate(cfg, data, log)
         budget_steps = steps_for_budget(budget_s, rate)
         cap = recipe.max_steps(cfg.batch_size) if recipe is not None else None
