@@ -42,21 +42,26 @@ def mlp_forward(x, w1, b1, w2, b2, w3, b3, tanh_output: bool, hidden: HiddenLaye
     / ``b2c``, the hidden weights already cast, may be passed in by a caller that runs
     one network twice between updates."""
     members = w1.shape[0]
-    y = x.new_empty(members, x.shape[1], w3.shape[2])
     if w2c is None:
         w2c, b2c = hidden.cast(w2), hidden.cast(b2)
-    acts = []
+    acts, outs = [], []
     for m in range(members):
         h1 = torch.addmm(b1[m], x[m], w1[m]).relu_()
         h1c = hidden.cast(h1)
         h2 = hidden.forward_relu(h1c, w2c[m], b2c[m, 0]).float()
         # the thin output layer as (w.T @ h.T).T: MKL is several times slower on a
-        # 256x256 by 256x2 product than on its transpose
-        y[m].copy_(torch.addmm(b3[m].t(), w3[m].t(), h2.t()).t())
+        # 256x256 by 256x2 product than on its transpose on some CPUs
+        outs.append(torch.addmm(b3[m].t(), w3[m].t(), h2.t()).t())
         acts.append((h1, h1c, h2))
+    y = _stacked(outs).contiguous()
     if tanh_output:
         y.tanh_()
     return y, w2c, acts
+
+
+def _stacked(parts: list[torch.Tensor]) -> torch.Tensor:
+    """The members' results on a leading member axis: one member's as a view (no copy)."""
+    return parts[0].unsqueeze(0) if len(parts) == 1 else torch.stack(parts)
 
 
 def mlp_backward(grad_y, x, w1, w2c, w3, y, acts, tanh_output: bool, hidden: HiddenLayer, input_grad: bool,
@@ -66,13 +71,12 @@ def mlp_backward(grad_y, x, w1, w2c, w3, y, acts, tanh_output: bool, hidden: Hid
     through this one's output, as an actor's through a critic, needs only x's)."""
     g3_all = grad_y * (1.0 - y * y) if tanh_output else grad_y
     grads = [None] * 6
+    grad_w2_parts = []
     if weight_grads:
         grad_w1, grad_w3 = torch.empty_like(w1), torch.empty_like(w3)
-        grad_w2 = w1.new_empty(w2c.shape)  # fp32, like the parameter
         grad_b1 = x.new_empty(w1.shape[0], 1, w1.shape[2])
         grad_b2 = x.new_empty(w2c.shape[0], 1, w2c.shape[2])
         grad_b3 = g3_all.sum(1, keepdim=True)
-        grads = [grad_w1, grad_b1, grad_w2, grad_b2, grad_w3, grad_b3]
     grad_x = torch.empty_like(x) if input_grad else None
     for m in range(w1.shape[0]):
         h1, h1c, h2 = acts[m]
@@ -83,13 +87,15 @@ def mlp_backward(grad_y, x, w1, w2c, w3, y, acts, tanh_output: bool, hidden: Hid
         g2c = hidden.cast(g2)
         if weight_grads:
             torch.sum(g2, 0, keepdim=True, out=grad_b2[m])
-            grad_w2[m].copy_(hidden.grad_weight(h1c, g2c))
+            grad_w2_parts.append(hidden.grad_weight(h1c, g2c).float())  # fp32, like the parameter
         g1 = _relu_grad(hidden.grad_input(g2c, w2c[m]).float(), h1, 0)
         if weight_grads:
             torch.mm(x[m].t(), g1, out=grad_w1[m])
             torch.sum(g1, 0, keepdim=True, out=grad_b1[m])
         if grad_x is not None:
             torch.mm(g1, w1[m].t(), out=grad_x[m])
+    if weight_grads:
+        grads = [grad_w1, grad_b1, _stacked(grad_w2_parts), grad_b2, grad_w3, grad_b3]
     return (grad_x, *grads)
 
 

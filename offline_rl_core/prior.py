@@ -38,6 +38,7 @@ from .errors import UserError
 from .kernel_choice import machine_key, read_cache, write_cache
 from .learners import TrainConfig, train
 from .learners.data import episodes_at_goal
+from .learners.stepper import step_threads
 from .transitions import Transitions
 
 # Fewer expert-like episodes than this and cloning them is not trusted: with 7 or 8 (2.5 %
@@ -117,7 +118,8 @@ def choose_recipe(profile: BagProfile) -> Recipe:
 def _step_kind(cfg: TrainConfig) -> tuple:
     """What a step's cost depends on (filtered BC steps cost what BC's do)."""
     algo = "bc" if cfg.algo == "filtered_bc" else cfg.algo
-    return (algo, cfg.batch_size, cfg.hidden, cfg.threads, cfg.deterministic, cfg.device, cfg.correction_ratio is not None)
+    return (algo, cfg.batch_size, cfg.hidden, step_threads(cfg.threads), cfg.deterministic, cfg.device,
+            cfg.correction_ratio is not None)
 
 
 def _time_ours(cfg: TrainConfig, data: Transitions, steps: int, warm: int) -> float:

@@ -73,7 +73,7 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
         if isinstance(default, bool):
             options["action"] = argparse.BooleanOptionalAction
         else:
-            options["type"] = type(default) if default is not None else float
+            options["type"] = type(default) if default is not None else (f.metadata.get("kind") or float)
         groups[f.metadata["group"]].add_argument(flag, **options)
 
 

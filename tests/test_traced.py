@@ -186,3 +186,46 @@ def test_a_lock_left_by_an_interrupted_build_does_not_hang_the_next_run(tmp_path
     os.utime(lock, (old, old))
     _clear_stale_lock(tmp_path)
     assert not lock.exists()
+
+
+@pytest.mark.skipif(not has_compiler, reason="no g++ / ninja")
+@pytest.mark.parametrize("algo", ALGORITHMS)
+def test_a_step_replayed_on_several_threads_gives_the_same_bytes(monkeypatch, data, algo):
+    """The step's calls spread over threads (``--threads``) train exactly what one
+    thread trains: every call waits for what it reads and for what it overwrites,
+    views and random draws included (SAC samples its actions inside the step)."""
+    one = _run(monkeypatch, data, "cpp", algo, threads=1)
+    several = _run(monkeypatch, data, "cpp", algo, threads=3)
+    assert {r.checkpoint["train_threads"] for r in one} == {1}
+    assert {r.checkpoint["train_threads"] for r in several} == {3}
+    _assert_same_bytes(several, one)
+
+
+def test_the_default_step_uses_the_free_cores_up_to_two(monkeypatch, data):
+    from offline_rl_core.learners.stepper import available_cores
+
+    monkeypatch.delenv("PUSHER_RL_STEP", raising=False)
+    result = train_seeds(data, TrainConfig(algo="bc", **{**CFG, "steps": 5}), [0])[0]
+    if result.step_kind == "cpp":
+        assert result.checkpoint["train_threads"] == min(2, available_cores())
+
+
+@pytest.mark.skipif(not has_compiler, reason="no g++ / ninja")
+def test_a_call_failing_on_a_helper_thread_raises_and_training_goes_on(monkeypatch, data):
+    """An error inside a step run on several threads comes back as an exception (no
+    hang, no lost thread), and the next step runs."""
+    from offline_rl_core.learners.data import MemberData
+    from offline_rl_core.learners.stepper import make_step
+
+    monkeypatch.setenv("PUSHER_RL_STEP", "cpp")
+    cfg = TrainConfig(algo="awac", **CFG)
+    learner = LEARNERS["awac"](cfg, 1, [torch.Generator().manual_seed(0)], data.obs.shape[1], data.action.shape[1])
+    step = make_step(learner.update, MemberData([data]), (1, cfg.batch_size), "cpu", True, threads=2)
+    good = torch.zeros((1, cfg.batch_size), dtype=torch.long)
+    for _ in range(4):  # eager, recorded, timed, then on two threads
+        step(good)
+    assert step.kind == "cpp" and step.replay.program.workers == 2
+    with pytest.raises(IndexError, match="out of range"):
+        step(torch.full((1, cfg.batch_size), len(data) + 5, dtype=torch.long))
+    losses = step(good)
+    assert all(torch.isfinite(v).all() for v in losses.values())

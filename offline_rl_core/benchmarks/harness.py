@@ -189,22 +189,16 @@ def machine_info() -> dict:
 
 
 def choose_threads(requested: int | None) -> tuple[int, str]:
-    """torch intra-op threads for the run, and why.
-
-    Training here is small matmuls (256 x 256); splitting each over threads costs a
-    barrier per kernel, and when another process holds a core that barrier waits for a
-    descheduled thread: measured 10x slower than one thread on a shared 2-core
-    machine. So: one thread when the machine is busy (1-minute load >= 1), else torch's
-    default. Every contender runs with the same setting.
-    """
+    """torch's default threads for the run's references, and why: torch's own default
+    (as a user runs the chapter's script or d3rlpy), unless ``--threads`` says otherwise.
+    The training figures time the references with one thread too and keep the faster;
+    ours runs as ``offline-rl train`` does by default (or on ``--threads``)."""
     import torch
 
     if requested:
         return requested, f"--threads {requested}"
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else 0.0
-    if load >= 1.0:
-        return 1, f"auto: 1 (machine busy, load {load:.2f})"
-    return torch.get_num_threads(), f"auto: torch default {torch.get_num_threads()} (machine idle, load {load:.2f})"
+    return torch.get_num_threads(), f"torch default {torch.get_num_threads()} (load {load:.2f})"
 
 
 # ----------------------------------------------------------------------------- output

@@ -6,14 +6,35 @@
 // boxed calling convention: the same operators with the same arguments, so the same
 // bytes as the recorded Python, without Python, autograd or the optimiser's per-call
 // overhead. Nothing in this file knows about any learner.
+//
+// With more than one worker (``set_workers``), calls whose inputs are ready run on
+// several cores at once: the two critics' backward passes beside each other, the
+// policy's forward beside the critics' fit. ``traced.py`` hands over, per call, the
+// earlier calls it must wait for (its data, and the tensors it overwrites or that
+// others overwrite after it reads them, views included, and the random generator), so
+// every call sees exactly the tensors it saw in the recording: the bytes are the same
+// with any number of workers. Among ready calls, the one with the longest measured
+// chain of work still behind it goes first.
 #include <torch/extension.h>
 #include <ATen/core/dispatch/Dispatcher.h>
+#include <ATen/Parallel.h>
 #include <ATen/ScalarOps.h>
+#include <ATen/ThreadLocalState.h>
 #include <c10/core/InferenceMode.h>
 #include <torch/csrc/Generator.h>
 #include <torch/csrc/jit/python/pybind_utils.h>
 
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <condition_variable>
+#include <exception>
+#include <immintrin.h>
+#include <mutex>
+#include <queue>
 #include <string>
+#include <thread>
+#include <unistd.h>
 #include <vector>
 
 namespace {
@@ -38,9 +59,19 @@ struct Call {
   std::vector<int> release;  // slots whose last use is this call
 };
 
+inline void cpu_relax() {
+#if defined(__x86_64__) || defined(__i386__)
+  _mm_pause();
+#else
+  std::this_thread::yield();
+#endif
+}
+
 class Program {
  public:
   explicit Program(int64_t n_slots) : slots_(n_slots) {}
+
+  ~Program() { stop_helpers(); }
 
   void set_constant(int slot, const IValue& value) {
     slots_.at(slot) = value;
@@ -97,48 +128,73 @@ class Program {
     calls_.push_back(std::move(call));
   }
 
+  // For running on several workers: the earlier calls each call waits for, and the
+  // slots never released (inputs, constants, outputs).
+  void set_dependencies(const std::vector<std::vector<int>>& waits_for, const std::vector<int>& keep) {
+    TORCH_CHECK(waits_for.size() == calls_.size(), waits_for.size(), " dependency lists for ", calls_.size(), " calls");
+    const size_t n = calls_.size();
+    successors_.assign(n, {});
+    n_waits_.assign(n, 0);
+    for (size_t i = 0; i < n; ++i) {
+      for (int j : waits_for[i]) {
+        TORCH_CHECK(j >= 0 && static_cast<size_t>(j) < i, "call ", i, " waits for call ", j, ", which is not earlier");
+        successors_[j].push_back(static_cast<int>(i));
+        ++n_waits_[i];
+      }
+    }
+    keep_.assign(slots_.size(), false);
+    for (int s : keep) keep_.at(s) = true;
+    // each call's distinct slots read; a slot is released when its last reader is done
+    reads_.assign(n, {});
+    n_readers_.assign(slots_.size(), 0);
+    for (size_t i = 0; i < n; ++i) {
+      std::vector<int> r;
+      const Call& call = calls_[i];
+      if (call.list_source >= 0) r.push_back(call.list_source);
+      for (const auto& arg : call.args) {
+        if (arg.kind == Arg::kSlot) r.push_back(arg.slot);
+        for (int s : arg.slots)
+          if (s >= 0) r.push_back(s);
+      }
+      std::sort(r.begin(), r.end());
+      r.erase(std::unique(r.begin(), r.end()), r.end());
+      for (int s : r) ++n_readers_[s];
+      reads_[i] = std::move(r);
+    }
+    cost_us_.assign(n, 1.0);
+    rank_.assign(n, 0.0);
+    measured_ = false;
+    runs_in_order_ = 0;
+    has_dependencies_ = true;
+  }
+
+  // Worker threads (this one included) a run may use; 1 runs the calls in order.
+  void set_workers(int workers) {
+    TORCH_CHECK(workers >= 1, "workers must be >= 1, got ", workers);
+    stop_helpers();
+    workers_ = workers;
+  }
+
+  int workers() const { return workers_; }
+
+  // (sum of the calls' measured microseconds, longest chain of them): the step's time
+  // on one worker and its bound on many
+  std::pair<double, double> measured_us() const {
+    double total = 0.0, chain = 0.0;
+    for (double c : cost_us_) total += c;
+    for (double r : rank_) chain = std::max(chain, r);
+    return {total, chain};
+  }
+
   std::vector<at::Tensor> run(const std::vector<at::Tensor>& inputs) {
     TORCH_CHECK(inputs.size() == inputs_.size(), "expected ", inputs_.size(), " inputs, got ", inputs.size());
     c10::InferenceMode guard;
     for (size_t i = 0; i < inputs.size(); ++i) slots_[inputs_[i]] = inputs[i];
-    torch::jit::Stack stack;
-    for (auto& call : calls_) {
-      if (call.list_source >= 0) {
-        const IValue& src = slots_[call.list_source];
-        slots_[call.outputs[0]] =
-            src.isTuple() ? src.toTupleRef().elements()[call.list_index] : src.toListRef()[call.list_index];
-      } else {
-        stack.clear();
-        for (const auto& arg : call.args) {
-          switch (arg.kind) {
-            case Arg::kConstant:
-              stack.push_back(arg.constant);
-              break;
-            case Arg::kSlot:
-              stack.push_back(slots_[arg.slot]);
-              break;
-            case Arg::kTensorList: {
-              c10::List<at::Tensor> list;
-              list.reserve(arg.slots.size());
-              for (int s : arg.slots) list.push_back(slots_[s].toTensor());
-              stack.emplace_back(std::move(list));
-              break;
-            }
-            case Arg::kOptionalTensorList: {
-              c10::List<std::optional<at::Tensor>> list;
-              list.reserve(arg.slots.size());
-              for (int s : arg.slots) {
-                list.push_back(s < 0 ? std::optional<at::Tensor>() : std::optional<at::Tensor>(slots_[s].toTensor()));
-              }
-              stack.emplace_back(std::move(list));
-              break;
-            }
-          }
-        }
-        call.op->callBoxed(&stack);
-        for (size_t r = 0; r < call.outputs.size(); ++r) slots_[call.outputs[r]] = std::move(stack[r]);
-      }
-      for (int s : call.release) slots_[s] = IValue();
+    if (workers_ > 1 && has_dependencies_ && measured_) {
+      run_parallel();
+    } else {
+      // the calls are timed on the second run: the first pays for first-use set-up
+      run_in_order(has_dependencies_ && !measured_ && ++runs_in_order_ == 2);
     }
     std::vector<at::Tensor> out;
     out.reserve(outputs_.size());
@@ -150,9 +206,239 @@ class Program {
   size_t size() const { return calls_.size(); }
 
  private:
+  void execute(Call& call, torch::jit::Stack& stack) {
+    if (call.list_source >= 0) {
+      const IValue& src = slots_[call.list_source];
+      slots_[call.outputs[0]] =
+          src.isTuple() ? src.toTupleRef().elements()[call.list_index] : src.toListRef()[call.list_index];
+      return;
+    }
+    stack.clear();
+    for (const auto& arg : call.args) {
+      switch (arg.kind) {
+        case Arg::kConstant:
+          stack.push_back(arg.constant);
+          break;
+        case Arg::kSlot:
+          stack.push_back(slots_[arg.slot]);
+          break;
+        case Arg::kTensorList: {
+          c10::List<at::Tensor> list;
+          list.reserve(arg.slots.size());
+          for (int s : arg.slots) list.push_back(slots_[s].toTensor());
+          stack.emplace_back(std::move(list));
+          break;
+        }
+        case Arg::kOptionalTensorList: {
+          c10::List<std::optional<at::Tensor>> list;
+          list.reserve(arg.slots.size());
+          for (int s : arg.slots) {
+            list.push_back(s < 0 ? std::optional<at::Tensor>() : std::optional<at::Tensor>(slots_[s].toTensor()));
+          }
+          stack.emplace_back(std::move(list));
+          break;
+        }
+      }
+    }
+    call.op->callBoxed(&stack);
+    for (size_t r = 0; r < call.outputs.size(); ++r) slots_[call.outputs[r]] = std::move(stack[r]);
+  }
+
+  // In recorded order; ``measure`` times each call, to rank them for parallel runs.
+  void run_in_order(bool measure) {
+    torch::jit::Stack stack;
+    for (size_t i = 0; i < calls_.size(); ++i) {
+      auto t0 = std::chrono::steady_clock::now();
+      execute(calls_[i], stack);
+      if (measure) cost_us_[i] = std::chrono::duration<double, std::micro>(std::chrono::steady_clock::now() - t0).count();
+      for (int s : calls_[i].release) slots_[s] = IValue();
+    }
+    if (measure) {
+      // a call's rank: its own time and the longest chain of calls waiting on it
+      for (size_t k = calls_.size(); k-- > 0;) {
+        double longest = 0.0;
+        for (int j : successors_[k]) longest = std::max(longest, rank_[j]);
+        rank_[k] = cost_us_[k] + longest;
+      }
+      measured_ = true;
+    }
+  }
+
+  // ---- several workers --------------------------------------------------------------
+  struct ByRank {
+    const std::vector<double>* rank;
+    bool operator()(int a, int b) const {  // the priority queue's "less": lower rank, or later call
+      return (*rank)[a] < (*rank)[b] || ((*rank)[a] == (*rank)[b] && a > b);
+    }
+  };
+
+  void push_ready(int i) {
+    std::lock_guard<std::mutex> lock(ready_mutex_);
+    ready_.push(i);
+  }
+
+  int pop_ready() {
+    std::lock_guard<std::mutex> lock(ready_mutex_);
+    if (ready_.empty()) return -1;
+    int i = ready_.top();
+    ready_.pop();
+    return i;
+  }
+
+  // Take ready calls until every call of this run is done (or one failed).
+  void work() {
+    torch::jit::Stack stack;
+    const int n = static_cast<int>(calls_.size());
+    while (done_.load(std::memory_order_acquire) < n && !failed_.load(std::memory_order_relaxed)) {
+      int i = pop_ready();
+      if (i < 0) {
+        cpu_relax();
+        continue;
+      }
+      try {
+        execute(calls_[i], stack);
+      } catch (...) {
+        std::lock_guard<std::mutex> lock(error_mutex_);
+        if (!error_) error_ = std::current_exception();
+        failed_.store(true);
+        return;
+      }
+      for (int s : reads_[i])
+        if (readers_left_[s].fetch_sub(1, std::memory_order_acq_rel) == 1 && !keep_[s]) slots_[s] = IValue();
+      for (int s : calls_[i].outputs)
+        if (n_readers_[s] == 0 && !keep_[s]) slots_[s] = IValue();
+      for (int j : successors_[i])
+        if (waits_left_[j].fetch_sub(1, std::memory_order_acq_rel) == 1) push_ready(j);
+      done_.fetch_add(1, std::memory_order_acq_rel);
+    }
+  }
+
+  void run_parallel() {
+    const size_t n = calls_.size();
+    if (waits_left_.size() != n) waits_left_ = std::vector<std::atomic<int>>(n);
+    if (readers_left_.size() != slots_.size()) readers_left_ = std::vector<std::atomic<int>>(slots_.size());
+    for (size_t i = 0; i < n; ++i) waits_left_[i].store(n_waits_[i], std::memory_order_relaxed);
+    for (size_t s = 0; s < slots_.size(); ++s) readers_left_[s].store(n_readers_[s], std::memory_order_relaxed);
+    ready_ = std::priority_queue<int, std::vector<int>, ByRank>(ByRank{&rank_});
+    for (size_t i = 0; i < n; ++i)
+      if (n_waits_[i] == 0) ready_.push(static_cast<int>(i));
+    done_.store(0);
+    failed_.store(false);
+    error_ = nullptr;
+    start_helpers();
+    state_ = at::ThreadLocalState();
+    gate_.store(0, std::memory_order_release);  // helpers may join this run from now
+    {
+      std::lock_guard<std::mutex> lock(wake_mutex_);
+      generation_.fetch_add(1, std::memory_order_acq_rel);
+    }
+    wake_.notify_all();
+    work();
+    // A helper that has not joined by now is not waited for (on a busy machine it may
+    // not get a core for a while); one that has is inside ``work`` and about to leave.
+    gate_.fetch_or(kGateClosed, std::memory_order_acq_rel);
+    while ((gate_.load(std::memory_order_acquire) & ~kGateClosed) != 0) cpu_relax();
+    if (error_) {
+      for (size_t s = 0; s < slots_.size(); ++s)
+        if (!keep_[s]) slots_[s] = IValue();
+      std::rethrow_exception(error_);
+    }
+  }
+
+  bool join_run() {
+    int v = gate_.load(std::memory_order_acquire);
+    while (!(v & kGateClosed)) {
+      if (gate_.compare_exchange_weak(v, v + 1, std::memory_order_acq_rel)) return true;
+    }
+    return false;
+  }
+
+  void start_helpers() {
+    if (!helpers_.empty() && helpers_pid_ == getpid()) return;
+    for (auto& t : helpers_) t.detach();  // after a fork the threads are gone: start new ones
+    helpers_.clear();
+    helpers_pid_ = getpid();
+    stopping_.store(false);
+    for (int w = 1; w < workers_; ++w) helpers_.emplace_back([this] { helper_loop(); });
+  }
+
+  void stop_helpers() {
+    if (helpers_.empty()) return;
+    if (helpers_pid_ == getpid()) {
+      {
+        std::lock_guard<std::mutex> lock(wake_mutex_);
+        stopping_.store(true);
+      }
+      wake_.notify_all();
+      for (auto& t : helpers_) t.join();
+    } else {
+      for (auto& t : helpers_) t.detach();  // another process's threads
+    }
+    helpers_.clear();
+  }
+
+  void helper_loop() {
+    at::init_num_threads();
+    uint64_t seen = generation_.load(std::memory_order_acquire);
+    while (true) {
+      // spin a little before sleeping: the next step usually follows within microseconds
+      auto until = std::chrono::steady_clock::now() + std::chrono::microseconds(kSpinUs);
+      while (generation_.load(std::memory_order_acquire) == seen && !stopping_.load(std::memory_order_relaxed) &&
+             std::chrono::steady_clock::now() < until)
+        cpu_relax();
+      if (generation_.load(std::memory_order_acquire) == seen) {
+        std::unique_lock<std::mutex> lock(wake_mutex_);
+        wake_.wait(lock, [&] { return stopping_.load() || generation_.load() != seen; });
+      }
+      if (stopping_.load()) return;
+      seen = generation_.load(std::memory_order_acquire);
+      if (!join_run()) continue;
+      {
+        at::ThreadLocalStateGuard tls(state_);
+        c10::InferenceMode guard;
+        work();
+      }
+      gate_.fetch_sub(1, std::memory_order_acq_rel);
+    }
+  }
+
+  static constexpr int kGateClosed = 1 << 30;
+  static constexpr int kSpinUs = 300;
+
   std::vector<IValue> slots_;
   std::vector<Call> calls_;
   std::vector<int> inputs_, outputs_;
+
+  // dependencies (set_dependencies)
+  bool has_dependencies_ = false;
+  bool measured_ = false;
+  int runs_in_order_ = 0;
+  std::vector<std::vector<int>> successors_;
+  std::vector<int> n_waits_;
+  std::vector<std::vector<int>> reads_;
+  std::vector<int> n_readers_;
+  std::vector<bool> keep_;
+  std::vector<double> cost_us_, rank_;
+
+  // one parallel run's state
+  int workers_ = 1;
+  std::vector<std::atomic<int>> waits_left_, readers_left_;
+  std::mutex ready_mutex_;
+  std::priority_queue<int, std::vector<int>, ByRank> ready_{ByRank{nullptr}};
+  std::atomic<int> done_{0};
+  std::atomic<bool> failed_{false};
+  std::mutex error_mutex_;
+  std::exception_ptr error_;
+  at::ThreadLocalState state_;
+
+  // helper threads
+  std::vector<std::thread> helpers_;
+  pid_t helpers_pid_ = 0;
+  std::mutex wake_mutex_;
+  std::condition_variable wake_;
+  std::atomic<uint64_t> generation_{0};
+  std::atomic<bool> stopping_{false};
+  std::atomic<int> gate_{kGateClosed};
 };
 
 }  // namespace
@@ -171,6 +457,12 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
       .def("set_outputs", &Program::set_outputs)
       .def("add_call", &Program::add_call)
       .def("add_list_element", &Program::add_list_element)
-      .def("run", &Program::run)
+      .def("set_dependencies", &Program::set_dependencies)
+      .def("set_workers", &Program::set_workers)
+      .def_property_readonly("workers", &Program::workers)
+      .def("measured_us", &Program::measured_us)
+
+      // without the GIL: other Python threads (a node's ROS callbacks) go on during a step
+      .def("run", &Program::run, py::call_guard<py::gil_scoped_release>())
       .def("__len__", &Program::size);
 }

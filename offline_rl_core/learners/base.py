@@ -12,6 +12,7 @@ from ..networks import EnsembleMLP
 from .config import TrainConfig
 from .data import Batch, MemberData
 from ..kernel_choice import choose as choose_kernels
+from .stepper import intra_op_threads
 
 
 def make_adam(params, lr: float, device: str = "cpu") -> torch.optim.Adam:
@@ -26,7 +27,8 @@ def make_network(cfg: TrainConfig, members: int, in_dim: int, out_dim: int, gene
     """An ensemble MLP of the config's width and precision, on the config's device.
     Weights are drawn on the CPU from the members' generators first, so a seed gives
     the same initial network on every device."""
-    kernels = choose_kernels(cfg.deterministic, cfg.hidden, cfg.batch_size, cfg.threads) if cfg.device == "cpu" else None
+    kernels = choose_kernels(cfg.deterministic, cfg.hidden, cfg.batch_size, intra_op_threads(cfg.threads)) \
+        if cfg.device == "cpu" else None
     net = EnsembleMLP(members, in_dim, cfg.hidden, out_dim, generators, tanh_output=tanh_output, kernels=kernels)
     return net.to(cfg.device)
 

@@ -13,9 +13,14 @@ from .schedule import SCHEDULES
 ALGORITHMS = ("bc", "filtered_bc", "awac", "iql", "naive", "sac")
 
 
-def _opt(default, help: str, group: str = "hyper-parameters"):
-    """A field that is also an ``offline-rl train`` flag (``--name-with-dashes``)."""
-    return field(default=default, metadata={"help": help, "group": group})
+# Threads a training step uses when not told: measured to help up to two (bench/RESULTS.md)
+DEFAULT_STEP_THREADS = 2
+
+
+def _opt(default, help: str, group: str = "hyper-parameters", kind: type | None = None):
+    """A field that is also an ``offline-rl train`` flag (``--name-with-dashes``);
+    ``kind``: the flag's type where the default (None) does not say it."""
+    return field(default=default, metadata={"help": help, "group": group, "kind": kind})
 
 
 @dataclass
@@ -47,10 +52,13 @@ class TrainConfig:
     correction_ratio: float | None = _opt(
         None, "share of each batch drawn from correction runs (policy/human transitions); default: uniform")
     log_every: int = _opt(100, "steps between progress reports (and loss read-backs)", "run")
-    # Chapter-size MLPs gain little from more threads, and when other processes share the
-    # cores (ROS nodes, tests) OpenMP's spinning threads can slow a step fifty-fold. Use
-    # the cores with whole runs instead (``offline-rl experiment --workers``).
-    threads: int = _opt(1, "torch threads while training", "run")
+    # A chapter-size step's products are too small to split over threads (OpenMP's
+    # fork/join costs what it saves, and on a shared machine its spinning threads slow a
+    # step many-fold), so the threads run different operator calls of the recorded step
+    # side by side instead (``traced.py``); each call stays single-threaded.
+    threads: int | None = _opt(
+        None, f"CPU threads one training step runs on (default: this machine's free cores, at most "
+              f"{DEFAULT_STEP_THREADS}); any number gives the same bytes", "run", kind=int)
     deterministic: bool = _opt(
         False, "fp32 everywhere; the default may run the hidden layer in bf16 where that measured faster on this CPU "
                "(see kernel_choice). Both are byte-identical run to run for a seed", "run")
@@ -63,7 +71,7 @@ class TrainConfig:
         if self.algo not in ALGORITHMS:
             raise ValueError(f"unknown algorithm '{self.algo}'; expected one of {', '.join(ALGORITHMS)}")
         for name in ("steps", "batch_size", "hidden", "log_every", "threads"):
-            if int(getattr(self, name)) < 1:
+            if getattr(self, name) is not None and int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.lr_schedule not in SCHEDULES:
             raise ValueError(f"lr_schedule: expected one of {', '.join(SCHEDULES)}, got '{self.lr_schedule}'")

@@ -30,7 +30,7 @@ from .sac import SAC
 from .resume import ResumePoints, learner_training_state, load_learner_training_state
 from .normalize import fold, normalized, obs_stats, unfold
 from .schedule import LearningRates
-from .stepper import make_step
+from .stepper import intra_op_threads, make_step
 
 LEARNERS = {"bc": BC, "filtered_bc": FilteredBC, "awac": AWAC, "iql": IQL, "naive": NaiveMaxQ, "sac": SAC}
 
@@ -137,7 +137,7 @@ def train_seeds(
     data = MemberData(train_sets, cfg.device)
     sampler = IndexSampler(data.sizes, cfg.batch_size, [g[1] for g in gens],
                            pools if any(p is not None for p in pools) else None, cfg.correction_ratio, cfg.device)
-    step_once = make_step(learner.update, data, (len(seeds), cfg.batch_size), cfg.device, cfg.cuda_graph)
+    step_once = make_step(learner.update, data, (len(seeds), cfg.batch_size), cfg.device, cfg.cuda_graph, cfg.threads)
 
     histories: list[dict[str, list[float]]] = [{"step": []} for _ in seeds]
     first_step, before = 1, 0.0
@@ -152,7 +152,7 @@ def train_seeds(
         histories, first_step, before = saved["histories"], int(saved["step"]) + 1, float(saved["elapsed_s"])
     rates = LearningRates(learner, cfg.lr_schedule, cfg.steps)  # after a resume point's optimiser state
     start = time.perf_counter() - before
-    with torch_threads(cfg.threads), on_device(cfg.device):
+    with torch_threads(intra_op_threads(cfg.threads)), on_device(cfg.device):
         for step in range(first_step, cfg.steps + 1):
             rates.at(step)
             losses = step_once(sampler.next())
@@ -198,6 +198,7 @@ def train_seeds(
             "mean_abs_q": None if mean_abs_q is None else float(mean_abs_q[m]),
             "train_seconds": round(time.perf_counter() - start, 3),
             "train_step": step_kind,
+            "train_threads": getattr(step_once, "threads", None),
             "kernels": learner.policy.hidden_layer.kernels.describe() if cfg.device == "cpu" else cfg.device,
         }
         results.append(TrainResult(seed, LoadedPolicy(checkpoint), checkpoint, histories[m],

@@ -30,7 +30,7 @@ from .config import TrainConfig
 from .data import MemberData
 from .loop import LEARNERS, seed_generators, torch_threads
 from .resume import learner_training_state, load_learner_training_state
-from .stepper import make_step
+from .stepper import intra_op_threads, make_step
 
 
 @dataclass
@@ -77,7 +77,7 @@ class OnlineLearner:
         self.cfg, self.settings, self.seed = cfg, settings, int(seed)
         obs_dim, act_dim = offline.obs.shape[1], offline.action.shape[1]
         init_gen, sample_gen = seed_generators(seed)
-        with torch_threads(cfg.threads):
+        with torch_threads(intra_op_threads(cfg.threads)):
             self.learner = LEARNERS[cfg.algo](cfg, 1, [init_gen], obs_dim, act_dim)
             if prior is not None:
                 self.learner.policy.load_member_state(0, prior["policy_state"])
@@ -87,7 +87,8 @@ class OnlineLearner:
         self.n_offline = len(offline)
         self.sample_gen = sample_gen
         self.sampler = OnlineSampler(self.n_offline, cfg.batch_size, settings.offline_ratio, sample_gen)
-        self.step_once = make_step(self.learner.update, self.data, (1, cfg.batch_size), cfg.device, cfg.cuda_graph)
+        self.step_once = make_step(self.learner.update, self.data, (1, cfg.batch_size), cfg.device, cfg.cuda_graph,
+                                   cfg.threads)
         self.n_online = 0
         self.updates = 0
         self.version = 0
@@ -120,7 +121,7 @@ class OnlineLearner:
         if todo <= 0:
             return 0
         t0 = time.perf_counter()
-        with torch_threads(self.cfg.threads):
+        with torch_threads(intra_op_threads(self.cfg.threads)):
             for _ in range(todo):
                 bound = self.updates // self.settings.utd + 1
                 losses = self.step_once(self.sampler.next(bound))

@@ -22,6 +22,7 @@ from typing import Callable
 from ..transitions import Transitions
 from .config import TrainConfig
 from .loop import Progress, TrainResult, train_seeds
+from .stepper import available_cores, set_default_threads  # noqa: F401 - available_cores: the experiment's
 
 
 @dataclass
@@ -32,11 +33,6 @@ class TrainJob:
     seeds: list[int]
 
 
-def available_cores() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        return os.cpu_count() or 1
 
 
 _progress_queue = None  # set in each worker process
@@ -45,6 +41,7 @@ _progress_queue = None  # set in each worker process
 def _init_worker(progress_queue, parent_pid: int) -> None:
     global _progress_queue
     _progress_queue = progress_queue
+    set_default_threads(1)  # one process per core already
     threading.Thread(target=_exit_with_parent, args=(parent_pid,), daemon=True).start()
 
 

@@ -10,10 +10,12 @@ it with a single launch per step.
 
 from __future__ import annotations
 
+import os
 from typing import Callable
 
 import torch
 
+from .config import DEFAULT_STEP_THREADS
 from .data import MemberData
 from .traced import RecordedStep, step_mode
 
@@ -70,10 +72,50 @@ class CudaGraphStep:
         return out
 
 
-def make_step(update: Callable, data: MemberData, idx_shape: tuple[int, int], device: str, cuda_graph: bool):
+_process_default: int | None = None  # set in processes that share the cores with others
+
+
+def set_default_threads(n: int | None) -> None:
+    """Threads for steps whose config leaves them to the default, in this process (the
+    experiment's worker processes: one each, the cores go to the processes)."""
+    global _process_default
+    _process_default = n
+
+
+def step_threads(threads: int | None) -> int:
+    """The threads a CPU training step runs on: ``threads``, or by default this
+    process's cores (its CPU affinity), at most ``DEFAULT_STEP_THREADS``."""
+    if threads is not None:
+        return max(1, int(threads))
+    if _process_default is not None:
+        return _process_default
+    return max(1, min(DEFAULT_STEP_THREADS, available_cores()))
+
+
+def intra_op_threads(threads: int | None) -> int:
+    """torch's own threads per operator call while training: one when the C++ replay
+    spreads the calls over the step's threads, else all of them (eager and Python
+    replay can only split each call)."""
+    n = step_threads(threads)
+    if n == 1 or step_mode() in ("python", "autograd"):
+        return n
+    from . import graph_runner
+
+    return 1 if graph_runner.unavailable_reason() is None else n
+
+
+def available_cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
+def make_step(update: Callable, data: MemberData, idx_shape: tuple[int, int], device: str, cuda_graph: bool,
+              threads: int | None = 1):
     """The step runner for ``device``: a CUDA graph on CUDA (unless ``cuda_graph`` is
-    False); on the CPU the update recorded once and replayed (``traced``), unless
-    ``PUSHER_RL_STEP=autograd``."""
+    False); on the CPU the update recorded once and replayed (``traced``) on
+    ``step_threads(threads)`` threads, unless ``PUSHER_RL_STEP=autograd``."""
     dev = torch.device(device)
     if dev.type == "cuda":
         if not cuda_graph:
@@ -84,4 +126,4 @@ def make_step(update: Callable, data: MemberData, idx_shape: tuple[int, int], de
     mode = step_mode()
     if mode == "autograd":
         return EagerStep(update, data)
-    return RecordedStep(update, data, mode)
+    return RecordedStep(update, data, mode, step_threads(threads))

@@ -19,6 +19,10 @@ the learner runs eagerly instead, with a notice. Random draws are fine when they
 from a ``torch.Generator`` the learner owns: replay draws from it as the eager step
 would.
 
+The C++ replay runs the calls on ``TrainConfig.threads`` threads at once: the recording
+also says which earlier calls each one must wait for (``_Hazards``), so the bytes are
+the same with any number of threads.
+
 ``PUSHER_RL_STEP`` picks: ``auto`` (default: C++ replay where it builds, else Python
 replay), ``cpp``, ``python``, or ``autograd`` (no recording: ``update`` every step).
 """
@@ -93,10 +97,27 @@ def record(fn: Callable[..., list[torch.Tensor]], inputs: list[torch.Tensor]):
             node.replace_all_uses_with(node.args[0])
             graph.erase_node(node)
     for node in graph.nodes:  # the recording run's tensors (every activation): not needed to replay
+        storages = _storages(node.meta.get("val"))
         node.meta.clear()
+        node.meta["storages"] = storages  # which memory each value used: what shares memory with what
     graph.lint()
     gm.recompile()
     return gm, [t.detach() for t in outputs[0]]
+
+
+def _storages(value) -> list[set[int]]:
+    """Per returned value (one for a single tensor or list, one per element of a
+    tuple), the addresses of the storages it used in the recording run."""
+    def of(v) -> set[int]:
+        if isinstance(v, torch.Tensor):  # the recording's values are fake tensors: their storages' identity
+            return {v.untyped_storage()._cdata}
+        if isinstance(v, (list, tuple)):
+            return set().union(*[of(x) for x in v]) if v else set()
+        return set()
+
+    if isinstance(value, tuple):
+        return [of(v) for v in value]
+    return [of(value)]
 
 
 class PythonReplay:
@@ -113,15 +134,16 @@ class PythonReplay:
 class CppReplay:
     """The recording replayed by ``csrc/graph_runner.cpp``."""
 
-    def __init__(self, gm, extension):
-        self.program = _to_program(gm, extension)
+    def __init__(self, gm, extension, workers: int = 1):
+        self.program = _to_program(gm, extension, workers)
 
     def __call__(self, inputs: list[torch.Tensor]) -> list[torch.Tensor]:
         return self.program.run(inputs)
 
 
-def _to_program(gm, extension):
-    """Translate the recorded graph into the C++ Program's calls and value slots."""
+def _to_program(gm, extension, workers: int = 1):
+    """Translate the recorded graph into the C++ Program's calls and value slots, with
+    what each call waits for when ``workers`` threads replay it."""
     nodes = list(gm.graph.nodes)
     slots: dict = {}  # node -> slot, or list of slots for several returns
     count = 0
@@ -133,15 +155,18 @@ def _to_program(gm, extension):
 
     inputs, outputs, constants, keep = [], [], {}, set()
     calls = []  # ("call", op, specs, out_slots, reads) | ("elem", src, index, out, reads)
+    hazards = _Hazards()
     for node in nodes:
         if node.op == "placeholder":
             slots[node] = new_slot()
             inputs.append(slots[node])
             keep.add(slots[node])
+            hazards.same_memory([slots[node]], node.meta.get("storages"))
         elif node.op == "get_attr":
             slots[node] = new_slot()
             constants[slots[node]] = getattr(gm, node.target)
             keep.add(slots[node])
+            hazards.constant(slots[node], constants[slots[node]])
         elif node.op == "output":
             outputs = [slots[n] for n in node.args[0]]
             keep.update(outputs)
@@ -151,11 +176,15 @@ def _to_program(gm, extension):
                 slots[node] = slots[source][index]
             else:
                 slots[node] = new_slot()
+                hazards.call(len(calls), reads=[slots[source]], writes=[], aliases=[(slots[node], [slots[source]])],
+                             outputs=[slots[node]])
+                hazards.same_memory([slots[node]], node.meta.get("storages"))
                 calls.append(("elem", slots[source], index, slots[node], [slots[source]]))
         else:
             op = node.target
             schema = op._schema
             specs, reads = [], []
+            arg_slots: list[list[int]] = []  # per schema argument, the slots it reads
             for i, arg in enumerate(schema.arguments):
                 if i < len(node.args):
                     value = node.args[i]
@@ -167,18 +196,23 @@ def _to_program(gm, extension):
                     raise NotRecordable(f"{op}: no value for argument {arg.name}")
                 if isinstance(value, torch.fx.Node):
                     specs.append(("slot", slots[value]))
-                    reads.append(slots[value])
+                    arg_slots.append([slots[value]])
                 elif isinstance(value, (list, tuple)) and any(isinstance(v, torch.fx.Node) for v in value):
                     ids = [-1 if v is None else slots[v] for v in value]
                     specs.append(("slots", ids))
-                    reads.extend(s for s in ids if s >= 0)
+                    arg_slots.append([s for s in ids if s >= 0])
                 elif isinstance(value, (bool, int, float)) and isinstance(arg.type, torch.TensorType):
                     specs.append(("wrapped", value))  # a Python number where a Tensor goes
+                    arg_slots.append([])
                 else:
                     specs.append(("const", value))
+                    arg_slots.append([])
+                reads.extend(arg_slots[-1])
             n_out = len(schema.returns)
             out = [new_slot() for _ in range(n_out)]
             slots[node] = out if n_out > 1 else (out[0] if out else None)
+            hazards.op_call(len(calls), op, arg_slots, out)
+            hazards.same_memory(out, node.meta.get("storages"))
             calls.append(("call", op, specs, out, reads))
 
     # release each slot after its last read (or at once if never read), except
@@ -202,7 +236,105 @@ def _to_program(gm, extension):
             program.add_call(name, overload, call[2], call[3], release)
         else:
             program.add_list_element(call[1], call[2], call[3], release)
+    program.set_dependencies(hazards.waits_for, sorted(keep))
+    program.set_workers(workers)
     return program
+
+
+class _Hazards:
+    """Which earlier calls each recorded call must wait for, so that calls can run on
+    several threads and still each see exactly the tensors it saw in the recording.
+
+    Tensors are grouped by what they may share memory with (a view with its base, an
+    in-place result with its input, constants with one storage): a group's writer waits
+    for the earlier writer and every reader since, a reader for the last writer. Random
+    draws all touch one generator group, so they happen in the recorded order."""
+
+    RNG = -1
+
+    def __init__(self):
+        self.parent: dict[int, int] = {}
+        self.last_writer: dict[int, int] = {}
+        self.readers: dict[int, set[int]] = {}
+        self.by_storage: dict[int, int] = {}
+        self.producer: dict[int, int] = {}  # slot -> the call that filled it
+        self.waits_for: list[list[int]] = []
+
+    def root(self, slot: int) -> int:
+        self.parent.setdefault(slot, slot)
+        while self.parent[slot] != slot:
+            self.parent[slot] = self.parent[self.parent[slot]]
+            slot = self.parent[slot]
+        return slot
+
+    def _union(self, a: int, b: int) -> None:
+        ra, rb = self.root(a), self.root(b)
+        if ra == rb:
+            return
+        self.parent[rb] = ra  # both histories now belong to ra
+        writers = [w for w in (self.last_writer.pop(ra, None), self.last_writer.pop(rb, None)) if w is not None]
+        if writers:
+            self.last_writer[ra] = max(writers)
+        self.readers[ra] = self.readers.pop(ra, set()) | self.readers.pop(rb, set())
+
+    def constant(self, slot: int, value) -> None:
+        if isinstance(value, torch.Tensor):
+            self.same_memory([slot], _storages(value))
+
+    def same_memory(self, out_slots: list[int], storages: list[set[int]] | None) -> None:
+        """Group values that used the same memory in the recording run (views the
+        operator schemas do not declare, such as ``_unsafe_view``'s, included)."""
+        if not storages:
+            return
+        if len(storages) != len(out_slots):  # one value for several returns: all of them
+            storages = [set().union(*storages)] * len(out_slots)
+        for slot, ptrs in zip(out_slots, storages):
+            for ptr in ptrs:
+                if ptr in self.by_storage:
+                    self._union(self.by_storage[ptr], slot)
+                else:
+                    self.by_storage[ptr] = slot
+
+    def op_call(self, index: int, op, arg_slots: list[list[int]], out_slots: list[int]) -> None:
+        schema = op._schema
+        writes, aliases = [], []
+        for arg, used in zip(schema.arguments, arg_slots):
+            if arg.alias_info is not None and arg.alias_info.is_write:
+                writes.extend(used)
+        for ret, slot in zip(schema.returns, out_slots):
+            if ret.alias_info is None:
+                continue
+            sets = set(ret.alias_info.before_set)
+            same = [s for arg, used in zip(schema.arguments, arg_slots) if arg.alias_info is not None
+                    and (not sets or sets & set(arg.alias_info.before_set)) for s in used]
+            aliases.append((slot, same))
+        if torch.Tag.nondeterministic_seeded in op.tags:
+            writes.append(self.RNG)
+        self.call(index, reads=[s for used in arg_slots for s in used], writes=writes, aliases=aliases,
+                  outputs=out_slots)
+
+    def call(self, index: int, reads: list[int], writes: list[int], aliases: list[tuple[int, list[int]]],
+             outputs: list[int]) -> None:
+        read_roots = {self.root(s) for s in reads}
+        write_roots = {self.root(s) for s in writes}
+        waits = {self.producer[s] for s in reads if s in self.producer}
+        for r in read_roots | write_roots:
+            if r in self.last_writer:
+                waits.add(self.last_writer[r])
+        for r in write_roots:
+            waits |= self.readers.get(r, set())
+        for r in read_roots - write_roots:
+            self.readers.setdefault(r, set()).add(index)
+        for r in write_roots:
+            self.last_writer[r] = index
+            self.readers[r] = set()
+        for out in outputs:
+            self.producer[out] = index
+        for out, sources in aliases:
+            for s in sources:
+                self._union(s, out)
+        waits.discard(index)
+        self.waits_for.append(sorted(waits))
 
 
 class RecordedStep:
@@ -210,8 +342,9 @@ class RecordedStep:
     step, replayed after that. The batch gather is part of the recording, so a step's
     only input is its (members, batch) index tensor."""
 
-    def __init__(self, update: Callable[[Batch], dict], data: MemberData, mode: str):
-        self.update, self.data, self.mode = update, data, mode
+    def __init__(self, update: Callable[[Batch], dict], data: MemberData, mode: str, workers: int = 1):
+        self.update, self.data, self.mode, self.workers = update, data, mode, workers
+        self.threads = workers  # threads a replayed step runs on (the C++ replay's workers)
         self.keys: list[str] | None = None
         self.replay: Callable | None = None
         self.eager_steps = 0
@@ -256,10 +389,11 @@ class RecordedStep:
 
             reason = graph_runner.unavailable_reason()
             if reason is None:
-                return CppReplay(gm, graph_runner.extension()), "cpp"
+                return CppReplay(gm, graph_runner.extension(), self.workers), "cpp"
             if self.mode == "cpp":
                 raise UserError(f"{STEP_ENV}=cpp: the C++ step replayer cannot be built here: {reason}")
             _notice(f"the C++ step replayer is not available ({reason}); replaying steps in Python")
+        self.threads = torch.get_num_threads()  # one Python thread issues the calls, each on torch's threads
         return PythonReplay(gm), "python"
 
 

@@ -65,7 +65,8 @@ PARAMS = [
           read_only=True, flag="--init-log-std"),
     Param("lr", _T.lr, "Adam learning rate", low=1e-8, high=1.0, read_only=True, flag="--lr"),
     Param("batch_size", _T.batch_size, "batch size", low=1, read_only=True, flag="--batch-size"),
-    Param("threads", 1, "torch threads while training", low=1, read_only=True, flag="--threads"),
+    Param("threads", 1, "CPU threads a training step runs on (1: the other cores stay with the nodes that act)", low=1,
+          read_only=True, flag="--threads"),
     Param("nice", 0, "raise the learner's niceness by this much, so a realtime actor on the same machine is "
           "scheduled first (0-19)", low=0, high=19, read_only=True, flag="--nice"),
     Param("save_every", 2.0, "seconds between resume points (learner_state.pt)", low=0.1, read_only=True,
