@@ -40,6 +40,34 @@ def ours_rate(data, algo: str, steps: int, s: BenchSettings, deterministic: bool
     return steps / last["elapsed"]
 
 
+def step_work_and_chain(data, algo: str, s: BenchSettings, repeats: int = 5) -> tuple[float, float] | None:
+    """(microseconds of work in one replayed step, its longest chain of calls that must
+    run one after another), as the C++ replay times them call by call (medians over
+    ``repeats`` recordings); None where the replay is not built. With n threads a step
+    takes at least max(work / n, chain): the ceiling of any schedule on this CPU."""
+    from ..learners import graph_runner
+    from ..learners.data import MemberData
+    from ..learners.loop import LEARNERS, seed_generators
+
+    if graph_runner.unavailable_reason() is not None or on_gpu(s):
+        return None
+    cfg = TrainConfig(algo=algo, batch_size=s.batch_size, hidden=s.hidden)
+    idx = torch.randint(0, len(data), (1, s.batch_size), generator=torch.Generator().manual_seed(0))
+    work, chain = [], []
+    with torch_threads(1):
+        for _ in range(repeats):
+            learner = LEARNERS[algo](cfg, 1, [seed_generators(0)[0]], data.obs.shape[1], data.action.shape[1])
+            step = stepper.make_step(learner.update, MemberData([data]), (1, s.batch_size), "cpu", True, threads=2)
+            for _ in range(4):  # eager, recorded, replayed, replayed and timed call by call
+                step(idx)
+            if step.kind != "cpp":
+                return None
+            w, c = step.replay.program.measured_us()
+            work.append(w)
+            chain.append(c)
+    return median(work), median(chain)
+
+
 def chapter_rate(tensors, algo: str, steps: int, s: BenchSettings) -> float:
     cs = chapter.ChapterSettings(steps=steps, batch_size=s.batch_size, hidden=s.hidden)
     return chapter.steps_per_second(algo, tensors, cs)
@@ -105,6 +133,16 @@ def run(s: BenchSettings, log=print) -> list:
             return rates[f"{name}_{t}t"], f"{t} torch thread(s), the faster of {others} steps/s"
 
         chapter_ref, chapter_how = best("chapter")
+        bound = step_work_and_chain(data, algo, s) if algo == "awac" else None
+        if bound is not None:
+            work, chain = bound
+            n_threads = stepper.step_threads(s.threads)
+            ceiling = 1e6 / max(work / n_threads, chain)
+            figs.append(figure("train", "awac_steps_per_s_ceiling_vs_chapter", "steps/s", ceiling, chapter_ref,
+                               "chapter loop", target_text="(info: the most any schedule of our step gets here)",
+                               note=f"one step is {work:.0f} us of calls, {chain:.0f} us of them one after another; "
+                                    f"on {n_threads} thread(s) at least max(work/{n_threads}, chain)",
+                               extra={"work_us": round(work, 1), "chain_us": round(chain, 1), "threads": n_threads}))
         for label, _ in _modes(s):
             ours = rates[f"ours_{label}"]
             step_threads = stepper.step_threads(s.threads)

@@ -67,6 +67,17 @@ inline void cpu_relax() {
 #endif
 }
 
+// Waiting on another worker: spin briefly (a call takes microseconds), then give the
+// core away at each turn, so that on a busy machine the worker waited for can run.
+struct Backoff {
+  int spins = 0;
+  void wait() {
+    if (++spins < 4000) cpu_relax();
+    else std::this_thread::yield();
+  }
+  void reset() { spins = 0; }
+};
+
 class Program {
  public:
   explicit Program(int64_t n_slots) : slots_(n_slots) {}
@@ -289,12 +300,14 @@ class Program {
   void work() {
     torch::jit::Stack stack;
     const int n = static_cast<int>(calls_.size());
+    Backoff backoff;
     while (done_.load(std::memory_order_acquire) < n && !failed_.load(std::memory_order_relaxed)) {
       int i = pop_ready();
       if (i < 0) {
-        cpu_relax();
+        backoff.wait();
         continue;
       }
+      backoff.reset();
       try {
         execute(calls_[i], stack);
       } catch (...) {
@@ -337,7 +350,8 @@ class Program {
     // A helper that has not joined by now is not waited for (on a busy machine it may
     // not get a core for a while); one that has is inside ``work`` and about to leave.
     gate_.fetch_or(kGateClosed, std::memory_order_acq_rel);
-    while ((gate_.load(std::memory_order_acquire) & ~kGateClosed) != 0) cpu_relax();
+    Backoff backoff;
+    while ((gate_.load(std::memory_order_acquire) & ~kGateClosed) != 0) backoff.wait();
     if (error_) {
       for (size_t s = 0; s < slots_.size(); ++s)
         if (!keep_[s]) slots_[s] = IValue();
