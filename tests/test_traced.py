@@ -229,3 +229,36 @@ def test_a_call_failing_on_a_helper_thread_raises_and_training_goes_on(monkeypat
         step(torch.full((1, cfg.batch_size), len(data) + 5, dtype=torch.long))
     losses = step(good)
     assert all(torch.isfinite(v).all() for v in losses.values())
+
+
+@pytest.fixture(scope="module")
+def undeclared_view_op():
+    """An operator whose schema says it returns a new tensor while it returns a view,
+    as a third-party extension's might."""
+    lib = torch.library.Library("pusher_rl_test", "DEF")
+    lib.define("same_memory(Tensor x) -> Tensor")
+    lib.impl("same_memory", lambda x: x.view(x.shape), "CPU")
+    yield torch.ops.pusher_rl_test.same_memory
+    del lib
+
+
+@pytest.mark.skipif(not has_compiler, reason="no g++ / ninja")
+def test_memory_shared_behind_the_schemas_back_runs_on_one_thread(monkeypatch, data, capsys, undeclared_view_op):
+    """Threads trust the operators' alias annotations; where a value really shares memory
+    they do not declare and something writes it, the timed replay sees it and the steps
+    stay on one thread, with a notice, and train what the eager step trains."""
+    from offline_rl_core.learners.bc import BC
+
+    def update_through_a_hidden_view(self, batch):
+        with torch.no_grad():
+            target = batch.action.clone()
+            undeclared_view_op(target).mul_(0.5)  # overwrites target's memory
+        loss = per_member_mean(regression_error(self.policy(batch.obs), target))
+        self.step_policy(loss)
+        return {"policy_loss": loss.detach()}
+
+    monkeypatch.setattr(BC, "update", update_through_a_hidden_view)
+    got = _run(monkeypatch, data, "cpp", "bc", seeds=[0], threads=2)
+    assert "training steps run on one thread" in capsys.readouterr().err
+    assert got[0].step_kind == "cpp" and got[0].checkpoint["train_threads"] == 1
+    _assert_same_bytes(got, _run(monkeypatch, data, "autograd", "bc", seeds=[0]))

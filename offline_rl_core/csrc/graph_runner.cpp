@@ -34,6 +34,8 @@
 #include <queue>
 #include <string>
 #include <thread>
+#include <unordered_map>
+#include <unordered_set>
 #include <unistd.h>
 #include <vector>
 
@@ -141,7 +143,10 @@ class Program {
 
   // For running on several workers: the earlier calls each call waits for, and the
   // slots never released (inputs, constants, outputs).
-  void set_dependencies(const std::vector<std::vector<int>>& waits_for, const std::vector<int>& keep) {
+  void set_dependencies(const std::vector<std::vector<int>>& waits_for, const std::vector<int>& keep,
+                        const std::vector<int>& groups) {
+    TORCH_CHECK(groups.size() == slots_.size(), groups.size(), " groups for ", slots_.size(), " slots");
+    groups_ = groups;
     TORCH_CHECK(waits_for.size() == calls_.size(), waits_for.size(), " dependency lists for ", calls_.size(), " calls");
     const size_t n = calls_.size();
     successors_.assign(n, {});
@@ -172,8 +177,23 @@ class Program {
       for (int s : r) ++n_readers_[s];
       reads_[i] = std::move(r);
     }
+    // the groups each call writes (arguments its schema marks as written)
+    written_groups_.clear();
+    for (const Call& call : calls_) {
+      if (!call.op) continue;
+      const auto& args = call.op->schema().arguments();
+      for (size_t a = 0; a < call.args.size(); ++a) {
+        const auto* alias = args[a].alias_info();
+        if (!alias || !alias->isWrite()) continue;
+        if (call.args[a].kind == Arg::kSlot) written_groups_.insert(groups_[call.args[a].slot]);
+        for (int sl : call.args[a].slots)
+          if (sl >= 0) written_groups_.insert(groups_[sl]);
+      }
+    }
     cost_us_.assign(n, 1.0);
     rank_.assign(n, 0.0);
+    parallel_ok_ = true;
+    not_parallel_why_.clear();
     measured_ = false;
     runs_in_order_ = 0;
     has_dependencies_ = true;
@@ -188,6 +208,11 @@ class Program {
 
   int workers() const { return workers_; }
 
+  // Threads the runs use now: 1 until the calls are timed, or if values share memory
+  // their operators do not declare (``why_in_order`` says which).
+  int threads_in_use() const { return (workers_ > 1 && has_dependencies_ && measured_ && parallel_ok_) ? workers_ : 1; }
+  std::string why_in_order() const { return not_parallel_why_; }
+
   // (sum of the calls' measured microseconds, longest chain of them): the step's time
   // on one worker and its bound on many
   std::pair<double, double> measured_us() const {
@@ -201,7 +226,7 @@ class Program {
     TORCH_CHECK(inputs.size() == inputs_.size(), "expected ", inputs_.size(), " inputs, got ", inputs.size());
     c10::InferenceMode guard;
     for (size_t i = 0; i < inputs.size(); ++i) slots_[inputs_[i]] = inputs[i];
-    if (workers_ > 1 && has_dependencies_ && measured_) {
+    if (workers_ > 1 && has_dependencies_ && measured_ && parallel_ok_) {
       run_parallel();
     } else {
       // the calls are timed on the second run: the first pays for first-use set-up
@@ -255,16 +280,22 @@ class Program {
     for (size_t r = 0; r < call.outputs.size(); ++r) slots_[call.outputs[r]] = std::move(stack[r]);
   }
 
-  // In recorded order; ``measure`` times each call, to rank them for parallel runs.
+  // In recorded order; ``measure`` times each call, to rank them for parallel runs, and
+  // checks that values share memory only as the groups say (every value is kept until
+  // the end of that run, so no memory is reused within it).
   void run_in_order(bool measure) {
     torch::jit::Stack stack;
     for (size_t i = 0; i < calls_.size(); ++i) {
       auto t0 = std::chrono::steady_clock::now();
       execute(calls_[i], stack);
       if (measure) cost_us_[i] = std::chrono::duration<double, std::micro>(std::chrono::steady_clock::now() - t0).count();
-      for (int s : calls_[i].release) slots_[s] = IValue();
+      else
+        for (int s : calls_[i].release) slots_[s] = IValue();
     }
     if (measure) {
+      check_memory_sharing();
+      for (size_t i = 0; i < calls_.size(); ++i)
+        for (int s : calls_[i].release) slots_[s] = IValue();
       // a call's rank: its own time and the longest chain of calls waiting on it
       for (size_t k = calls_.size(); k-- > 0;) {
         double longest = 0.0;
@@ -272,6 +303,39 @@ class Program {
         rank_[k] = cost_us_[k] + longest;
       }
       measured_ = true;
+    }
+  }
+
+  // A storage used by values of two groups, one of them written by some call: a call
+  // could then overwrite memory another reads without waiting for it. Run in order.
+  void check_memory_sharing() {
+    std::unordered_map<const c10::StorageImpl*, std::pair<int, int>> seen;  // storage -> (group, slot)
+    auto visit = [&](const at::Tensor& t, int slot) {
+      if (!t.defined() || !t.has_storage()) return;
+      const c10::StorageImpl* impl = t.storage().unsafeGetStorageImpl();
+      auto [it, fresh] = seen.emplace(impl, std::make_pair(groups_[slot], slot));
+      int g = it->second.first;
+      if (fresh || g == groups_[slot]) return;
+      if (written_groups_.count(g) || written_groups_.count(groups_[slot])) {
+        if (parallel_ok_)
+          not_parallel_why_ = "values " + std::to_string(it->second.second) + " and " + std::to_string(slot) +
+                              " share memory that their operators do not declare";
+        parallel_ok_ = false;
+      }
+    };
+    for (size_t s = 0; s < slots_.size(); ++s) {
+      const IValue& v = slots_[s];
+      if (v.isTensor()) {
+        visit(v.toTensor(), static_cast<int>(s));
+      } else if (v.isTensorList()) {
+        for (const at::Tensor& t : v.toTensorVector()) visit(t, static_cast<int>(s));
+      } else if (v.isTuple()) {
+        for (const IValue& e : v.toTupleRef().elements())
+          if (e.isTensor()) visit(e.toTensor(), static_cast<int>(s));
+      } else if (v.isList()) {
+        for (const IValue& e : v.toListRef())
+          if (e.isTensor()) visit(e.toTensor(), static_cast<int>(s));
+      }
     }
   }
 
@@ -425,6 +489,10 @@ class Program {
 
   // dependencies (set_dependencies)
   bool has_dependencies_ = false;
+  std::vector<int> groups_;
+  std::unordered_set<int> written_groups_;
+  bool parallel_ok_ = true;
+  std::string not_parallel_why_;
   bool measured_ = false;
   int runs_in_order_ = 0;
   std::vector<std::vector<int>> successors_;
@@ -474,6 +542,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
       .def("set_dependencies", &Program::set_dependencies)
       .def("set_workers", &Program::set_workers)
       .def_property_readonly("workers", &Program::workers)
+      .def_property_readonly("threads_in_use", &Program::threads_in_use)
+      .def_property_readonly("why_in_order", &Program::why_in_order)
       .def("measured_us", &Program::measured_us)
 
       // without the GIL: other Python threads (a node's ROS callbacks) go on during a step

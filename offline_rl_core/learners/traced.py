@@ -97,27 +97,10 @@ def record(fn: Callable[..., list[torch.Tensor]], inputs: list[torch.Tensor]):
             node.replace_all_uses_with(node.args[0])
             graph.erase_node(node)
     for node in graph.nodes:  # the recording run's tensors (every activation): not needed to replay
-        storages = _storages(node.meta.get("val"))
         node.meta.clear()
-        node.meta["storages"] = storages  # which memory each value used: what shares memory with what
     graph.lint()
     gm.recompile()
     return gm, [t.detach() for t in outputs[0]]
-
-
-def _storages(value) -> list[set[int]]:
-    """Per returned value (one for a single tensor or list, one per element of a
-    tuple), the addresses of the storages it used in the recording run."""
-    def of(v) -> set[int]:
-        if isinstance(v, torch.Tensor):  # the recording's values are fake tensors: their storages' identity
-            return {v.untyped_storage()._cdata}
-        if isinstance(v, (list, tuple)):
-            return set().union(*[of(x) for x in v]) if v else set()
-        return set()
-
-    if isinstance(value, tuple):
-        return [of(v) for v in value]
-    return [of(value)]
 
 
 class PythonReplay:
@@ -134,11 +117,26 @@ class PythonReplay:
 class CppReplay:
     """The recording replayed by ``csrc/graph_runner.cpp``."""
 
+    # replays before the program runs on its workers (the second is timed call by call)
+    IN_ORDER_RUNS = 2
+
     def __init__(self, gm, extension, workers: int = 1):
         self.program = _to_program(gm, extension, workers)
+        self.runs = 0
 
     def __call__(self, inputs: list[torch.Tensor]) -> list[torch.Tensor]:
-        return self.program.run(inputs)
+        out = self.program.run(inputs)
+        self.runs += 1
+        if self.runs == self.IN_ORDER_RUNS and self.program.why_in_order:
+            _notice(f"training steps run on one thread: {self.program.why_in_order}")
+        return out
+
+    @property
+    def threads(self) -> int:
+        """Threads the steps run on (before the timed run: the ones they will use)."""
+        if self.runs < self.IN_ORDER_RUNS:
+            return self.program.workers
+        return self.program.threads_in_use
 
 
 def _to_program(gm, extension, workers: int = 1):
@@ -161,7 +159,6 @@ def _to_program(gm, extension, workers: int = 1):
             slots[node] = new_slot()
             inputs.append(slots[node])
             keep.add(slots[node])
-            hazards.same_memory([slots[node]], node.meta.get("storages"))
         elif node.op == "get_attr":
             slots[node] = new_slot()
             constants[slots[node]] = getattr(gm, node.target)
@@ -178,7 +175,6 @@ def _to_program(gm, extension, workers: int = 1):
                 slots[node] = new_slot()
                 hazards.call(len(calls), reads=[slots[source]], writes=[], aliases=[(slots[node], [slots[source]])],
                              outputs=[slots[node]])
-                hazards.same_memory([slots[node]], node.meta.get("storages"))
                 calls.append(("elem", slots[source], index, slots[node], [slots[source]]))
         else:
             op = node.target
@@ -212,7 +208,6 @@ def _to_program(gm, extension, workers: int = 1):
             out = [new_slot() for _ in range(n_out)]
             slots[node] = out if n_out > 1 else (out[0] if out else None)
             hazards.op_call(len(calls), op, arg_slots, out)
-            hazards.same_memory(out, node.meta.get("storages"))
             calls.append(("call", op, specs, out, reads))
 
     # release each slot after its last read (or at once if never read), except
@@ -236,19 +231,24 @@ def _to_program(gm, extension, workers: int = 1):
             program.add_call(name, overload, call[2], call[3], release)
         else:
             program.add_list_element(call[1], call[2], call[3], release)
-    program.set_dependencies(hazards.waits_for, sorted(keep))
+    program.set_dependencies(hazards.waits_for, sorted(keep), hazards.groups(count))
     program.set_workers(workers)
     return program
+
+
+# ATen operators that return a view of their first argument without an alias annotation
+_UNDECLARED_VIEWS = {"aten::_unsafe_view", "aten::_reshape_alias"}
 
 
 class _Hazards:
     """Which earlier calls each recorded call must wait for, so that calls can run on
     several threads and still each see exactly the tensors it saw in the recording.
 
-    Tensors are grouped by what they may share memory with (a view with its base, an
-    in-place result with its input, constants with one storage): a group's writer waits
-    for the earlier writer and every reader since, a reader for the last writer. Random
-    draws all touch one generator group, so they happen in the recorded order."""
+    Tensors are grouped by what they may share memory with, as the operator schemas
+    declare it (a view with its base, an in-place result with its input) and constants
+    by their storage: a group's writer waits for the earlier writer and every reader
+    since, a reader for the last writer. Random draws all touch one generator group, so
+    they happen in the recorded order."""
 
     RNG = -1
 
@@ -278,22 +278,19 @@ class _Hazards:
         self.readers[ra] = self.readers.pop(ra, set()) | self.readers.pop(rb, set())
 
     def constant(self, slot: int, value) -> None:
+        """Constants (parameters, optimiser state) that share a storage are one group."""
         if isinstance(value, torch.Tensor):
-            self.same_memory([slot], _storages(value))
+            ptr = value.untyped_storage().data_ptr()
+            if ptr in self.by_storage:
+                self._union(self.by_storage[ptr], slot)
+            elif ptr:
+                self.by_storage[ptr] = slot
 
-    def same_memory(self, out_slots: list[int], storages: list[set[int]] | None) -> None:
-        """Group values that used the same memory in the recording run (views the
-        operator schemas do not declare, such as ``_unsafe_view``'s, included)."""
-        if not storages:
-            return
-        if len(storages) != len(out_slots):  # one value for several returns: all of them
-            storages = [set().union(*storages)] * len(out_slots)
-        for slot, ptrs in zip(out_slots, storages):
-            for ptr in ptrs:
-                if ptr in self.by_storage:
-                    self._union(self.by_storage[ptr], slot)
-                else:
-                    self.by_storage[ptr] = slot
+    def groups(self, n_slots: int) -> list[int]:
+        """Each slot's group (the C++ replay checks them against the memory the values
+        really share, and runs on one thread if an operator shares memory it does not
+        declare)."""
+        return [self.root(s) if s in self.parent else s for s in range(n_slots)]
 
     def op_call(self, index: int, op, arg_slots: list[list[int]], out_slots: list[int]) -> None:
         schema = op._schema
@@ -301,6 +298,8 @@ class _Hazards:
         for arg, used in zip(schema.arguments, arg_slots):
             if arg.alias_info is not None and arg.alias_info.is_write:
                 writes.extend(used)
+        if schema.name in _UNDECLARED_VIEWS and out_slots:  # views whose schemas do not say so
+            aliases.append((out_slots[0], list(arg_slots[0])))
         for ret, slot in zip(schema.returns, out_slots):
             if ret.alias_info is None:
                 continue
@@ -344,7 +343,7 @@ class RecordedStep:
 
     def __init__(self, update: Callable[[Batch], dict], data: MemberData, mode: str, workers: int = 1):
         self.update, self.data, self.mode, self.workers = update, data, mode, workers
-        self.threads = workers  # threads a replayed step runs on (the C++ replay's workers)
+        self._threads = workers  # threads a replayed step runs on
         self.keys: list[str] | None = None
         self.replay: Callable | None = None
         self.eager_steps = 0
@@ -357,6 +356,11 @@ class RecordedStep:
             self.eager_steps += 1
             return self.update(self.data.gather(idx))
         return self._record(idx)
+
+    @property
+    def threads(self) -> int:
+        """Threads the replayed steps run on."""
+        return self.replay.threads if isinstance(self.replay, CppReplay) else self._threads
 
     def _record(self, idx: torch.Tensor) -> dict[str, torch.Tensor]:
         def step(index):
@@ -393,7 +397,7 @@ class RecordedStep:
             if self.mode == "cpp":
                 raise UserError(f"{STEP_ENV}=cpp: the C++ step replayer cannot be built here: {reason}")
             _notice(f"the C++ step replayer is not available ({reason}); replaying steps in Python")
-        self.threads = torch.get_num_threads()  # one Python thread issues the calls, each on torch's threads
+        self._threads = torch.get_num_threads()  # one Python thread issues the calls, each on torch's threads
         return PythonReplay(gm), "python"
 
 
