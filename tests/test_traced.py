@@ -201,13 +201,17 @@ def test_a_step_replayed_on_several_threads_gives_the_same_bytes(monkeypatch, da
     _assert_same_bytes(several, one)
 
 
-def test_the_default_step_uses_the_free_cores_up_to_two(monkeypatch, data):
+def test_the_default_step_uses_the_free_cores_its_shape_can_use(monkeypatch, data):
+    """By default a step may use every free core, and uses as many as its timed calls
+    say pay: AWAC's twin critics always give a second thread work."""
     from offline_rl_core.learners.stepper import available_cores
 
     monkeypatch.delenv("PUSHER_RL_STEP", raising=False)
-    result = train_seeds(data, TrainConfig(algo="bc", **{**CFG, "steps": 5}), [0])[0]
+    result = train_seeds(data, TrainConfig(algo="awac", **{**CFG, "steps": 6}), [0])[0]
     if result.step_kind == "cpp":
-        assert result.checkpoint["train_threads"] == min(2, available_cores())
+        assert 1 <= result.checkpoint["train_threads"] <= available_cores()
+        if available_cores() >= 2:
+            assert result.checkpoint["train_threads"] >= 2
 
 
 @pytest.mark.skipif(not has_compiler, reason="no g++ / ninja")

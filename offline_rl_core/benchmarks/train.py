@@ -36,8 +36,12 @@ def ours_rate(data, algo: str, steps: int, s: BenchSettings, deterministic: bool
     # as `offline-rl train` runs by default (or on the bench's --threads)
     cfg = TrainConfig(algo=algo, steps=steps, batch_size=s.batch_size, hidden=s.hidden, log_every=max(1, steps),
                       deterministic=deterministic, threads=s.threads, device=s.device, cuda_graph=cuda_graph)
-    train_seeds(data, cfg, list(seeds), progress=progress)
+    results = train_seeds(data, cfg, list(seeds), progress=progress)
+    THREADS_USED[algo] = results[0].checkpoint.get("train_threads")
     return steps / last["elapsed"]
+
+
+THREADS_USED: dict[str, int | None] = {}  # per learner, the threads our last timed run's step used
 
 
 def step_work_and_chain(data, algo: str, s: BenchSettings, repeats: int = 5) -> tuple[float, float] | None:
@@ -145,7 +149,7 @@ def run(s: BenchSettings, log=print) -> list:
                                extra={"work_us": round(work, 1), "chain_us": round(chain, 1), "threads": n_threads}))
         for label, _ in _modes(s):
             ours = rates[f"ours_{label}"]
-            step_threads = stepper.step_threads(s.threads)
+            step_threads = THREADS_USED.get(algo)
             kernels = kernel_choice.choose(label == "deterministic", s.hidden, s.batch_size,
                                            stepper.intra_op_threads(s.threads)).describe() if not on_gpu(s) else s.device
             note = f"kernels: {kernels}; ours: the step on {step_threads} thread(s); chapter: {chapter_how}"

@@ -25,6 +25,7 @@
 #include <torch/csrc/jit/python/pybind_utils.h>
 
 #include <algorithm>
+#include <cmath>
 #include <atomic>
 #include <chrono>
 #include <condition_variable>
@@ -200,10 +201,14 @@ class Program {
   }
 
   // Worker threads (this one included) a run may use; 1 runs the calls in order.
-  void set_workers(int workers) {
+  // ``choose``: use at most ``workers``, as many as the timed run says pay: a step of W
+  // microseconds of calls whose longest chain is C cannot take less than max(W / n, C),
+  // so more than ceil(W / C) threads only wait.
+  void set_workers(int workers, bool choose) {
     TORCH_CHECK(workers >= 1, "workers must be >= 1, got ", workers);
     stop_helpers();
-    workers_ = workers;
+    workers_ = max_workers_ = workers;
+    choose_workers_ = choose;
   }
 
   int workers() const { return workers_; }
@@ -301,6 +306,11 @@ class Program {
         double longest = 0.0;
         for (int j : successors_[k]) longest = std::max(longest, rank_[j]);
         rank_[k] = cost_us_[k] + longest;
+      }
+      if (choose_workers_) {
+        auto [work, chain] = measured_us();
+        int useful = chain > 0.0 ? static_cast<int>(std::ceil(work / chain)) : 1;
+        workers_ = std::max(1, std::min(max_workers_, useful));
       }
       measured_ = true;
     }
@@ -503,7 +513,8 @@ class Program {
   std::vector<double> cost_us_, rank_;
 
   // one parallel run's state
-  int workers_ = 1;
+  int workers_ = 1, max_workers_ = 1;
+  bool choose_workers_ = false;
   std::vector<std::atomic<int>> waits_left_, readers_left_;
   std::mutex ready_mutex_;
   std::priority_queue<int, std::vector<int>, ByRank> ready_{ByRank{nullptr}};

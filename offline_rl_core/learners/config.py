@@ -13,10 +13,6 @@ from .schedule import SCHEDULES
 ALGORITHMS = ("bc", "filtered_bc", "awac", "iql", "naive", "sac")
 
 
-# Threads a training step uses when not told: measured to help up to two (bench/RESULTS.md)
-DEFAULT_STEP_THREADS = 2
-
-
 def _opt(default, help: str, group: str = "hyper-parameters", kind: type | None = None):
     """A field that is also an ``offline-rl train`` flag (``--name-with-dashes``);
     ``kind``: the flag's type where the default (None) does not say it."""
@@ -57,8 +53,8 @@ class TrainConfig:
     # step many-fold), so the threads run different operator calls of the recorded step
     # side by side instead (``traced.py``); each call stays single-threaded.
     threads: int | None = _opt(
-        None, f"CPU threads one training step runs on (default: this machine's free cores, at most "
-              f"{DEFAULT_STEP_THREADS}); any number gives the same bytes", "run", kind=int)
+        None, "CPU threads one training step runs on (default: as many of this machine's free cores as the "
+              "step's measured shape can use); any number gives the same bytes", "run", kind=int)
     deterministic: bool = _opt(
         False, "fp32 everywhere; the default may run the hidden layer in bf16 where that measured faster on this CPU "
                "(see kernel_choice). Both are byte-identical run to run for a seed", "run")

@@ -15,7 +15,6 @@ from typing import Callable
 
 import torch
 
-from .config import DEFAULT_STEP_THREADS
 from .data import MemberData
 from .traced import RecordedStep, step_mode
 
@@ -83,13 +82,19 @@ def set_default_threads(n: int | None) -> None:
 
 
 def step_threads(threads: int | None) -> int:
-    """The threads a CPU training step runs on: ``threads``, or by default this
-    process's cores (its CPU affinity), at most ``DEFAULT_STEP_THREADS``."""
+    """The threads a CPU training step may run on: ``threads``, or by default this
+    process's cores (its CPU affinity); see ``chooses_threads``."""
     if threads is not None:
         return max(1, int(threads))
     if _process_default is not None:
         return _process_default
-    return max(1, min(DEFAULT_STEP_THREADS, available_cores()))
+    return max(1, available_cores())
+
+
+def chooses_threads(threads: int | None) -> bool:
+    """By default the replay uses only as many of ``step_threads`` as the step's timed
+    calls say pay (its work over its longest chain); a number given is used as it is."""
+    return threads is None and _process_default is None
 
 
 def intra_op_threads(threads: int | None) -> int:
@@ -115,7 +120,7 @@ def make_step(update: Callable, data: MemberData, idx_shape: tuple[int, int], de
               threads: int | None = 1):
     """The step runner for ``device``: a CUDA graph on CUDA (unless ``cuda_graph`` is
     False); on the CPU the update recorded once and replayed (``traced``) on
-    ``step_threads(threads)`` threads, unless ``PUSHER_RL_STEP=autograd``."""
+    up to ``step_threads(threads)`` threads, unless ``PUSHER_RL_STEP=autograd``."""
     dev = torch.device(device)
     if dev.type == "cuda":
         if not cuda_graph:
@@ -126,4 +131,4 @@ def make_step(update: Callable, data: MemberData, idx_shape: tuple[int, int], de
     mode = step_mode()
     if mode == "autograd":
         return EagerStep(update, data)
-    return RecordedStep(update, data, mode, step_threads(threads))
+    return RecordedStep(update, data, mode, step_threads(threads), chooses_threads(threads))

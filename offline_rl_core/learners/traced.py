@@ -120,8 +120,8 @@ class CppReplay:
     # replays before the program runs on its workers (the second is timed call by call)
     IN_ORDER_RUNS = 2
 
-    def __init__(self, gm, extension, workers: int = 1):
-        self.program = _to_program(gm, extension, workers)
+    def __init__(self, gm, extension, workers: int = 1, choose: bool = False):
+        self.program = _to_program(gm, extension, workers, choose)
         self.runs = 0
 
     def __call__(self, inputs: list[torch.Tensor]) -> list[torch.Tensor]:
@@ -139,9 +139,10 @@ class CppReplay:
         return self.program.threads_in_use
 
 
-def _to_program(gm, extension, workers: int = 1):
+def _to_program(gm, extension, workers: int = 1, choose: bool = False):
     """Translate the recorded graph into the C++ Program's calls and value slots, with
-    what each call waits for when ``workers`` threads replay it."""
+    what each call waits for when ``workers`` threads replay it (``choose``: at most
+    that many, as many as the timed replay says pay)."""
     nodes = list(gm.graph.nodes)
     slots: dict = {}  # node -> slot, or list of slots for several returns
     count = 0
@@ -232,7 +233,7 @@ def _to_program(gm, extension, workers: int = 1):
         else:
             program.add_list_element(call[1], call[2], call[3], release)
     program.set_dependencies(hazards.waits_for, sorted(keep), hazards.groups(count))
-    program.set_workers(workers)
+    program.set_workers(workers, choose)
     return program
 
 
@@ -341,8 +342,10 @@ class RecordedStep:
     step, replayed after that. The batch gather is part of the recording, so a step's
     only input is its (members, batch) index tensor."""
 
-    def __init__(self, update: Callable[[Batch], dict], data: MemberData, mode: str, workers: int = 1):
-        self.update, self.data, self.mode, self.workers = update, data, mode, workers
+    def __init__(self, update: Callable[[Batch], dict], data: MemberData, mode: str, workers: int = 1,
+                 choose_workers: bool = False):
+        self.update, self.data, self.mode = update, data, mode
+        self.workers, self.choose_workers = workers, choose_workers
         self._threads = workers  # threads a replayed step runs on
         self.keys: list[str] | None = None
         self.replay: Callable | None = None
@@ -393,7 +396,7 @@ class RecordedStep:
 
             reason = graph_runner.unavailable_reason()
             if reason is None:
-                return CppReplay(gm, graph_runner.extension(), self.workers), "cpp"
+                return CppReplay(gm, graph_runner.extension(), self.workers, self.choose_workers), "cpp"
             if self.mode == "cpp":
                 raise UserError(f"{STEP_ENV}=cpp: the C++ step replayer cannot be built here: {reason}")
             _notice(f"the C++ step replayer is not available ({reason}); replaying steps in Python")
