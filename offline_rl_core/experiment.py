@@ -22,7 +22,8 @@ from . import seeds
 from .atomic import write_json_atomic
 from .evaluation import RolloutResult, format_rate, round6, rollout
 from .learners import Progress, TrainConfig
-from .learners.parallel import TrainJob, available_cores, run_jobs
+from .learners.parallel import TrainJob, run_jobs
+from .learners.stepper import available_cores
 from .policy import save_checkpoint
 from .stats import excludes_zero, newcombe_diff_ci, wilson_ci
 

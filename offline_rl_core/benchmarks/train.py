@@ -196,7 +196,7 @@ def experiment_figures(s: BenchSettings, log=print) -> list:
     the faster of the two is the reference: both sides get every core."""
     from ..experiment import ExperimentConfig, run_experiment
     from ..learners.loop import torch_threads
-    from ..learners.parallel import available_cores
+    from ..learners.stepper import available_cores
 
     figs = []
     seeds = list(s.experiment_seeds)

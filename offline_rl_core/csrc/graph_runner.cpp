@@ -30,7 +30,6 @@
 #include <chrono>
 #include <condition_variable>
 #include <exception>
-#include <immintrin.h>
 #include <mutex>
 #include <queue>
 #include <string>
@@ -39,6 +38,10 @@
 #include <unordered_set>
 #include <unistd.h>
 #include <vector>
+
+#if defined(__x86_64__) || defined(__i386__)
+#include <immintrin.h>  // _mm_pause
+#endif
 
 namespace {
 

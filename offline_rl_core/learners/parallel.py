@@ -22,7 +22,7 @@ from typing import Callable
 from ..transitions import Transitions
 from .config import TrainConfig
 from .loop import Progress, TrainResult, train_seeds
-from .stepper import available_cores, set_default_threads  # noqa: F401 - available_cores: the experiment's
+from .stepper import set_default_threads
 
 
 @dataclass
@@ -31,8 +31,6 @@ class TrainJob:
     datasets: list[Transitions]
     cfg: TrainConfig
     seeds: list[int]
-
-
 
 
 _progress_queue = None  # set in each worker process

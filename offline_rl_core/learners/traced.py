@@ -346,7 +346,7 @@ class RecordedStep:
                  choose_workers: bool = False):
         self.update, self.data, self.mode = update, data, mode
         self.workers, self.choose_workers = workers, choose_workers
-        self._threads = workers  # threads a replayed step runs on
+        self._python_threads: int | None = None  # torch's threads under the Python replay
         self.keys: list[str] | None = None
         self.replay: Callable | None = None
         self.eager_steps = 0
@@ -363,7 +363,9 @@ class RecordedStep:
     @property
     def threads(self) -> int:
         """Threads the replayed steps run on."""
-        return self.replay.threads if isinstance(self.replay, CppReplay) else self._threads
+        if isinstance(self.replay, CppReplay):
+            return self.replay.threads
+        return self._python_threads or self.workers
 
     def _record(self, idx: torch.Tensor) -> dict[str, torch.Tensor]:
         def step(index):
@@ -400,7 +402,7 @@ class RecordedStep:
             if self.mode == "cpp":
                 raise UserError(f"{STEP_ENV}=cpp: the C++ step replayer cannot be built here: {reason}")
             _notice(f"the C++ step replayer is not available ({reason}); replaying steps in Python")
-        self._threads = torch.get_num_threads()  # one Python thread issues the calls, each on torch's threads
+        self._python_threads = torch.get_num_threads()  # one Python thread issues the calls, each on torch's
         return PythonReplay(gm), "python"
 
 
