@@ -50,13 +50,32 @@ def cpu_model_and_flags() -> tuple[str, frozenset[str]]:
     return model, flags
 
 
+# Environment variables that cap the instruction set of torch's own kernels, oneDNN's and
+# MKL's; ``offline-rl bench --isa avx2`` sets all three to run as an AVX2-only CPU would.
+ISA_LIMIT_ENV = {"ATEN_CPU_CAPABILITY": "avx2", "ONEDNN_MAX_CPU_ISA": "AVX2", "MKL_ENABLE_INSTRUCTIONS": "AVX2"}
+
+
+def isa_limits() -> dict[str, str]:
+    """The instruction-set caps set in the environment (name -> value)."""
+    return {k: os.environ[k] for k in ISA_LIMIT_ENV if os.environ.get(k, "").strip()}
+
+
+def _limited_to_avx2() -> bool:
+    return any("512" not in v.upper() and "AMX" not in v.upper() and "DEFAULT" not in v.upper()
+               for v in isa_limits().values())
+
+
 def isa_flags() -> list[str]:
-    """The instruction-set flags that matter here, as this CPU reports them."""
-    return [f for f in ISA_FLAGS if f in cpu_model_and_flags()[1]]
+    """The instruction-set flags that matter here: as this CPU reports them, less the
+    AVX-512 and AMX ones when the environment caps the kernels at AVX2."""
+    flags = [f for f in ISA_FLAGS if f in cpu_model_and_flags()[1]]
+    if _limited_to_avx2():
+        flags = [f for f in flags if f in ("avx2", "fma")]
+    return flags
 
 
 def native_bf16() -> bool:
-    return bool({"amx_bf16", "avx512_bf16"} & cpu_model_and_flags()[1])
+    return bool({"amx_bf16", "avx512_bf16"} & set(isa_flags()))
 
 
 @functools.lru_cache(maxsize=1)
@@ -153,7 +172,8 @@ def machine_key(*what) -> str:
     """A cache key for a measurement on this machine: the CPU model and flags, the torch
     build, and ``what`` was measured."""
     model, flags = cpu_model_and_flags()
-    text = f"{CACHE_VERSION}|{model}|{sorted(flags)}|{torch.__version__}|{torch.__config__.show()}|" + "|".join(map(str, what))
+    text = (f"{CACHE_VERSION}|{model}|{sorted(flags)}|{sorted(isa_limits().items())}|{torch.__version__}|"
+            f"{torch.__config__.show()}|" + "|".join(map(str, what)))
     return hashlib.sha256(text.encode()).hexdigest()[:24]
 
 

@@ -131,3 +131,30 @@ def test_chapter_bc_and_ours_agree_in_distribution():
     ours = train_seeds(data, TrainConfig(algo="bc", steps=300, batch_size=64, hidden=32), [0, 1])
     our = [float(((r.policy.act(data.obs) - data.action) ** 2).mean()) for r in ours]
     assert abs(np.mean(ch) - np.mean(our)) < 0.02, (ch, our)
+
+
+def test_isa_avx2_caps_every_kernel_and_says_so(tmp_path):
+    """`--isa avx2` runs the bench as on an AVX2-only CPU: torch, oneDNN and MKL capped,
+    the cap and the CPU's own flags both in the JSON beside the figures."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "avx2.json"
+    run = subprocess.run([sys.executable, "-m", "offline_rl_core.cli", "bench", "--tiny", "--only", "decode",
+                          "--isa", "avx2", "--json", str(out)], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    machine = json.loads(out.read_text())["machine"]
+    assert machine["kernel_isa_limits"] == {"ATEN_CPU_CAPABILITY": "avx2", "ONEDNN_MAX_CPU_ISA": "AVX2",
+                                            "MKL_ENABLE_INSTRUCTIONS": "AVX2"}
+    assert not any(f.startswith(("avx512", "amx")) for f in machine["isa_flags"])
+    assert machine["native_bf16"] is False
+    assert "capping the kernels at AVX2" in run.stdout
+
+
+def test_kernel_choice_is_cached_apart_under_an_isa_cap(monkeypatch):
+    """A choice measured with AVX-512 kernels is not reused when the kernels are capped."""
+    from offline_rl_core import kernel_choice
+
+    uncapped = kernel_choice.machine_key("256x256")
+    monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "AVX2")
+    assert kernel_choice.machine_key("256x256") != uncapped

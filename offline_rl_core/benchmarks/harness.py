@@ -173,7 +173,9 @@ def machine_info() -> dict:
     return {
         "cpu_model": model,
         "cpu_count": os.cpu_count(),
-        "isa_flags": kernel_choice.isa_flags(),
+        "isa_flags": kernel_choice.isa_flags(),  # as the kernels may use them
+        "cpu_isa_flags": [f for f in kernel_choice.ISA_FLAGS if f in kernel_choice.cpu_model_and_flags()[1]],
+        "kernel_isa_limits": kernel_choice.isa_limits(),
         "kernels": kernel_choice.report(),
         "amx": "amx_bf16" in kernel_choice.isa_flags(),
         "avx512_bf16": "avx512_bf16" in kernel_choice.isa_flags(),
@@ -268,7 +270,10 @@ def run_bench(settings: BenchSettings, only: list[str] | None = None, log: Calla
     machine = machine_info()
     machine["threads_choice"] = why
     log(f"bench on {machine['cpu_model']} ({machine['cpu_count']} cpus, torch threads {why}, "
-        f"ISA {' '.join(machine['isa_flags']) or 'none'}, load {machine['loadavg_start']})")
+        f"ISA {' '.join(machine['isa_flags']) or 'none'}"
+        + (f" (kernels capped by {' '.join(f'{k}={v}' for k, v in machine['kernel_isa_limits'].items())}"
+           f" on a CPU with {' '.join(machine['cpu_isa_flags'])})" if machine["kernel_isa_limits"] else "")
+        + f", load {machine['loadavg_start']})")
     modules = {"train": "train", "decode": "decode", "eval": "eval_rollouts", "serve": "serve", "record": "record",
                "online": "online"}
     t0 = time.perf_counter()

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import os
+import sys
 
 from ..errors import UserError
 
@@ -24,13 +26,32 @@ def register(subparsers) -> None:
     p.add_argument("--device", default="cpu",
                    help="where the training figures train: cpu (default), or cuda / cuda:N; every contender "
                         "trains there, d3rlpy and the chapter loop included")
+    p.add_argument("--isa", choices=("native", "avx2"), default="native",
+                   help="instruction set every contender's kernels may use: native (default: all this CPU has), "
+                        "or avx2, capping torch's, oneDNN's and MKL's kernels at AVX2/FMA as on a CPU without "
+                        "AVX-512 (the clock and caches stay this CPU's)")
     p.add_argument("--markdown", action="store_true", help="print the table as markdown")
     p.add_argument("--tiny", action="store_true", help=argparse.SUPPRESS)  # tests: every path, tiny sizes
     p.set_defaults(func=run)
 
 
+def _rerun_with_isa_cap(isa: str) -> None:
+    """Start this command again with the kernels capped at ``isa``: the libraries read
+    their caps once, when they load, so the environment must be set before that."""
+    from ..kernel_choice import ISA_LIMIT_ENV
+
+    if isa == "native" or all(os.environ.get(k) == v for k, v in ISA_LIMIT_ENV.items()):
+        return
+    env = {**os.environ, **ISA_LIMIT_ENV}
+    print(f"bench: capping the kernels at {isa.upper()} ({' '.join(f'{k}={v}' for k, v in ISA_LIMIT_ENV.items())})",
+          flush=True)
+    os.execve(sys.executable, [sys.executable, "-m", "offline_rl_core.cli", *sys.argv[1:]], env)
+
+
 def run(args: argparse.Namespace) -> int:
     from ..benchmarks.harness import GROUPS, BenchSettings, format_table, run_bench, write_json
+
+    _rerun_with_isa_cap(args.isa)
 
     only = [g.strip() for g in args.only.split(",") if g.strip()] if args.only else None
     if only:

@@ -216,6 +216,9 @@ class Program {
 
   int workers() const { return workers_; }
 
+  // True once the calls are timed (the in-order runs before that are done)
+  bool measured() const { return measured_; }
+
   // Threads the runs use now: 1 until the calls are timed, or if values share memory
   // their operators do not declare (``why_in_order`` says which).
   int threads_in_use() const { return (workers_ > 1 && has_dependencies_ && measured_ && parallel_ok_) ? workers_ : 1; }
@@ -236,9 +239,16 @@ class Program {
     for (size_t i = 0; i < inputs.size(); ++i) slots_[inputs_[i]] = inputs[i];
     if (workers_ > 1 && has_dependencies_ && measured_ && parallel_ok_) {
       run_parallel();
+    } else if (!has_dependencies_ || measured_) {
+      run_in_order(Pass::kPlain);
     } else {
-      // the calls are timed on the second run: the first pays for first-use set-up
-      run_in_order(has_dependencies_ && !measured_ && ++runs_in_order_ == 2);
+      // before the calls run on several workers: the first run pays for first-use
+      // set-up; the second checks how values share memory (keeping every value, so
+      // that no memory is reused within it); the next ones time each call, releasing
+      // values as usual so the timing sees memory as later runs do
+      ++runs_in_order_;
+      run_in_order(runs_in_order_ == 1 ? Pass::kPlain : runs_in_order_ == 2 ? Pass::kCheckSharing : Pass::kTime);
+      if (runs_in_order_ == 2 + kTimedRuns) finish_measuring();
     }
     std::vector<at::Tensor> out;
     out.reserve(outputs_.size());
@@ -248,6 +258,17 @@ class Program {
   }
 
   size_t size() const { return calls_.size(); }
+
+  // (operator, measured microseconds) per call of the timed run, in recorded order
+  std::vector<std::pair<std::string, double>> call_times_us() const {
+    std::vector<std::pair<std::string, double>> out;
+    for (size_t i = 0; i < calls_.size(); ++i) {
+      const Call& c = calls_[i];
+      std::string name = c.op ? c.op->schema().name() + "." + c.op->schema().overload_name() : "list_element";
+      out.emplace_back(std::move(name), i < cost_us_.size() ? cost_us_[i] : 0.0);
+    }
+    return out;
+  }
 
  private:
   void execute(Call& call, torch::jit::Stack& stack) {
@@ -288,35 +309,48 @@ class Program {
     for (size_t r = 0; r < call.outputs.size(); ++r) slots_[call.outputs[r]] = std::move(stack[r]);
   }
 
-  // In recorded order; ``measure`` times each call, to rank them for parallel runs, and
-  // checks that values share memory only as the groups say (every value is kept until
-  // the end of that run, so no memory is reused within it).
-  void run_in_order(bool measure) {
+  enum class Pass { kPlain, kCheckSharing, kTime };
+
+  // In recorded order. ``kCheckSharing`` keeps every value to the end of the run and
+  // checks that values share memory only as the groups say; ``kTime`` times each call.
+  void run_in_order(Pass pass) {
     torch::jit::Stack stack;
+    if (pass == Pass::kTime && timed_us_.size() != calls_.size()) timed_us_.assign(calls_.size(), {});
     for (size_t i = 0; i < calls_.size(); ++i) {
       auto t0 = std::chrono::steady_clock::now();
       execute(calls_[i], stack);
-      if (measure) cost_us_[i] = std::chrono::duration<double, std::micro>(std::chrono::steady_clock::now() - t0).count();
-      else
+      if (pass == Pass::kTime)
+        timed_us_[i].push_back(std::chrono::duration<double, std::micro>(std::chrono::steady_clock::now() - t0).count());
+      if (pass != Pass::kCheckSharing)
         for (int s : calls_[i].release) slots_[s] = IValue();
     }
-    if (measure) {
+    if (pass == Pass::kCheckSharing) {
       check_memory_sharing();
       for (size_t i = 0; i < calls_.size(); ++i)
         for (int s : calls_[i].release) slots_[s] = IValue();
-      // a call's rank: its own time and the longest chain of calls waiting on it
-      for (size_t k = calls_.size(); k-- > 0;) {
-        double longest = 0.0;
-        for (int j : successors_[k]) longest = std::max(longest, rank_[j]);
-        rank_[k] = cost_us_[k] + longest;
-      }
-      if (choose_workers_) {
-        auto [work, chain] = measured_us();
-        int useful = chain > 0.0 ? static_cast<int>(std::ceil(work / chain)) : 1;
-        workers_ = std::max(1, std::min(max_workers_, useful));
-      }
-      measured_ = true;
     }
+  }
+
+  // Each call's cost: the median of its timed runs. A call's rank: its own cost and the
+  // longest chain of calls waiting on it.
+  void finish_measuring() {
+    for (size_t i = 0; i < calls_.size(); ++i) {
+      auto& t = timed_us_[i];
+      std::nth_element(t.begin(), t.begin() + t.size() / 2, t.end());
+      cost_us_[i] = t[t.size() / 2];
+    }
+    timed_us_.clear();
+    for (size_t k = calls_.size(); k-- > 0;) {
+      double longest = 0.0;
+      for (int j : successors_[k]) longest = std::max(longest, rank_[j]);
+      rank_[k] = cost_us_[k] + longest;
+    }
+    if (choose_workers_) {
+      auto [work, chain] = measured_us();
+      int useful = chain > 0.0 ? static_cast<int>(std::ceil(work / chain)) : 1;
+      workers_ = std::max(1, std::min(max_workers_, useful));
+    }
+    measured_ = true;
   }
 
   // A storage used by values of two groups, one of them written by some call: a call
@@ -360,17 +394,33 @@ class Program {
     }
   };
 
+  bool outranks(int a, int b) const { return ByRank{&rank_}(b, a); }
+
   void push_ready(int i) {
     std::lock_guard<std::mutex> lock(ready_mutex_);
     ready_.push(i);
+    n_ready_.fetch_add(1, std::memory_order_release);
   }
 
   int pop_ready() {
+    if (n_ready_.load(std::memory_order_acquire) == 0) return -1;  // idle workers poll without the lock
     std::lock_guard<std::mutex> lock(ready_mutex_);
     if (ready_.empty()) return -1;
     int i = ready_.top();
     ready_.pop();
+    n_ready_.fetch_sub(1, std::memory_order_release);
     return i;
+  }
+
+  // ``mine`` (just made ready here), or a queued call that outranks it
+  int keep_or_swap(int mine) {
+    if (n_ready_.load(std::memory_order_acquire) == 0) return mine;
+    std::lock_guard<std::mutex> lock(ready_mutex_);
+    if (ready_.empty() || !outranks(ready_.top(), mine)) return mine;
+    int top = ready_.top();
+    ready_.pop();
+    ready_.push(mine);
+    return top;
   }
 
   // Take ready calls until every call of this run is done (or one failed).
@@ -378,8 +428,10 @@ class Program {
     torch::jit::Stack stack;
     const int n = static_cast<int>(calls_.size());
     Backoff backoff;
+    int next = -1;
     while (done_.load(std::memory_order_acquire) < n && !failed_.load(std::memory_order_relaxed)) {
-      int i = pop_ready();
+      int i = next >= 0 ? next : pop_ready();
+      next = -1;
       if (i < 0) {
         backoff.wait();
         continue;
@@ -397,9 +449,22 @@ class Program {
         if (readers_left_[s].fetch_sub(1, std::memory_order_acq_rel) == 1 && !keep_[s]) slots_[s] = IValue();
       for (int s : calls_[i].outputs)
         if (n_readers_[s] == 0 && !keep_[s]) slots_[s] = IValue();
-      for (int j : successors_[i])
-        if (waits_left_[j].fetch_sub(1, std::memory_order_acq_rel) == 1) push_ready(j);
+      // Of the calls this one made ready, this thread goes on with the best, whose
+      // inputs are in this core's cache (unless a queued call outranks it); the rest
+      // are queued for any worker.
+      for (int j : successors_[i]) {
+        if (waits_left_[j].fetch_sub(1, std::memory_order_acq_rel) != 1) continue;
+        if (next < 0) {
+          next = j;
+        } else if (outranks(j, next)) {
+          push_ready(next);
+          next = j;
+        } else {
+          push_ready(j);
+        }
+      }
       done_.fetch_add(1, std::memory_order_acq_rel);
+      if (next >= 0) next = keep_or_swap(next);
     }
   }
 
@@ -412,6 +477,7 @@ class Program {
     ready_ = std::priority_queue<int, std::vector<int>, ByRank>(ByRank{&rank_});
     for (size_t i = 0; i < n; ++i)
       if (n_waits_[i] == 0) ready_.push(static_cast<int>(i));
+    n_ready_.store(static_cast<int>(ready_.size()), std::memory_order_release);
     done_.store(0);
     failed_.store(false);
     error_ = nullptr;
@@ -508,6 +574,8 @@ class Program {
   std::string not_parallel_why_;
   bool measured_ = false;
   int runs_in_order_ = 0;
+  static constexpr int kTimedRuns = 5;  // in-order runs timed call by call
+  std::vector<std::vector<double>> timed_us_;
   std::vector<std::vector<int>> successors_;
   std::vector<int> n_waits_;
   std::vector<std::vector<int>> reads_;
@@ -521,6 +589,7 @@ class Program {
   std::vector<std::atomic<int>> waits_left_, readers_left_;
   std::mutex ready_mutex_;
   std::priority_queue<int, std::vector<int>, ByRank> ready_{ByRank{nullptr}};
+  std::atomic<int> n_ready_{0};  // calls in ready_
   std::atomic<int> done_{0};
   std::atomic<bool> failed_{false};
   std::mutex error_mutex_;
@@ -556,9 +625,11 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
       .def("set_dependencies", &Program::set_dependencies)
       .def("set_workers", &Program::set_workers)
       .def_property_readonly("workers", &Program::workers)
+      .def_property_readonly("measured", &Program::measured)
       .def_property_readonly("threads_in_use", &Program::threads_in_use)
       .def_property_readonly("why_in_order", &Program::why_in_order)
       .def("measured_us", &Program::measured_us)
+      .def("call_times_us", &Program::call_times_us)
 
       // without the GIL: other Python threads (a node's ROS callbacks) go on during a step
       .def("run", &Program::run, py::call_guard<py::gil_scoped_release>())

@@ -36,6 +36,8 @@ from typing import Callable
 
 import torch
 from torch.fx.experimental.proxy_tensor import make_fx
+from torch._guards import TracingContext, tracing
+from torch._subclasses.fake_tensor import FakeTensorMode
 
 from ..errors import UserError
 from .data import Batch, MemberData
@@ -82,7 +84,10 @@ def record(fn: Callable[..., list[torch.Tensor]], inputs: list[torch.Tensor]):
         return out
 
     try:
-        gm = make_fx(capture, tracing_mode="real")(*inputs)
+        # one fake-tensor mode for the recorded values' metadata: without it make_fx
+        # builds a mode (and captures a Python stack) for every value, 40 % of a recording
+        with tracing(TracingContext(FakeTensorMode(allow_fallback_kernels=True))):
+            gm = make_fx(capture, tracing_mode="real")(*inputs)
     except RuntimeError as exc:
         if "_local_scalar_dense" in str(exc) or "data-dependent" in str(exc):
             raise NotRecordable("the update reads a tensor back into Python (.item(), float(t) or a branch on one)") \
@@ -117,24 +122,22 @@ class PythonReplay:
 class CppReplay:
     """The recording replayed by ``csrc/graph_runner.cpp``."""
 
-    # replays before the program runs on its workers (the second is timed call by call)
-    IN_ORDER_RUNS = 2
-
     def __init__(self, gm, extension, workers: int = 1, choose: bool = False):
         self.program = _to_program(gm, extension, workers, choose)
-        self.runs = 0
+        self.noticed = False
 
     def __call__(self, inputs: list[torch.Tensor]) -> list[torch.Tensor]:
         out = self.program.run(inputs)
-        self.runs += 1
-        if self.runs == self.IN_ORDER_RUNS and self.program.why_in_order:
-            _notice(f"training steps run on one thread: {self.program.why_in_order}")
+        if not self.noticed and self.program.measured:
+            self.noticed = True
+            if self.program.why_in_order:
+                _notice(f"training steps run on one thread: {self.program.why_in_order}")
         return out
 
     @property
     def threads(self) -> int:
-        """Threads the steps run on (before the timed run: the ones they will use)."""
-        if self.runs < self.IN_ORDER_RUNS:
+        """Threads the steps run on (before the calls are timed: the ones they will use)."""
+        if not self.program.measured:
             return self.program.workers
         return self.program.threads_in_use
 
