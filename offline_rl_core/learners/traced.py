@@ -101,11 +101,43 @@ def record(fn: Callable[..., list[torch.Tensor]], inputs: list[torch.Tensor]):
         if node.op == "call_function" and node.target is torch.ops.aten.detach.default:
             node.replace_all_uses_with(node.args[0])
             graph.erase_node(node)
+    _fold_constant_views(gm)
     for node in graph.nodes:  # the recording run's tensors (every activation): not needed to replay
         node.meta.clear()
     graph.lint()
     gm.recompile()
     return gm, [t.detach() for t in outputs[0]]
+
+
+# Operators that only make a view (new shape, strides or offset over the same memory)
+_METADATA_VIEWS = {
+    torch.ops.aten.select.int, torch.ops.aten.t.default, torch.ops.aten.transpose.int,
+    torch.ops.aten.view.default, torch.ops.aten.unsqueeze.default, torch.ops.aten.squeeze.dim,
+    torch.ops.aten.expand.default, torch.ops.aten.slice.Tensor, torch.ops.aten.permute.default,
+}
+
+
+def _fold_constant_views(gm) -> None:
+    """Make each view of a constant (a member's slice of a stacked parameter, its
+    transpose) once, here, instead of on every step: a view shares its parameter's
+    memory, so it sees every in-place update of it, and replay reads the same bytes."""
+    graph, n = gm.graph, 0
+    for node in list(graph.nodes):
+        if node.op != "call_function" or node.target not in _METADATA_VIEWS:
+            continue
+        base, *rest = node.args
+        if not (isinstance(base, torch.fx.Node) and base.op == "get_attr") or any(
+                isinstance(a, torch.fx.Node) for a in rest) or node.kwargs:
+            continue
+        with torch.no_grad():
+            view = node.target(getattr(gm, base.target).detach(), *rest)
+        name = f"_constant_view{n}"
+        n += 1
+        gm.register_buffer(name, view, persistent=False)
+        with graph.inserting_before(node):
+            folded = graph.get_attr(name)
+        node.replace_all_uses_with(folded)
+        graph.erase_node(node)
 
 
 class PythonReplay:
