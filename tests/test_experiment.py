@@ -1,5 +1,6 @@
 """The chapter's experiment: metrics.json keys, byte-identical reruns, multi-seed summary."""
 
+import dataclasses
 import json
 
 import pytest
@@ -91,3 +92,26 @@ def test_a_failing_run_stops_the_other_workers_and_reaches_the_caller():
     with pytest.raises(ValueError, match="empty dataset"):
         run_jobs([long_run, bad_run], workers=2)
     assert multiprocessing.active_children() == []  # the long run was stopped, not awaited
+
+
+def test_a_run_takes_the_cores_of_finished_runs_and_trains_the_same_bytes():
+    """Once no run waits for a worker, the runs still training take the finished ones'
+    cores (the C++ replay spreads their steps): the last long run of an experiment does
+    not train on one core while the other idles, and trains exactly what it would alone."""
+    from offline_rl_core.collect import collect_transitions
+    from offline_rl_core.learners import TrainConfig, graph_runner, train_seeds
+    from offline_rl_core.learners.parallel import TrainJob, run_jobs
+    from offline_rl_core.learners.stepper import available_cores
+
+    if available_cores() < 2 or graph_runner.unavailable_reason() is not None:
+        pytest.skip("needs two cores and the C++ step replayer")
+    data = collect_transitions(20, 0.5, 0)
+    awac = TrainConfig(algo="awac", steps=3000, batch_size=128, hidden=128, log_every=3000)
+    short = TrainJob("bc s0", [data], TrainConfig(algo="bc", steps=20, batch_size=16, hidden=16), [0])
+    long = TrainJob("awac s0", [data], awac, [0])  # handed out after the short run: starts no earlier
+    _, (spread,) = run_jobs([short, long], workers=2)
+    assert spread.checkpoint["train_threads"] == 2
+    alone = train_seeds(data, dataclasses.replace(awac, threads=1), [0])[0]
+    assert alone.checkpoint["train_threads"] == 1
+    for name, value in alone.checkpoint["policy_state"].items():
+        assert torch.equal(spread.checkpoint["policy_state"][name], value), name

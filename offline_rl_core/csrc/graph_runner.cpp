@@ -207,11 +207,13 @@ class Program {
   // ``choose``: use at most ``workers``, as many as the timed run says pay: a step of W
   // microseconds of calls whose longest chain is C cannot take less than max(W / n, C),
   // so more than ceil(W / C) threads only wait.
+  // May be called between runs at any time (a run's result does not depend on it).
   void set_workers(int workers, bool choose) {
     TORCH_CHECK(workers >= 1, "workers must be >= 1, got ", workers);
     stop_helpers();
     workers_ = max_workers_ = workers;
     choose_workers_ = choose;
+    if (measured_) choose_from_measurements();
   }
 
   int workers() const { return workers_; }
@@ -345,12 +347,15 @@ class Program {
       for (int j : successors_[k]) longest = std::max(longest, rank_[j]);
       rank_[k] = cost_us_[k] + longest;
     }
-    if (choose_workers_) {
-      auto [work, chain] = measured_us();
-      int useful = chain > 0.0 ? static_cast<int>(std::ceil(work / chain)) : 1;
-      workers_ = std::max(1, std::min(max_workers_, useful));
-    }
+    choose_from_measurements();
     measured_ = true;
+  }
+
+  void choose_from_measurements() {
+    if (!choose_workers_) return;
+    auto [work, chain] = measured_us();
+    int useful = chain > 0.0 ? static_cast<int>(std::ceil(work / chain)) : 1;
+    workers_ = std::max(1, std::min(max_workers_, useful));
   }
 
   // A storage used by values of two groups, one of them written by some call: a call

@@ -86,6 +86,9 @@ def _member_pools(data: Transitions, cfg: TrainConfig):
     return None
 
 
+THREADS_CHECK_EVERY = 100  # steps between asking ``threads_now`` (a few microseconds each)
+
+
 def train_seeds(
     datasets: Transitions | list[Transitions],
     cfg: TrainConfig,
@@ -94,6 +97,7 @@ def train_seeds(
     init: dict | None = None,
     resume: ResumePoints | None = None,
     snapshot: Callable[[int, float, Callable[[int], dict]], None] | None = None,
+    threads_now: Callable[[], int] | None = None,
 ) -> list[TrainResult]:
     """Train ``cfg.algo`` once per seed; ``datasets`` is one Transitions for all seeds
     or one per seed. ``init`` (a checkpoint dict) warm-starts every run from it.
@@ -101,7 +105,10 @@ def train_seeds(
     ``resume.resume`` start from the one there (the result is the same bytes as a run
     that was never stopped). ``snapshot(step, elapsed_s, policy_state)`` is called at every
     log point (every ``cfg.log_every`` steps and the last), e.g. to keep the policies of
-    a learning curve: ``policy_state(m)`` is member m's policy as a checkpoint holds it."""
+    a learning curve: ``policy_state(m)`` is member m's policy as a checkpoint holds it.
+    ``threads_now()``: the threads the steps may use from now on (asked every
+    ``THREADS_CHECK_EVERY`` steps unless ``cfg.threads`` fixes them), e.g. more once the
+    runs beside this one have finished; the result is the same bytes either way."""
     seeds = [int(s) for s in seeds]
     if not seeds:
         raise ValueError("no seeds to train")
@@ -155,6 +162,9 @@ def train_seeds(
     with torch_threads(intra_op_threads(cfg.threads)), on_device(cfg.device):
         for step in range(first_step, cfg.steps + 1):
             rates.at(step)
+            if threads_now is not None and cfg.threads is None and step % THREADS_CHECK_EVERY == 0 \
+                    and hasattr(step_once, "offer_threads"):
+                step_once.offer_threads(threads_now())
             losses = step_once(sampler.next())
             if step % cfg.log_every == 0 or step == cfg.steps:
                 values = {k: v.float().tolist() for k, v in losses.items()}  # the only host sync

@@ -2,7 +2,9 @@
 
 One training step is a chain of small matmuls that a second intra-op thread barely
 speeds up (and on a shared machine OpenMP's spinning threads slow it down many-fold),
-so the cores are used by whole runs instead: each worker trains with one thread.
+so the cores are used by whole runs instead: each worker trains with one thread
+while runs wait for a worker. Once none waits, a run still training takes the cores
+of the finished ones (its step spread over threads by the C++ replay).
 A run's result depends only on its seed and data, never on which worker or which
 runs beside it trained it (``train_seeds`` guarantees this), so the outcome is the
 same with any number of workers.
@@ -22,7 +24,7 @@ from typing import Callable
 from ..transitions import Transitions
 from .config import TrainConfig
 from .loop import Progress, TrainResult, train_seeds
-from .stepper import set_default_threads
+from .stepper import available_cores, set_default_threads
 
 
 @dataclass
@@ -34,13 +36,24 @@ class TrainJob:
 
 
 _progress_queue = None  # set in each worker process
+_jobs = None  # shared by the workers: [jobs not started yet, jobs running]
+_cores = 1
 
 
-def _init_worker(progress_queue, parent_pid: int) -> None:
-    global _progress_queue
-    _progress_queue = progress_queue
+def _init_worker(progress_queue, parent_pid: int, jobs, cores: int) -> None:
+    global _progress_queue, _jobs, _cores
+    _progress_queue, _jobs, _cores = progress_queue, jobs, cores
     set_default_threads(1)  # one process per core already
     threading.Thread(target=_exit_with_parent, args=(parent_pid,), daemon=True).start()
+
+
+def _threads_now() -> int:
+    """One thread while runs wait for a worker; once none waits, the cores of finished
+    runs go to the ones still training (the last AWAC run no longer trains on one core
+    while the other idles)."""
+    with _jobs.get_lock():
+        waiting, running = _jobs[0], _jobs[1]
+    return 1 if waiting > 0 else max(1, _cores // max(1, running))
 
 
 def _exit_with_parent(parent_pid: int) -> None:
@@ -55,7 +68,14 @@ def _run_job(index: int, job: TrainJob) -> list[TrainResult]:
     def report(p: Progress) -> None:
         _progress_queue.put((index, p))
 
-    return train_seeds(job.datasets, job.cfg, job.seeds, progress=report)
+    with _jobs.get_lock():
+        _jobs[0] -= 1
+        _jobs[1] += 1
+    try:
+        return train_seeds(job.datasets, job.cfg, job.seeds, progress=report, threads_now=_threads_now)
+    finally:
+        with _jobs.get_lock():
+            _jobs[1] -= 1
 
 
 def _raise_interrupt(signum, frame):
@@ -67,6 +87,7 @@ def run_jobs(jobs: list[TrainJob], workers: int,
     """Train every job; results in job order. ``workers`` <= 1 trains them one after
     another in this process. Give the heaviest jobs first: they are started first."""
     reporters = [progress_for(job) if progress_for else None for job in jobs]
+    cores = max(1, min(workers, available_cores()))  # what the runs may use between them
     workers = max(1, min(workers, len(jobs)))
     if workers == 1:
         return [train_seeds(job.datasets, job.cfg, job.seeds, progress=rep) for job, rep in zip(jobs, reporters)]
@@ -85,7 +106,8 @@ def run_jobs(jobs: list[TrainJob], workers: int,
         except queue_module.Empty:
             pass
 
-    pool = ctx.Pool(workers, initializer=_init_worker, initargs=(progress_queue, os.getpid()))
+    jobs_state = ctx.Array("i", [len(jobs), 0])
+    pool = ctx.Pool(workers, initializer=_init_worker, initargs=(progress_queue, os.getpid(), jobs_state, cores))
     # SIGTERM stops the workers too, as Ctrl-C does (a SIGKILL leaves it to _exit_with_parent)
     main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _raise_interrupt) if main_thread else None

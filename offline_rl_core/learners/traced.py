@@ -173,6 +173,9 @@ class CppReplay:
             return self.program.workers
         return self.program.threads_in_use
 
+    def set_threads(self, workers: int, choose: bool) -> None:
+        self.program.set_workers(workers, choose)
+
 
 def _to_program(gm, extension, workers: int = 1, choose: bool = False):
     """Translate the recorded graph into the C++ Program's calls and value slots, with
@@ -401,6 +404,17 @@ class RecordedStep:
         if isinstance(self.replay, CppReplay):
             return self.replay.threads
         return self._python_threads or self.workers
+
+    def offer_threads(self, n: int) -> None:
+        """Let the following steps use up to ``n`` threads (as many as pay), e.g. when
+        cores another run had are free; the bytes trained do not change. Only the C++
+        replay spreads a step over threads; the other paths keep theirs."""
+        n = max(1, int(n))
+        if n == self.workers:
+            return
+        self.workers, self.choose_workers = n, n > 1
+        if isinstance(self.replay, CppReplay):
+            self.replay.set_threads(n, n > 1)
 
     def _record(self, idx: torch.Tensor) -> dict[str, torch.Tensor]:
         def step(index):
