@@ -44,11 +44,24 @@ def ours_rate(data, algo: str, steps: int, s: BenchSettings, deterministic: bool
 THREADS_USED: dict[str, int | None] = {}  # per learner, the threads our last timed run's step used
 
 
-def step_work_and_chain(data, algo: str, s: BenchSettings, repeats: int = 5) -> tuple[float, float] | None:
+_PRODUCTS = {"aten::addmm", "aten::mm", "aten::bmm", "aten::baddbmm", "mkldnn::_linear_pointwise"}
+
+
+def _kind_of_call(name: str) -> str:
+    op = name.split(".")[0]
+    if op in _PRODUCTS:
+        return "products"
+    if "adam" in op or op.startswith("aten::_foreach"):
+        return "optimiser"
+    return "other"
+
+
+def step_work_and_chain(data, algo: str, s: BenchSettings, repeats: int = 5) -> tuple[float, float, dict] | None:
     """(microseconds of work in one replayed step, its longest chain of calls that must
-    run one after another), as the C++ replay times them call by call (medians over
-    ``repeats`` recordings); None where the replay is not built. With n threads a step
-    takes at least max(work / n, chain): the ceiling of any schedule on this CPU."""
+    run one after another, the work by kind of call), as the C++ replay times them call
+    by call (medians over ``repeats`` recordings); None where the replay is not built.
+    With n threads a step takes at least max(work / n, chain): the ceiling of any
+    schedule on this CPU."""
     from ..learners import graph_runner
     from ..learners.data import MemberData
     from ..learners.loop import LEARNERS, seed_generators
@@ -57,7 +70,7 @@ def step_work_and_chain(data, algo: str, s: BenchSettings, repeats: int = 5) -> 
         return None
     cfg = TrainConfig(algo=algo, batch_size=s.batch_size, hidden=s.hidden)
     idx = torch.randint(0, len(data), (1, s.batch_size), generator=torch.Generator().manual_seed(0))
-    work, chain = [], []
+    work, chain, kinds = [], [], []
     with torch_threads(1):
         for _ in range(repeats):
             learner = LEARNERS[algo](cfg, 1, [seed_generators(0)[0]], data.obs.shape[1], data.action.shape[1])
@@ -71,7 +84,11 @@ def step_work_and_chain(data, algo: str, s: BenchSettings, repeats: int = 5) -> 
             w, c = step.replay.program.measured_us()
             work.append(w)
             chain.append(c)
-    return median(work), median(chain)
+            by_kind = {"products": 0.0, "optimiser": 0.0, "other": 0.0}
+            for name, us in step.replay.program.call_times_us():
+                by_kind[_kind_of_call(name)] += us
+            kinds.append(by_kind)
+    return median(work), median(chain), {k: round(median([d[k] for d in kinds]), 1) for k in kinds[0]}
 
 
 def chapter_rate(tensors, algo: str, steps: int, s: BenchSettings) -> float:
@@ -141,14 +158,16 @@ def run(s: BenchSettings, log=print) -> list:
         chapter_ref, chapter_how = best("chapter")
         bound = step_work_and_chain(data, algo, s) if algo == "awac" else None
         if bound is not None:
-            work, chain = bound
+            work, chain, by_kind = bound
             n_threads = stepper.step_threads(s.threads)
             ceiling = 1e6 / max(work / n_threads, chain)
             figs.append(figure("train", "awac_steps_per_s_ceiling_vs_chapter", "steps/s", ceiling, chapter_ref,
                                "chapter loop", target_text="(info: the most any schedule of our step gets here)",
                                note=f"one step is {work:.0f} us of calls, {chain:.0f} us of them one after another; "
-                                    f"on {n_threads} thread(s) at least max(work/{n_threads}, chain)",
-                               extra={"work_us": round(work, 1), "chain_us": round(chain, 1), "threads": n_threads}))
+                                    f"on {n_threads} thread(s) at least max(work/{n_threads}, chain); the work: "
+                                    + ", ".join(f"{k} {v:.0f} us" for k, v in by_kind.items()),
+                               extra={"work_us": round(work, 1), "chain_us": round(chain, 1), "threads": n_threads,
+                                      "work_by_kind_us": by_kind}))
         for label, _ in _modes(s):
             ours = rates[f"ours_{label}"]
             step_threads = THREADS_USED.get(algo)
