@@ -255,6 +255,6 @@ def experiment_figures(s: BenchSettings, log=print) -> list:
                            target=lambda o, r, x: x >= 4.0, target_text=">= 4x faster",
                            note=f"{s.experiment_steps} steps, {s.episodes} episodes, "
                                 f"{s.experiment_eval[0] * s.experiment_eval[1]} eval episodes per arm and seed; "
-                                f"ours: {cores} worker processes x 1 thread; chapter: the faster of "
+                                f"ours: {cores} worker processes, 1 thread each while runs wait, then the freed cores; chapter: the faster of "
                                 + ", ".join(f"{k} {v:.1f} s" for k, v in times.items() if k.startswith("chapter"))))
     return figs
