@@ -207,7 +207,7 @@ def test_the_default_step_uses_the_free_cores_its_shape_can_use(monkeypatch, dat
     from offline_rl_core.learners.stepper import available_cores
 
     monkeypatch.delenv("PUSHER_RL_STEP", raising=False)
-    result = train_seeds(data, TrainConfig(algo="awac", **{**CFG, "steps": 6}), [0])[0]
+    result = train_seeds(data, TrainConfig(algo="awac", **{**CFG, "steps": 12}), [0])[0]  # past the timed replays
     if result.step_kind == "cpp":
         assert 1 <= result.checkpoint["train_threads"] <= available_cores()
         if available_cores() >= 2:

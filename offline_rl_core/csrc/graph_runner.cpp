@@ -25,9 +25,9 @@
 #include <torch/csrc/jit/python/pybind_utils.h>
 
 #include <algorithm>
-#include <cmath>
 #include <atomic>
 #include <chrono>
+#include <cmath>
 #include <condition_variable>
 #include <exception>
 #include <mutex>
@@ -239,7 +239,7 @@ class Program {
     TORCH_CHECK(inputs.size() == inputs_.size(), "expected ", inputs_.size(), " inputs, got ", inputs.size());
     c10::InferenceMode guard;
     for (size_t i = 0; i < inputs.size(); ++i) slots_[inputs_[i]] = inputs[i];
-    if (workers_ > 1 && has_dependencies_ && measured_ && parallel_ok_) {
+    if (threads_in_use() > 1) {
       run_parallel();
     } else if (!has_dependencies_ || measured_) {
       run_in_order(Pass::kPlain);
@@ -261,7 +261,7 @@ class Program {
 
   size_t size() const { return calls_.size(); }
 
-  // (operator, measured microseconds) per call of the timed run, in recorded order
+  // (operator, measured microseconds: the median of the timed runs) per call, in recorded order
   std::vector<std::pair<std::string, double>> call_times_us() const {
     std::vector<std::pair<std::string, double>> out;
     for (size_t i = 0; i < calls_.size(); ++i) {
@@ -319,10 +319,13 @@ class Program {
     torch::jit::Stack stack;
     if (pass == Pass::kTime && timed_us_.size() != calls_.size()) timed_us_.assign(calls_.size(), {});
     for (size_t i = 0; i < calls_.size(); ++i) {
-      auto t0 = std::chrono::steady_clock::now();
-      execute(calls_[i], stack);
-      if (pass == Pass::kTime)
+      if (pass == Pass::kTime) {
+        auto t0 = std::chrono::steady_clock::now();
+        execute(calls_[i], stack);
         timed_us_[i].push_back(std::chrono::duration<double, std::micro>(std::chrono::steady_clock::now() - t0).count());
+      } else {
+        execute(calls_[i], stack);
+      }
       if (pass != Pass::kCheckSharing)
         for (int s : calls_[i].release) slots_[s] = IValue();
     }
