@@ -17,22 +17,14 @@ from pathlib import Path
 import torch
 
 from ..atomic import atomic_path
+from .state import named
 
 RESUME_FORMAT = "pusher-rl/resume"
 
 
 def _named(learner, kind) -> dict:
-    """The learner's attributes of type ``kind``, and its helpers' one level down, by
-    dotted name."""
-    found = {}
-    for name, value in vars(learner).items():
-        if isinstance(value, kind):
-            found[name] = value
-        elif hasattr(value, "__dict__") and not isinstance(value, (torch.nn.Module, torch.Tensor)):
-            for sub, inner in vars(value).items():
-                if isinstance(inner, kind):
-                    found[f"{name}.{sub}"] = inner
-    return found
+    """The learner's state of type ``kind``, and its helpers' one level down, by dotted name."""
+    return named(learner, kind, depth=1)
 
 
 def learner_training_state(learner) -> dict:
