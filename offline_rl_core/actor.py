@@ -21,6 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from .policy import LoadedPolicy
+from .rejections import Rejection
 
 
 class Actor:
@@ -79,3 +80,16 @@ class Actor:
         if stamp is not None:
             self.answered = (stamp, action)
         return action
+
+    def answer(self, obs: np.ndarray, stamp: int | None = None) -> tuple[np.ndarray | None, Rejection | None]:
+        """``act`` as a server answers: the action clipped into [-1, 1], or (None, why not).
+        One state the policy fails on, or answers with NaN, is refused and counted by the
+        caller; it never ends the node serving every other state."""
+        try:
+            action = self.act(obs, stamp)
+        except Exception as exc:  # noqa: BLE001 - whatever the policy raised, the next state is answered
+            return None, Rejection("policy error", f"the {self.policy.algorithm} policy failed on this state "
+                                                   f"({type(exc).__name__}: {str(exc)[:120]}); none sent")
+        if not np.all(np.isfinite(action)):
+            return None, Rejection("non-finite action", "the policy's action for this state is not finite; none sent")
+        return np.clip(action, -1.0, 1.0), None

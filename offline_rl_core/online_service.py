@@ -35,7 +35,7 @@ from .atomic import atomic_path
 from .bag.cdr import TransitionDecodeError, decode_transition_payloads
 from .errors import UserError
 from .learners.config import TrainConfig
-from .learners.online import OnlineLearner, OnlineSettings
+from .learners.online import OnlineLearner, OnlineSettings, PriorMismatch
 from .joint_messages import VALUE_LIMIT
 from .policy import (LoadedPolicy, checkpoint_from_bytes, checkpoint_to_bytes, load_checkpoint, policy_for_task,
                      save_checkpoint)
@@ -124,10 +124,15 @@ class LearnerService:
         self.cfg, self.log = cfg, log
         self.out = Path(cfg.out)
         offline, _ = load_bags(cfg.bags)
-        prior = load_checkpoint(cfg.prior) if cfg.prior else None
-        if prior is not None and int(prior["hidden"]) != cfg.train.hidden:
-            raise UserError(f"{cfg.prior}: the prior's hidden width is {prior['hidden']}, the learner's {cfg.train.hidden}")
-        self.learner = OnlineLearner(offline, cfg.train, cfg.settings, cfg.seed, prior)
+        prior = load_checkpoint(cfg.prior) if cfg.prior else None  # validated as the policy node validates it
+        if prior is not None:
+            policy_for_task(prior, cfg.prior)  # refused when its dims are not the task's
+            if prior["hidden"] != cfg.train.hidden:
+                raise UserError(f"{cfg.prior}: the prior's hidden width is {prior['hidden']}, the learner's {cfg.train.hidden}")
+        try:
+            self.learner = OnlineLearner(offline, cfg.train, cfg.settings, cfg.seed, prior)
+        except PriorMismatch as exc:
+            raise UserError(f"{cfg.prior}: {exc}") from None
         self.rejected = RejectionCounter()  # live transitions refused, by reason (never trained on)
         self.received = 0  # live transitions accepted since this process started
         self.started = time.monotonic()

@@ -102,24 +102,56 @@ def _validated(ckpt, path) -> dict:
     for key in ("obs_dim", "act_dim", "hidden", "policy_state", "algorithm"):
         if key not in ckpt:
             raise UserError(f"{path}: checkpoint lacks the field '{key}'")
-    state = ckpt["policy_state"]
-    expected = {
-        "0.weight": (ckpt["hidden"], ckpt["obs_dim"]),
-        "2.weight": (ckpt["hidden"], ckpt["hidden"]),
-        "4.weight": (ckpt["act_dim"], ckpt["hidden"]),
-    }
-    for name, shape in expected.items():
-        if name not in state or tuple(state[name].shape) != shape:
-            got = tuple(state[name].shape) if name in state else "missing"
-            raise UserError(f"{path}: policy weight '{name}' has shape {got}, expected {shape}")
-    for name, tensor in state.items():
-        if not torch.is_tensor(tensor) or not bool(torch.isfinite(tensor).all()):
-            raise UserError(f"{path}: policy weight '{name}' is not a finite tensor")
+    for key in ("obs_dim", "act_dim", "hidden"):
+        if type(ckpt[key]) is not int or ckpt[key] < 1:
+            raise UserError(f"{path}: checkpoint field '{key}' is {ckpt[key]!r}, expected a positive integer")
+    _check_policy_state(ckpt, path)
+    _check_normalisation(ckpt, path)
     log_std = ckpt.get("exploration_log_std")
     if log_std is not None and (not torch.is_tensor(log_std) or log_std.numel() != int(ckpt["act_dim"])
                                 or not bool(torch.isfinite(log_std).all())):
         raise UserError(f"{path}: exploration_log_std must be {ckpt['act_dim']} finite values")
     return ckpt
+
+
+def _check_policy_state(ckpt: dict, path) -> None:
+    """Every tensor ``LoadedPolicy`` multiplies by: present, the shape its layer needs, finite."""
+    state = ckpt["policy_state"]
+    if not isinstance(state, dict):
+        raise UserError(f"{path}: policy_state is not a dict of tensors")
+    hidden, obs_dim, act_dim = ckpt["hidden"], ckpt["obs_dim"], ckpt["act_dim"]
+    expected = {
+        "0.weight": (hidden, obs_dim), "0.bias": (hidden,),
+        "2.weight": (hidden, hidden), "2.bias": (hidden,),
+        "4.weight": (act_dim, hidden), "4.bias": (act_dim,),
+    }
+    for name, shape in expected.items():
+        tensor = state.get(name)
+        if not torch.is_tensor(tensor) or tuple(tensor.shape) != shape:
+            got = "missing" if name not in state else tuple(tensor.shape) if torch.is_tensor(tensor) else type(tensor).__name__
+            raise UserError(f"{path}: policy weight '{name}' has shape {got}, expected {shape}")
+    for name, tensor in state.items():
+        if name not in expected:
+            raise UserError(f"{path}: policy_state has an unexpected entry '{name}' (expected {', '.join(expected)})")
+        if not tensor.is_floating_point() or not bool(torch.isfinite(tensor).all()):
+            raise UserError(f"{path}: policy weight '{name}' is not a finite tensor")
+
+
+def _check_normalisation(ckpt: dict, path) -> None:
+    """obs_mean/obs_std: both absent, or obs_dim finite values each, every std > 0."""
+    mean, std = ckpt.get("obs_mean"), ckpt.get("obs_std")
+    if mean is None and std is None:
+        return
+    for name, value in (("obs_mean", mean), ("obs_std", std)):
+        try:
+            values = np.asarray(value.detach().cpu() if torch.is_tensor(value) else value, dtype=np.float64)
+        except (TypeError, ValueError):
+            values = np.full(1, np.nan)
+        if values.shape != (ckpt["obs_dim"],) or not np.isfinite(values).all():
+            raise UserError(f"{path}: {name} must be obs_dim={ckpt['obs_dim']} finite values "
+                            f"(or both obs_mean and obs_std absent)")
+        if name == "obs_std" and not (values > 0).all():
+            raise UserError(f"{path}: obs_std must be > 0 everywhere (it divides each observation)")
 
 
 class LoadedPolicy:

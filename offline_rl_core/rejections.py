@@ -29,6 +29,7 @@ REASONS = (
     "bad weights",      # a weights message that is not a loadable policy for this task
     "bad checkpoint",   # a checkpoint file replaced by one that does not load
     "non-finite action",  # the policy's output for a state was not finite: no answer sent
+    "policy error",     # the policy raised on a state (a bug or a checkpoint no check caught): no answer sent
 )
 
 

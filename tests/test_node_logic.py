@@ -88,3 +88,64 @@ def test_a_state_reports_the_torque_the_motors_applied_in_newton_metres():
     loop.start_episode()
     loop.command(loop.current.stamp_ns, np.array([1.0, -0.3], np.float32), 2)
     assert np.allclose(loop.current.torque, [0.5, -0.15])  # action x motor gear (0.5 N·m)
+
+
+
+# ------------------------------------------------------------------ the policy node's checkpoints
+def _checkpoint(**fields):
+    import torch
+
+    from offline_rl_core.networks import policy_sequential
+
+    torch.manual_seed(0)
+    state = dict(policy_sequential(8, 16, 2).state_dict())
+    return {"format": "pusher-rl/policy", "version": 1, "algorithm": "bc", "obs_dim": 8, "act_dim": 2,
+            "hidden": 16, "policy_state": state, **fields}
+
+
+def test_a_checkpoint_whose_biases_or_normalisation_do_not_fit_is_refused_at_load(tmp_path):
+    """Refused at load, so the node refuses it at start, on reload, on ``param set`` and as a
+    weights message (the old policy serving on), instead of crashing on the next state."""
+    import torch
+
+    from offline_rl_core.errors import UserError
+    from offline_rl_core.online_service import policy_from_weights_message
+    from offline_rl_core.policy import checkpoint_to_bytes, load_policy, save_checkpoint
+
+    good = _checkpoint()
+    state = good["policy_state"]
+    bad = {
+        "'4.bias' has shape (7,)": _checkpoint(policy_state={**state, "4.bias": torch.zeros(7)}),
+        "'0.bias' has shape missing": _checkpoint(policy_state={k: v for k, v in state.items() if k != "0.bias"}),
+        "obs_mean must be obs_dim=8": _checkpoint(obs_mean=torch.zeros(3), obs_std=torch.ones(3)),
+        "obs_std must be obs_dim=8": _checkpoint(obs_mean=torch.zeros(8)),  # a mean without a std
+        "obs_std must be > 0": _checkpoint(obs_mean=torch.zeros(8), obs_std=torch.zeros(8)),
+        "obs_mean must be obs_dim=8 finite": _checkpoint(obs_mean=torch.full((8,), float("nan")), obs_std=torch.ones(8)),
+    }
+    obs = np.linspace(-1, 1, 8, dtype=np.float32)
+    save_checkpoint(tmp_path / "good.pt", _checkpoint(obs_mean=torch.zeros(8), obs_std=torch.full((8,), 2.0)))
+    assert np.all(np.abs(load_policy(tmp_path / "good.pt").act(obs)) <= 1)
+    for i, (expected, ckpt) in enumerate(bad.items()):
+        path = save_checkpoint(tmp_path / f"bad{i}.pt", ckpt)
+        with pytest.raises(UserError) as refused:
+            load_policy(path)
+        assert str(refused.value).startswith(f"{path}: ") and expected in str(refused.value), str(refused.value)
+        assert "\n" not in str(refused.value)
+        policy, problem = policy_from_weights_message("pusher-rl/weights", checkpoint_to_bytes(ckpt), "learner/weights")
+        assert policy is None and problem.reason == "bad weights" and expected in problem, problem
+
+
+def test_a_state_the_policy_fails_on_is_refused_and_the_next_one_answered():
+    from offline_rl_core.actor import Actor
+    from offline_rl_core.policy import LoadedPolicy
+
+    policy = LoadedPolicy(_checkpoint())
+    actor = Actor(policy)
+    obs = np.zeros(8, np.float32)
+    action, problem = actor.answer(obs, stamp=1)
+    assert problem is None and action.shape == (2,) and np.all(np.abs(action) <= 1)
+    action, problem = actor.answer(np.zeros(5, np.float32), stamp=2)  # the policy raises on this one
+    assert action is None and problem.reason == "policy error" and "expects 8" in problem
+    policy._b[2] = np.full(2, np.nan, np.float32)
+    action, problem = actor.answer(obs, stamp=3)
+    assert action is None and problem.reason == "non-finite action"

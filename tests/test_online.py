@@ -160,6 +160,22 @@ def test_bad_live_transitions_are_counted_and_never_trained_on(tmp_path, files):
     assert service.rejected.total == 3
 
 
+def test_a_prior_that_does_not_fit_the_learner_is_one_clear_line(tmp_path, files, prior):
+    from offline_rl_core.errors import UserError
+    from offline_rl_core.policy import save_checkpoint
+
+    d, _ = files
+    bad_bias = {**prior, "policy_state": {**prior["policy_state"], "4.bias": torch.zeros(7)}}
+    critic = {k: v[:, :3] if k == "0.weight" else v for k, v in prior["learner_state"]["critic1"].items()}
+    bad_critic = {**prior, "learner_state": {**prior["learner_state"], "critic1": critic}}
+    for name, ckpt, expected in (("bias.pt", bad_bias, "'4.bias' has shape (7,)"),
+                                 ("critic.pt", bad_critic, "learner_state does not fit a sac learner")):
+        path = save_checkpoint(tmp_path / name, ckpt)
+        with pytest.raises(UserError) as refused:
+            _service(tmp_path, d / "offline.db3", path, "out")
+        assert str(refused.value).startswith(f"{path}: ") and expected in str(refused.value), str(refused.value)
+
+
 def test_weights_messages_round_trip_and_snapshots_are_kept(tmp_path, files):
     from offline_rl_core.bag.cdr import encode_transition_rows
     from offline_rl_core.online_service import decode_weights, encode_weights

@@ -10,11 +10,12 @@ import time
 
 import numpy as np
 import pytest
+import torch
 
 from offline_rl_core.bag import write_transitions
 from offline_rl_core.collect import collect_transitions
 from offline_rl_core.env import observation_from_joints
-from offline_rl_core.policy import load_policy
+from offline_rl_core.policy import checkpoint_to_bytes, load_policy, save_checkpoint
 
 from ros_helpers import REPO, probe_node, require_ros, ros2, ros_env, spawn  # noqa: F401 - fixtures
 
@@ -120,7 +121,11 @@ def test_policy_answers_rejects_and_hot_reloads(spawn, data, tmp_path):
             pytest.fail(f"new checkpoint not picked up (exit {node_proc.proc.poll()}, {len(actions)} actions): " + node_proc.output())
         assert "reloaded" in node_proc.output()
 
-        replace_atomically(b"not a checkpoint", served)
+        # A checkpoint whose bias does not fit would load and then fail on every state: refused
+        # at reload, and the policy serving goes on.
+        ckpt_b = torch.load(data["b"], weights_only=True)
+        bad_bias = dict(ckpt_b, policy_state={**ckpt_b["policy_state"], "4.bias": torch.zeros(7)})
+        replace_atomically(checkpoint_to_bytes(bad_bias), served)
         assert node.spin_until(lambda: "cannot reload" in node_proc.output(), 10), node_proc.output()
         reply = answer_to(send(q, qd))
         assert reply is not None and np.array_equal(np.array(reply.effort, np.float32), want_b)  # old one serves
@@ -135,8 +140,10 @@ def test_policy_answers_rejects_and_hot_reloads(spawn, data, tmp_path):
         assert switched.stdout.strip() == "Set parameter successful", switched.stderr
         reply = answer_to(send(q, qd))
         assert reply is not None and np.array_equal(np.array(reply.effort, np.float32), policy_a.act(obs))
-        refused = param_set(tmp_path / "none.pt")
-        assert refused.stderr.startswith("Setting parameter failed: parameter checkpoint: ") and "none.pt" in refused.stderr
+        zero_std = save_checkpoint(tmp_path / "zero_std.pt", dict(ckpt_b, obs_mean=torch.zeros(8), obs_std=torch.zeros(8)))
+        refused = param_set(zero_std)
+        assert refused.stderr.startswith("Setting parameter failed: parameter checkpoint: ") and "zero_std.pt: obs_std" \
+            in refused.stderr, refused.stderr
         reply = answer_to(send(q, qd))
         assert reply is not None and np.array_equal(np.array(reply.effort, np.float32), policy_a.act(obs))
 

@@ -67,6 +67,10 @@ class OnlineSampler:
         return torch.cat(parts).unsqueeze(0)
 
 
+class PriorMismatch(ValueError):
+    """The prior's critic weights cannot initialise this learner."""
+
+
 class OnlineLearner:
     """One learner (``cfg.algo``, SAC by default) trained on offline + live transitions."""
 
@@ -80,8 +84,13 @@ class OnlineLearner:
         with torch_threads(intra_op_threads(cfg.threads)):
             self.learner = LEARNERS[cfg.algo](cfg, 1, [init_gen], obs_dim, act_dim)
             if prior is not None:
-                self.learner.policy.load_member_state(0, prior["policy_state"])
-                self.learner.load_learner_state(0, prior.get("learner_state") or {})
+                self.learner.policy.load_member_state(0, prior["policy_state"])  # validated with the checkpoint
+                try:  # the critic's weights are the trainer's own: checked by loading them
+                    self.learner.load_learner_state(0, prior.get("learner_state") or {})
+                except (RuntimeError, KeyError, TypeError, AttributeError) as exc:
+                    reason = str(exc).strip().splitlines()[0][:160] if str(exc).strip() else type(exc).__name__
+                    raise PriorMismatch(f"the prior's learner_state does not fit a {cfg.algo} learner "
+                                        f"of hidden width {cfg.hidden} ({reason})") from None
         self.prior_algorithm = None if prior is None else prior.get("algorithm")
         self.data = MemberData([offline], capacity=len(offline) + settings.capacity)
         self.n_offline = len(offline)

@@ -35,7 +35,6 @@ import time
 # One observation per call: BLAS threads only add hand-off latency (set before numpy loads).
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-import numpy as np  # noqa: E402
 from geometry_msgs.msg import PointStamped  # noqa: E402
 from rclpy.clock import Clock, ClockType  # noqa: E402
 from rclpy.node import Node  # noqa: E402
@@ -231,12 +230,10 @@ class PolicyServer(Node):
             return
         header_stamp, (position, velocity) = paired.state
         obs = observation_from_joints(position, velocity, paired.target_xy, paired.fingertip_xy)
-        action = self.actor.act(obs, paired.stamp)
-        if not np.all(np.isfinite(action)):
-            self.status.reject("pusher/state", Rejection("non-finite action", "the policy's action for this state "
-                                                                              "is not finite; none sent"))
+        action, problem = self.actor.answer(obs, paired.stamp)
+        if problem:
+            self.status.reject("pusher/state", problem)
             return
-        action = np.clip(action, -1.0, 1.0)
         out = JointState(name=list(JOINT_NAMES), effort=[float(a) for a in action])
         out.header.stamp = header_stamp
         self.action_pub.publish(out)
