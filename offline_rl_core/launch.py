@@ -22,7 +22,9 @@ they use:
         remap:
         - {from: pusher/command, to: policy/action}
 
-Substitutions: ``$(var NAME)``, ``$(find-pkg-share PKG)``, ``$(env NAME [DEFAULT])``.
+Substitutions: ``$(var NAME)``, ``$(find-pkg-share PKG)``, ``$(env NAME [DEFAULT])``,
+``$(equals A B)`` / ``$(not-equals A B)`` (``true`` or ``false``) and ``$(if COND A [B])``,
+nested innermost first, as launch does (words split at spaces).
 A parameter value given as text is read as YAML after substitution ("5" is an integer),
 as launch_ros does. Anything else (include, group, let, other substitutions) is refused
 with a message naming the file, rather than ignored.
@@ -45,7 +47,8 @@ from .rosproc import RosProcess, ros2_run
 
 REPO_SRC = Path(__file__).resolve().parents[1] / "ros_ws" / "src"
 NODE_KEYS = {"pkg", "exec", "name", "namespace", "args", "param", "remap", "if", "unless", "on_exit", "output"}
-SUBSTITUTION = re.compile(r"\$\((?P<kind>[a-z-]+)(?P<rest>[^)]*)\)")
+# innermost first: a substitution's arguments may be substitutions ($(if $(equals ...) a b))
+SUBSTITUTION = re.compile(r"\$\((?P<kind>[a-z-]+)(?P<rest>[^()$]*)\)")
 
 
 @dataclass
@@ -141,9 +144,19 @@ class _Context:
                 if len(rest) == 2:
                     return rest[1].strip("'\"")
                 raise self.error(f"$(env {rest[0]}): environment variable not set")
-            raise self.error(f"substitution {match.group(0)} is not supported here (var, find-pkg-share, env)")
+            if kind in ("equals", "not-equals") and len(rest) == 2:  # launch's own: 'true' or 'false'
+                return str((rest[0] == rest[1]) == (kind == "equals")).lower()
+            if kind == "if" and len(rest) in (2, 3):  # $(if CONDITION VALUE [ELSE])
+                if rest[0].lower() not in ("true", "false", "1", "0"):
+                    raise self.error(f"{match.group(0)}: the condition must be true or false")
+                return rest[1] if rest[0].lower() in ("true", "1") else (rest[2] if len(rest) == 3 else "")
+            raise self.error(f"substitution {match.group(0)} is not supported here "
+                             f"(var, find-pkg-share, env, equals, not-equals, if)")
 
-        return SUBSTITUTION.sub(one, text)
+        while True:
+            text, n = SUBSTITUTION.subn(one, text)
+            if not n:
+                return text
 
     def condition(self, spec: dict) -> bool:
         for key, wanted in (("if", True), ("unless", False)):

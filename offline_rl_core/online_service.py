@@ -37,6 +37,7 @@ from .errors import UserError
 from .learners.config import TrainConfig
 from .learners.online import OnlineLearner, OnlineSettings, PriorMismatch
 from .joint_messages import VALUE_LIMIT
+from .output_paths import checked_output_dir
 from .policy import (LoadedPolicy, checkpoint_from_bytes, checkpoint_to_bytes, load_checkpoint, policy_for_task,
                      save_checkpoint)
 from .rejections import Rejection, RejectionCounter
@@ -122,7 +123,7 @@ class LearnerService:
         from .training_run import load_bags
 
         self.cfg, self.log = cfg, log
-        self.out = Path(cfg.out)
+        self.out = checked_output_dir(cfg.out, "parameter out:")  # before the bags load: a bad path is refused at once
         offline, _ = load_bags(cfg.bags)
         prior = load_checkpoint(cfg.prior) if cfg.prior else None  # validated as the policy node validates it
         if prior is not None:
@@ -137,7 +138,6 @@ class LearnerService:
         self.received = 0  # live transitions accepted since this process started
         self.started = time.monotonic()
         self.last_save = time.monotonic()
-        self.out.mkdir(parents=True, exist_ok=True)
         if cfg.snapshot_every and cfg.snapshot_every % cfg.settings.publish_every:
             raise UserError(f"snapshot_every ({cfg.snapshot_every}) must be a multiple of publish_every "
                             f"({cfg.settings.publish_every})")

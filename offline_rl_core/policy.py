@@ -127,8 +127,10 @@ def _check_policy_state(ckpt: dict, path) -> None:
     }
     for name, shape in expected.items():
         tensor = state.get(name)
+        if name not in state:
+            raise UserError(f"{path}: policy weight '{name}' is missing (expected shape {shape})")
         if not torch.is_tensor(tensor) or tuple(tensor.shape) != shape:
-            got = "missing" if name not in state else tuple(tensor.shape) if torch.is_tensor(tensor) else type(tensor).__name__
+            got = tuple(tensor.shape) if torch.is_tensor(tensor) else type(tensor).__name__
             raise UserError(f"{path}: policy weight '{name}' has shape {got}, expected {shape}")
     for name, tensor in state.items():
         if name not in expected:

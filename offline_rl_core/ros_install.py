@@ -45,10 +45,13 @@ EXECUTABLE_TEMPLATE = """#!{python}
 # console_scripts entry: {entry}
 import sys
 
-from {module} import {function}
-
 if __name__ == "__main__":
-    sys.exit({function}())
+    try:
+        from {module} import {function}
+        status = {function}()
+    except KeyboardInterrupt:  # Ctrl-C while the node was still starting (loading torch, rclpy): no traceback
+        status = 130
+    sys.exit(status)
 """
 
 

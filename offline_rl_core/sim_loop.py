@@ -28,6 +28,9 @@ from .transitions import LAYOUT_SLICES, SOURCE_POLICY, TRANSITION_WIDTH
 TICK_NS = 1_000_000_000 // CONTROL_HZ  # 20 ms
 TICKS_PER_EPISODE = MAX_STEPS  # lockstep: one tick per state an episode can have
 MODES = ("realtime", "lockstep")
+# builtin_interfaces/Time.sec is an int32: a later start wraps to negative stamps that every
+# reader refuses. A year short of 2**31 s (Jan 2038) leaves a run a year of stamps.
+MAX_START_TIME_S = 2**31 - 1 - 365 * 24 * 3600
 
 
 @dataclass

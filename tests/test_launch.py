@@ -21,7 +21,8 @@ def by_label(nodes):
 def test_serve_launch_becomes_ros2_run_command_lines():
     nodes = by_label(load_launch(LAUNCH_DIR / "serve.launch.yaml", {
         "checkpoint": "runs/x/policy.pt", "seed": "7", "episodes": "3", "summary": "/tmp/s.json", "namespace": "arm2"}))
-    assert list(nodes) == ["policy", "sim"] and nodes["sim"].shutdown_on_exit and not nodes["policy"].shutdown_on_exit
+    # a policy that cannot start ends the launch at once, as the sim's last episode does
+    assert list(nodes) == ["policy", "sim"] and nodes["sim"].shutdown_on_exit and nodes["policy"].shutdown_on_exit
     sim = nodes["sim"]
     assert sim.params == {"mode": "lockstep", "seed": 7, "episodes": 3, "summary": "/tmp/s.json"}  # typed as YAML
     cmd = sim.command()
@@ -40,15 +41,23 @@ def test_every_shipped_launch_file_reads_with_its_required_arguments():
     assert sorted(p.name for p in LAUNCH_DIR.glob("*.launch.yaml")) == sorted(required)
     for name, arguments in required.items():
         nodes = load_launch(find_launch_file("pusher_bringup", name), arguments)
-        assert sum(n.shutdown_on_exit for n in nodes) == 1, name  # one node ends each pipeline
+        # one node ends each pipeline, and the policy node when it cannot start
+        assert sum(n.shutdown_on_exit and n.label != "policy" for n in nodes) == 1, name
         if arguments:
             with pytest.raises(UserError, match=f"launch argument '{next(iter(arguments))}' is required"):
                 load_launch(LAUNCH_DIR / name, {})
     corrections = load_launch(LAUNCH_DIR / "corrections.launch.yaml", {"out": "b.db3", "with_policy": "false"})
     assert [n.label for n in corrections] == ["mux", "corrector", "recorder", "sim"]  # the start order hil relies on
-    online = load_launch(LAUNCH_DIR / "online.launch.yaml", {"corrector": "none", "with_corrector": "false"})
-    assert [n.label for n in online] == ["learner", "policy", "mux", "recorder", "sim"]  # the learner serves first
-    assert by_label(online)["policy"].params["weights_topic"] == "learner/weights"
+    online = by_label(load_launch(LAUNCH_DIR / "online.launch.yaml", {"corrector": "none"}))
+    assert list(online) == ["learner", "policy", "mux", "recorder", "sim"]  # the learner serves first
+    assert online["policy"].params["weights_topic"] == "learner/weights"
+    assert online["mux"].params["require_teleop"] is False  # no corrector: the mux waits for no teleop
+    assert online["policy"].params["paced_every"] == 50  # lockstep: paced by publish_every
+    # a new out directory is made by the nodes that write into it
+    assert "--make-parents" in online["recorder"].args and online["sim"].params["make_parents"] is True
+    online = by_label(load_launch(LAUNCH_DIR / "online.launch.yaml", {"mode": "realtime"}))
+    assert online["policy"].params["paced_every"] == 0 and online["mux"].params["require_teleop"] is True
+    assert "corrector" in online
     recorder = by_label(corrections)["recorder"]
     assert recorder.args == ["--passive", "--episodes", "30", "--out", "b.db3", "--overwrite"]
 

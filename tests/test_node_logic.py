@@ -116,7 +116,7 @@ def test_a_checkpoint_whose_biases_or_normalisation_do_not_fit_is_refused_at_loa
     state = good["policy_state"]
     bad = {
         "'4.bias' has shape (7,)": _checkpoint(policy_state={**state, "4.bias": torch.zeros(7)}),
-        "'0.bias' has shape missing": _checkpoint(policy_state={k: v for k, v in state.items() if k != "0.bias"}),
+        "'0.bias' is missing": _checkpoint(policy_state={k: v for k, v in state.items() if k != "0.bias"}),
         "obs_mean must be obs_dim=8": _checkpoint(obs_mean=torch.zeros(3), obs_std=torch.ones(3)),
         "obs_std must be obs_dim=8": _checkpoint(obs_mean=torch.zeros(8)),  # a mean without a std
         "obs_std must be > 0": _checkpoint(obs_mean=torch.zeros(8), obs_std=torch.zeros(8)),

@@ -84,6 +84,20 @@ def test_a_bad_starting_value_is_a_user_error_naming_the_parameter(make_node, na
     assert str(err.value).startswith(why) and "\n" not in str(err.value)
 
 
+def test_a_misspelt_parameter_is_refused_naming_it_and_the_nodes_parameters(make_node):
+    from rclpy.parameter import Parameter
+
+    from pusher_common.params import Settings
+
+    node = make_node(overrides=[Parameter("use_sim_time", value=True), Parameter("cuont", value=2)])
+    with pytest.raises(UserError) as err:
+        Settings(node, specs(), on_change=lambda n, v: None)
+    assert str(err.value) == ("unknown parameter 'cuont' for node settings_test; did you mean count? "
+                              "(its parameters: mode, count, rate, path, bags)")
+    node = make_node(overrides=[Parameter("use_sim_time", value=True)])  # rclpy's own parameters are known
+    assert Settings(node, specs(), on_change=lambda n, v: None).count == 3
+
+
 def test_run_time_changes_take_effect_or_are_refused(make_node):
     from rclpy.parameter import Parameter
 

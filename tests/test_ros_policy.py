@@ -45,11 +45,38 @@ def replace_atomically(src_bytes: bytes, dest) -> None:
     os.replace(tmp, dest)
 
 
-def test_missing_checkpoint_is_one_line_and_exit_2(spawn, tmp_path):
-    node = spawn(ros2("run", "policy", "node", "--checkpoint", tmp_path / "none.pt"), "policy")
+@pytest.mark.parametrize("args, error", [
+    ([], "{tmp}/none.pt: no such checkpoint file"),
+    (["--explore", "--seed", "-1"], "parameter seed: Parameter seed out of range. Min: 0"),  # not at the first state
+    (["--ros-args", "-p", "pol_period:=5"], "unknown parameter 'pol_period' for node policy; did you mean poll_period?"),
+    (["--ros-args", "-p", "poll_period"], "cannot parse --ros-args: Couldn't parse parameter override rule: "
+                                          "'-p poll_period'."),
+])
+def test_a_bad_start_is_one_line_and_exit_2(spawn, tmp_path, args, error):
+    node = spawn(ros2("run", "policy", "node", "--checkpoint", tmp_path / "none.pt", *args), "policy")
     assert node.wait(timeout=60) == 2
     lines = node.output().strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("policy: error:") and "none.pt" in lines[0], lines
+    assert len(lines) == 1 and lines[0].startswith("policy: error: " + error.format(tmp=tmp_path)), lines
+
+
+def test_ctrl_c_while_the_node_is_still_loading_exits_quietly(spawn, data):
+    from offline_rl_core.rosproc import ros2_run
+
+    node = spawn(ros2_run("policy", "node", "--checkpoint", data["a"]), "policy")  # the node's own pid
+    # the moment torch's library is mapped, the node is still importing it (seconds): Ctrl-C
+    # there was a KeyboardInterrupt traceback
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline and node.running() and not _maps_torch(node.pid):
+        time.sleep(0.005)
+    assert node.stop() in (0, 130)
+    assert "Traceback" not in node.output() and "serving" not in node.output(), node.output()
+
+
+def _maps_torch(pid: int) -> bool:
+    try:
+        return "libtorch_cpu" in open(f"/proc/{pid}/maps").read()
+    except OSError:
+        return False
 
 
 def test_policy_answers_rejects_and_hot_reloads(spawn, data, tmp_path):

@@ -109,11 +109,21 @@ def test_lockstep_validates_commands_tags_sources_and_resets(spawn, tmp_path):
     assert data == {"episodes": 0, "success_rate": 0.0, "mean_final_dist": None, "mean_return": None}
 
 
-def test_a_bad_parameter_is_one_line_and_exit_2(spawn):
-    sim = spawn(ros2("run", "sim", "node", "--ros-args", "-p", "mode:=fast"), "sim")
+@pytest.mark.parametrize("ros_args, error", [
+    (["-p", "mode:=fast"], "parameter mode: must be one of realtime, lockstep; got 'fast'"),
+    # stamps are int32 seconds (builtin_interfaces/Time): a later start would wrap negative
+    (["-p", "start_time:=3000000000.0"], "parameter start_time: Parameter start_time out of range"),
+    # the summary is written after the whole run: its directory is checked, never made, at start
+    (["-p", "summary:={tmp}/none/s.json"], "parameter summary: {tmp}/none/s.json: the directory {tmp}/none "
+                                           "does not exist; create it first"),
+    (["-r", "badremap"], "cannot parse --ros-args: Couldn't parse remap rule: '-r badremap'."),
+])
+def test_a_bad_parameter_is_one_line_and_exit_2(spawn, tmp_path, ros_args, error):
+    sim = spawn(ros2("run", "sim", "node", "--ros-args", *(a.format(tmp=tmp_path) for a in ros_args)), "sim")
     assert sim.wait(timeout=60) == 2
     lines = sim.output().strip().splitlines()
-    assert lines == ["sim: error: parameter mode: must be one of realtime, lockstep; got 'fast'"], lines
+    assert len(lines) == 1 and lines[0].startswith("sim: error: " + error.format(tmp=tmp_path)), lines
+    assert not (tmp_path / "none").exists()
 
 
 def test_realtime_sim_takes_torques_as_an_effort_controller_does(spawn):
@@ -134,3 +144,5 @@ def test_realtime_sim_takes_torques_as_an_effort_controller_does(spawn):
         assert node.spin_until(lambda: torques.publish(Float64MultiArray(data=[0.25, -3.0])) or
                                sum(held(t) for t in transitions) >= 3, 20), sim.output()
     assert sim.stop() == 0
+    # its timing report comes after Ctrl-C has shut the context (and rosout) down: printed, not lost
+    assert "sim: realtime timing:" in sim.output() and "Failed to publish" not in sim.output(), sim.output()

@@ -84,7 +84,7 @@ PARAMS = (
           "(std_msgs/UInt8MultiArray, e.g. learner/weights; empty: off)", read_only=True, flag="--weights-topic"),
     Param("explore", False, "sample exploration actions from the policy's Gaussian (the online learner's std) "
           "instead of acting deterministically", flag="--explore"),
-    Param("seed", 0, "seed of the exploration noise", read_only=True, flag="--seed"),
+    Param("seed", 0, "seed of the exploration noise", low=0, read_only=True, flag="--seed"),
     Param("paced_every", 0, "answer state n only with weights version n // paced_every or newer (the learner's "
           "publish_every; 0: never wait)", low=0, read_only=True, flag="--paced-every"),
     THREAD_PRIORITY,

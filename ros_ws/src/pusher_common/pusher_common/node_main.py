@@ -7,11 +7,13 @@
   a ``flag``) are parsed beside ``--ros-args`` and handed to the node's constructor as
   parameter overrides: ``make_node(overrides)``.
 - A :class:`~offline_rl_core.errors.UserError` (bad parameter, missing file) prints
-  ``PROG: error: ...`` on one line and exits 2.
+  ``PROG: error: ...`` on one line and exits 2; so does a ``--ros-args`` rcl cannot parse
+  (``PROG: error: cannot parse --ros-args: REASON``).
 - Ctrl-C and SIGTERM end the node cleanly (exit 0 for a node that serves until stopped):
   rclpy's signal handlers shut the context down and the spin returns. A node whose work
   runs in ``main`` itself (``runs_in_main``: ``node.run()``, the trainer) gets Python's signals instead, so
-  Ctrl-C interrupts that work as a KeyboardInterrupt; SIGTERM does the same.
+  Ctrl-C interrupts that work as a KeyboardInterrupt (also when started with SIGINT
+  ignored, as a script's background job is); SIGTERM does the same.
 - The spin ends when the node's ``finished`` future (if it has one) completes.
 - Before spinning, what set-up allocated is moved out of the garbage collector's reach
   (``gc.freeze``), so no collection pauses a node for tens of milliseconds.
@@ -24,11 +26,13 @@ from __future__ import annotations
 import argparse
 import faulthandler
 import gc
+import re
 import signal
 import sys
 from typing import Callable, Sequence
 
 import rclpy
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
@@ -69,10 +73,18 @@ def run_node(
                                      epilog="Every option is also a ROS parameter: --ros-args -p NAME:=VALUE "
                                             "or --params-file FILE.")
     add_flags(parser, flags)
-    args = parser.parse_args(remove_ros_args(argv)[1:])
+    try:
+        own_args = remove_ros_args(argv)
+    except _rclpy.RCLError as exc:  # a params file that does not parse, `-p name` without a value, ...
+        print(f"{prog}: error: cannot parse --ros-args: {_rcl_reason(exc)}", file=sys.stderr)
+        return 2
+    args = parser.parse_args(own_args[1:])
     overrides = overrides_from_flags(flags, args)
     if runs_in_main:
         rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+        # Python's own handler, also where the shell started this with SIGINT ignored (a
+        # background job of a script): Ctrl-C interrupts the work as a KeyboardInterrupt.
+        previous_int = signal.signal(signal.SIGINT, signal.default_int_handler)
         previous_term = signal.signal(signal.SIGTERM, _interrupt)
     else:
         rclpy.init(args=argv)
@@ -101,6 +113,7 @@ def run_node(
     finally:
         if runs_in_main:
             signal.signal(signal.SIGTERM, previous_term)
+            signal.signal(signal.SIGINT, previous_int)
         if node is not None:
             close = getattr(node, "close", None)
             if close is not None:
@@ -111,3 +124,10 @@ def run_node(
 
 def _interrupt(signum, frame):
     raise KeyboardInterrupt
+
+
+def _rcl_reason(exc: Exception) -> str:
+    """rcl's reason without its prefix and source locations: "Couldn't parse remap rule: '-r x'. ..."."""
+    text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    text = text.removeprefix("Failed to parse ROS arguments: ")
+    return re.sub(r", at /\S+:\d+", "", text)

@@ -21,6 +21,7 @@ that is well-typed but unusable (a checkpoint that does not load).
 from __future__ import annotations
 
 import argparse
+import difflib
 import math
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
@@ -106,6 +107,12 @@ class Param:
         return value, None
 
 
+# An output file's missing directories: refused at start (as the command line refuses them),
+# made only when asked, as a launch file naming a new session directory asks.
+MAKE_PARENTS = Param("make_parents", False, "create the missing parent directories of the file this node "
+                     "writes (off: a missing directory is refused at start)", read_only=True, flag="--make-parents")
+
+
 # ---------------------------------------------------------------- command-line aliases
 def add_flags(parser: argparse.ArgumentParser, params: Sequence[Param]) -> None:
     """Add each parameter's ``flag``; a flag left out leaves the parameter alone."""
@@ -154,6 +161,7 @@ class Settings:
                 named = reason if reason.startswith("parameter ") else f"parameter {p.name}: {reason}"
                 raise UserError(named) from None
             self._values[p.name] = p.check(declared.value)[0]
+        _refuse_unknown_overrides(node, params)
         node.add_post_set_parameters_callback(self._changed)
         self._check = check
 
@@ -188,6 +196,21 @@ class Settings:
             self._values[parameter.name] = value
             if changed and self._on_change is not None:
                 self._on_change(parameter.name, value)
+
+
+def _refuse_unknown_overrides(node, params: Sequence[Param]) -> None:
+    """A ``-p`` or params-file value for a parameter the node does not have (a misspelling)
+    is refused: rclpy would drop it silently and the node would run on the default."""
+    given = getattr(node, "_parameter_overrides", {})  # rclpy keeps no public list of them
+    declared = set(node._parameters)  # noqa: SLF001 - ours, and rclpy's own (use_sim_time, ...)
+    # qos_overrides.* only apply to publishers made with QoS overriding options: rclpy's, not ours
+    unknown = sorted(name for name in given if name not in declared and not name.startswith("qos_overrides."))
+    if unknown:
+        names = [p.name for p in params]
+        close = difflib.get_close_matches(unknown[0], names, n=1)
+        hint = f"; did you mean {close[0]}?" if close else ""
+        raise UserError(f"unknown parameter {unknown[0]!r} for node {node.get_name()}{hint} "
+                        f"(its parameters: {', '.join(names)})")
 
 
 def params_from_parser(parser: argparse.ArgumentParser, read_only: bool = True) -> list[Param]:

@@ -42,10 +42,12 @@ from offline_rl_core.bag import encode_transition_rows
 from offline_rl_core.env import CONTROL_HZ, JOINT_NAMES
 from offline_rl_core.joint_messages import action_from_effort, action_from_torques
 from offline_rl_core.pairing import check_answer_stamp, check_stamp
-from offline_rl_core.sim_loop import MODES, ArmState, SimLoop, Step, TickTiming
+from offline_rl_core.errors import UserError
+from offline_rl_core.output_paths import checked_output_file
+from offline_rl_core.sim_loop import MAX_START_TIME_S, MODES, ArmState, SimLoop, Step, TickTiming
 from offline_rl_core.transitions import SOURCE_NAMES, SOURCE_POLICY, source_from_tag
 from pusher_common.node_main import run_node
-from pusher_common.params import Param, Settings
+from pusher_common.params import MAKE_PARENTS, Param, Settings
 from pusher_common.scheduling import THREAD_PRIORITY, apply_thread_priority
 from pusher_common.spin import spin_node_fast
 from pusher_common.stamps import NS_PER_S, stamp_from_ns, stamp_key
@@ -61,7 +63,8 @@ PARAMS = (
     Param("seed", 0, "episode e resets with reset seed seed + e", low=0, read_only=True),
     Param("episodes", 0, "episodes to run before exiting (0: run until stopped)", low=0),
     Param("summary", "", "JSON file written on exit: episodes, success_rate, mean_final_dist, mean_return "
-          "(empty: none)"),
+          "(empty: none); its directory must exist (see make_parents)"),
+    MAKE_PARENTS,
     Param("terminate_on_success", False, "end an episode as soon as the fingertip reaches the target"),
     Param("republish_period", 0.1, "lockstep: seconds before a state whose command has not come is published again",
           low=0.001, high=60.0),
@@ -69,7 +72,8 @@ PARAMS = (
     Param("wait_for_subscribers", 0, "hold the first state (lockstep) or the first tick (realtime) until this "
           "many pusher/transition readers are matched", low=0, read_only=True),
     Param("start_time", 0.0, "sim time of the first state, in seconds since the epoch (0: the wall clock at start, "
-          "whole seconds); every stamp and /clock count 20 ms per tick from it", low=0.0, read_only=True),
+          "whole seconds); every stamp and /clock count 20 ms per tick from it (stamps are int32 seconds: "
+          "at most a year before 2038)", low=0.0, high=float(MAX_START_TIME_S), read_only=True),
     Param("effort_topic", "", "also take commands as std_msgs/Float64MultiArray joint torques in N·m on this "
           "topic, as an effort controller does (realtime; e.g. effort_controller/commands; empty: off)",
           read_only=True),
@@ -80,7 +84,9 @@ PARAMS = (
 class PusherSim(Node):
     def __init__(self, overrides=()):
         super().__init__("sim", parameter_overrides=list(overrides))
-        self.settings = s = Settings(self, PARAMS, on_change=self.on_parameter_change)
+        self.settings = s = Settings(self, PARAMS, on_change=self.on_parameter_change, check=self.check_parameter)
+        if s.summary:  # checked now, not after the whole run
+            checked_output_file(s.summary, "parameter summary:", s.make_parents)
         apply_thread_priority(self.settings.thread_priority, self.get_logger())
         start_ns = int(s.start_time * NS_PER_S) if s.start_time > 0 else time.time_ns() // NS_PER_S * NS_PER_S
         self.loop = SimLoop(s.mode, s.seed, s.episodes, s.terminate_on_success, start_ns)
@@ -125,6 +131,14 @@ class PusherSim(Node):
             f"{self.mode} pusher-reach, seed {s.seed}, "
             f"{'endless' if not s.episodes else f'{s.episodes} episodes'}"
         )
+
+    def check_parameter(self, name: str, value) -> str | None:
+        if name == "summary" and value:
+            try:
+                checked_output_file(value, "", self.settings.make_parents)
+            except UserError as exc:
+                return str(exc).strip()
+        return None
 
     def on_parameter_change(self, name: str, value) -> None:
         if name == "episodes":
@@ -261,8 +275,8 @@ class PusherSim(Node):
             with atomic_path(self.settings.summary) as tmp:
                 tmp.write_text(json.dumps(self.loop.summary(), indent=2) + "\n")
         report = self.timing.report()
-        if report:
-            self.get_logger().info(f"realtime timing: {report}")
+        if report:  # printed: after Ctrl-C the context is shut down and the logger's rosout publisher with it
+            print(f"sim: realtime timing: {report}", file=sys.stderr)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -85,6 +85,8 @@ def run_launch(nodes) -> int:
             if launched.finished() is not None:
                 break
             time.sleep(0.1)
+    except Terminated:
+        print("[WARNING] [launch]: stopped by SIGTERM", flush=True)
     except KeyboardInterrupt:
         print("[WARNING] [launch]: user interrupted with ctrl-c (SIGINT)", flush=True)
     finally:
@@ -117,5 +119,9 @@ def _report_exit(proc, label: str) -> None:
               f"cmd '{' '.join(proc.cmd)}'].", flush=True)
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM: stopped like Ctrl-C, and said to be SIGTERM."""
+
+
 def _interrupt(signum, frame):
-    raise KeyboardInterrupt
+    raise Terminated
