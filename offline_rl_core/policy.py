@@ -76,13 +76,19 @@ def _check_zip_crcs(f) -> None:
     f.seek(0)
 
 
+def checkpoint_file(path: str | os.PathLike) -> Path:
+    """The checkpoint file ``path`` names: a run directory means its policy.pt (the file the trainer replaces)."""
+    path = Path(path)
+    return path / "policy.pt" if path.is_dir() else path
+
+
 def load_checkpoint(path: str | os.PathLike) -> dict:
     """Read and validate a checkpoint; a clear ``UserError`` for anything wrong."""
     path = Path(path)
     if not path.exists():
         raise UserError(f"{path}: no such checkpoint file")
     if path.is_dir():
-        candidate = path / "policy.pt"
+        candidate = checkpoint_file(path)
         if not candidate.exists():
             raise UserError(f"{path}: is a directory without policy.pt; expected a checkpoint file")
         path = candidate

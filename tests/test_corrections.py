@@ -22,7 +22,7 @@ from ros_helpers import INDEX, REPO, probe_node, require_ros, ros_env, spawn  # 
 CORRECTIONS_SRC = REPO / "ros_ws" / "src" / "corrections"
 sys.path.insert(0, str(CORRECTIONS_SRC))  # the pure-Python parts, importable without the install
 
-from pusher_corrections.arbiter import HUMAN, POLICY, LockstepArbiter, RealtimeArbiter  # noqa: E402
+from offline_rl_core.arbiter import HUMAN, POLICY, LockstepArbiter, RealtimeArbiter
 from offline_rl_core.corrector import CorrectorParams, ScriptedCorrector  # noqa: E402
 
 
@@ -228,6 +228,9 @@ def test_mux_over_ros_lockstep_and_realtime(spawn, ros_env):
                           "-r", "__ns:=/real", "-r", "policy/action:=/policy/action", "-r", "teleop/action:=/teleop/action"),
                  "mux_realtime")
     assert lock.wait_for_output("mux lockstep", 60) and real.wait_for_output("mux realtime", 60)
+    # its start-up line names the topics it really uses (namespaced, remapped)
+    assert ("mux lockstep: /policy/action + /teleop/action -> /lock/pusher/command/policy | "
+            "/lock/pusher/command/human") in lock.output(), lock.output()
     with probe_node("mux_probe") as node:
         got = {"lock": [], "real": [], "lock_int": [], "real_int": []}
         from rclpy.qos import DurabilityPolicy, QoSProfile

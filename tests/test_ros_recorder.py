@@ -43,6 +43,13 @@ def test_recording_is_bit_identical_to_collect(spawn, tmp_path):
     reference = collect_transitions(4, 0.5, 7)
     assert np.array_equal(recorded.to_rows(), reference.to_rows())
     assert list(np.unique(recorded.source)) == [0, 1]
+    # who acted is the command topic, as the sim reads it (no deprecated header.frame_id tag)
+    assert "deprecated" not in sim.output(), sim.output()
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([bag]) as reader:
+        topics = {c.topic: c.msgcount for c in reader.connections if c.topic.startswith("/pusher/command")}
+    assert set(topics) == {"/pusher/command/expert", "/pusher/command/random"} and sum(topics.values()) >= 400, topics
 
 
 @pytest.mark.slow

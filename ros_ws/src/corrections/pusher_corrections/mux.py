@@ -16,7 +16,7 @@ Its parameters:
 
 The rule in lockstep: exactly one command per stamp. A teleop action for the stamp
 wins; a yield lets the policy's action for the stamp through; a late message for a
-decided stamp only repeats the decided command (see ``pusher_corrections.arbiter``).
+decided stamp only repeats the decided command (see ``offline_rl_core.arbiter``).
 A malformed or non-finite action, or one with a bad stamp, is not forwarded: it is
 counted by reason on ``~/status`` (``pusher_common.status``) with a throttled warning.
 """
@@ -40,7 +40,7 @@ from pusher_common.scheduling import THREAD_PRIORITY, apply_thread_priority
 from pusher_common.stamps import stamp_key
 from pusher_common.status import NodeStatus
 
-from .arbiter import HUMAN, POLICY, LockstepArbiter, RealtimeArbiter
+from offline_rl_core.arbiter import HUMAN, POLICY, LockstepArbiter, RealtimeArbiter
 
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
@@ -77,14 +77,15 @@ class Mux(Node):
         self.command_pubs = {source: self.create_publisher(JointState, f"pusher/command/{source}", 10)
                              for source in (POLICY, HUMAN)}
         self.intervening_pub = self.create_publisher(Bool, "corrections/intervening", LATCHED)
-        self.create_subscription(JointState, "policy/action", self.on_policy, 10)
+        self.policy_sub = self.create_subscription(JointState, "policy/action", self.on_policy, 10)
         self.teleop_sub = self.create_subscription(JointState, "teleop/action", self.on_teleop, 10)
         self.hold_timer = None
         if self.mode == "realtime":
             self.hold_timer = self.create_timer(hold_check_period(self.hold_s), self.check_hold)
         self.set_intervening(False)
         self.get_logger().info(
-            f"mux {self.mode}: /policy/action + /teleop/action -> /pusher/command"
+            f"mux {self.mode}: {self.policy_sub.topic_name} + {self.teleop_sub.topic_name} -> "
+            f"{self.command_pubs[POLICY].topic_name} | {self.command_pubs[HUMAN].topic_name}"
             + (f" (hold {self.hold_s * 1000:.0f} ms)" if self.mode == "realtime" else
                f" (one command per stamp{', always waiting for the corrector' if self.require_teleop else ''})")
         )

@@ -48,7 +48,7 @@ from offline_rl_core.errors import UserError  # noqa: E402
 from offline_rl_core.joint_messages import joints_from_state, point_xy, torques_from_action  # noqa: E402
 from offline_rl_core.online_service import policy_from_weights_message  # noqa: E402
 from offline_rl_core.pairing import Paired, StatePairing, check_stamp  # noqa: E402
-from offline_rl_core.policy import LoadedPolicy, load_policy  # noqa: E402
+from offline_rl_core.policy import LoadedPolicy, checkpoint_file, load_policy  # noqa: E402
 from offline_rl_core.rejections import Rejection  # noqa: E402
 from pusher_common.node_main import run_node  # noqa: E402
 from pusher_common.params import Param, Settings  # noqa: E402
@@ -91,11 +91,6 @@ PARAMS = (
 )
 
 
-def checkpoint_file(path: str) -> str:
-    """Return the checkpoint file: a run directory means its policy.pt (the file the trainer replaces)."""
-    return os.path.join(path, "policy.pt") if os.path.isdir(path) else path
-
-
 class PolicyServer(Node):
     def __init__(self, overrides=()):
         super().__init__("policy", parameter_overrides=list(overrides))
@@ -104,7 +99,7 @@ class PolicyServer(Node):
         self.poll_period = self.settings.poll_period
         if not self.settings.checkpoint:
             raise UserError("no checkpoint given: pass --checkpoint PATH or -p checkpoint:=PATH")
-        self.path = checkpoint_file(self.settings.checkpoint)
+        self.path = str(checkpoint_file(self.settings.checkpoint))
         self.signature = file_signature(self.path)
         self.actor = Actor(load_policy(self.path),  # UserError with one clear line if missing/broken
                            explore=self.settings.explore, seed=self.settings.seed,
@@ -142,7 +137,7 @@ class PolicyServer(Node):
     def check_parameter(self, name: str, value) -> str | None:
         if name != "checkpoint":
             return None
-        path = checkpoint_file(value)
+        path = str(checkpoint_file(value))
         try:
             self.candidate = (path, file_signature(path), load_policy(path))
         except UserError as exc:  # refused with the reason; the old policy serves on

@@ -4,8 +4,9 @@ a pusher-reach dataset.
 Active (default): drives the sim with the scripted expert for the first
 ``round(expert_frac * episodes)`` episodes and uniform random actions after, exactly as
 ``offline-rl collect`` does in process, and records ``pusher/transition`` plus
-``pusher/state``, ``pusher/target`` and the ``pusher/command`` messages it sends (and any
-``topics`` given). Against a lockstep sim started with the same seed the bag's
+``pusher/state``, ``pusher/target``, the commands it sends on ``pusher/command/expert``
+and ``pusher/command/random`` (who acted is the topic, as the sim reads it), and any
+``topics`` given. Against a lockstep sim started with the same seed the bag's
 transitions equal ``offline-rl collect``'s bit for bit.
 
   ros2 run recorder node --out bags/mix.db3 --episodes 200 --expert-frac 0.3 --seed 0
@@ -181,7 +182,7 @@ class Recorder(Node):
         self.state: JointState | None = None
         self.targets: dict[int, np.ndarray] = {}
         self.awaiting_transition = False
-        self.last_command: JointState | None = None
+        self.last_command: tuple[JointState, int] | None = None  # (command, source) last sent
         self.matched = False
 
         if s.make_parents:  # a launch file's new session directory; the bag itself is checked by BagWriter
@@ -201,8 +202,9 @@ class Recorder(Node):
         for topic in loop:
             self.subscribe(self.resolve(topic), *LOOP_TYPES[topic], TRANSITION_QOS if topic == TRANSITION else 10)
         if self.active:
-            self.command_pub = self.create_publisher(JointState, COMMAND, 10)
-            self.command_topic = self.command_pub.topic_name
+            # who acted is the topic, as the sim reads it: pusher/command/expert or .../random
+            self.command_pubs = {source: self.create_publisher(JointState, f"{COMMAND}/{SOURCE_NAMES[source]}", 10)
+                                 for source in (SOURCE_EXPERT, SOURCE_RANDOM)}
             self.create_timer(0.1, self.try_act)
         # Other topics are subscribed as discovery finds their publishers (and types).
         self.dynamic = self.record_all or bool(self.wanted - set(self.subs))
@@ -246,7 +248,7 @@ class Recorder(Node):
         for topic, types in self.get_topic_names_and_types():
             if topic in self.subs or not (topic in self.wanted or (self.record_all and not hidden(topic))):
                 continue
-            if self.active and topic == self.command_topic:
+            if self.active and topic in (pub.topic_name for pub in self.command_pubs.values()):
                 continue  # written as sent (see send)
             if len(types) != 1:
                 self.warn_once(topic, f"not recording {topic}: published with several types ({', '.join(types)})")
@@ -338,11 +340,11 @@ class Recorder(Node):
     # -------------------------------------------------------------- driving
     def on_state(self, msg: JointState) -> None:
         stamp = stamp_key(msg.header.stamp)
-        if self.last_command is not None and stamp == stamp_key(self.last_command.header.stamp):
+        if self.last_command is not None and stamp == stamp_key(self.last_command[0].header.stamp):
             if self.awaiting_transition:
                 # The sim republished the state we answered: our command was lost (e.g.
                 # before discovery matched). Send the same one again; never redraw.
-                self.send(self.last_command)
+                self.send(*self.last_command)
             return
         self.state = msg
         self.try_act()
@@ -359,7 +361,7 @@ class Recorder(Node):
         if not self.matched:
             self.matched = (
                 all(self.subs[self.resolve(t)].get_publisher_count() > 0 for t in (TRANSITION, STATE, TARGET))
-                and self.command_pub.get_subscription_count() > 0
+                and all(pub.get_subscription_count() > 0 for pub in self.command_pubs.values())
             )
         return self.matched
 
@@ -377,17 +379,18 @@ class Recorder(Node):
             action, source = self.rng.uniform(-1, 1, size=ACT_DIM).astype(np.float32), SOURCE_RANDOM
         command = JointState(name=list(JOINT_NAMES), effort=[float(a) for a in action])
         command.header.stamp = state.header.stamp
-        command.header.frame_id = SOURCE_NAMES[source]
         self.state = None
         self.awaiting_transition = True
-        self.last_command = command
-        self.send(command)
+        self.last_command = (command, source)
+        self.send(command, source)
 
-    def send(self, command: JointState) -> None:
-        self.command_pub.publish(command)
-        if self.command_topic not in self.types:
-            self.types[self.command_topic] = LOOP_TYPES[COMMAND][0]
-        self.write(self.command_topic, serialize_message(command))
+    def send(self, command: JointState, source: int) -> None:
+        publisher = self.command_pubs[source]
+        publisher.publish(command)
+        topic = publisher.topic_name
+        if topic not in self.types:
+            self.types[topic] = LOOP_TYPES[COMMAND][0]
+        self.write(topic, serialize_message(command))
 
     # -------------------------------------------------------------- the end
     def finish(self) -> None:

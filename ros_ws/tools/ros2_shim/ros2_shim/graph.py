@@ -31,7 +31,10 @@ def spin_for_discovery(node, spin_time: float, snapshot, complete=lambda current
     first remote endpoints can take over a second to show, so a lone graph (only this
     node) keeps waiting up to ``max(6 * spin_time, 3 s)``. Another node shows as a second
     /rosout publisher (endpoint discovery; node names arrive later, so ``complete(snapshot)``
-    can ask to wait for them). Returns the last snapshot.
+    can ask to wait for them). The graph counts as settled when every node seen so far has
+    shown its /rosout publisher and nothing has changed for as long as it took to get there
+    (``quiet_enough``): a loaded machine that discovers slowly is waited for longer.
+    Returns the last snapshot.
     """
     import rclpy
 
@@ -46,9 +49,30 @@ def spin_for_discovery(node, spin_time: float, snapshot, complete=lambda current
         if current != last:
             last, last_change = current, now
         others = node.count_publishers("/rosout") > 1
-        settled = others and now - last_change >= 0.5 and complete(current)
+        settled = (others and quiet_enough(start, last_change, now) and complete(current)
+                   and endpoints_seen(node))
         if now - start >= limit or (now - start >= spin_time and settled):
             return current
+
+
+QUIET_S = 0.5  # the least time without a change before a graph counts as settled
+
+
+def quiet_enough(start: float, last_change: float, now: float) -> bool:
+    """No change for ``QUIET_S``, and for as long as discovery took until its last change."""
+    return now - last_change >= max(QUIET_S, last_change - start)
+
+
+def endpoints_seen(node) -> bool:
+    """Every node known by name has shown its /rosout publisher (its endpoints are arriving)."""
+    for name, namespace in node.get_node_names_and_namespaces():
+        try:
+            topics = node.get_publisher_names_and_types_by_node(name, namespace)
+        except Exception:  # noqa: BLE001 - a node that left meanwhile
+            continue
+        if not any(topic == "/rosout" for topic, _ in topics):
+            return False
+    return True
 
 
 def hidden(name: str) -> bool:
