@@ -199,6 +199,34 @@ def test_trainer_node_from_the_card_command_publishes_progress(spawn, data, tmp_
 
 
 @pytest.mark.slow
+def test_trainer_stops_on_ctrl_c_when_started_with_it_ignored(ros_env, data, tmp_path):
+    """A script's background job (`trainer ... &`) starts with SIGINT ignored; Ctrl-C / kill -INT still stops it."""
+    import signal
+
+    from offline_rl_core.rosproc import ros2_run
+
+    log = tmp_path / "trainer.log"
+    with open(log, "wb") as out:
+        proc = subprocess.Popen(
+            ros2_run("trainer", "node", "--bag", data["bag"], "--algo", "bc", "--steps", 10_000_000, "--hidden", 16,
+                     "--log-every", 100, "--out", tmp_path / "run"),
+            env=ros_env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True,
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    try:
+        deadline = time.monotonic() + 120
+        while "step" not in log.read_text() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert proc.poll() is None, log.read_text()
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=30) == 130, log.read_text()
+        assert "interrupted" in log.read_text()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("spin", ["fast", "executor"])
 def test_closed_loop_matches_in_process_evaluation(spawn, data, tmp_path, spin):
     """Also both ways the sim can spin: the private wait-set fast path, and rclpy's public

@@ -32,10 +32,10 @@ def test_lockstep_validates_commands_tags_sources_and_resets(spawn, tmp_path):
     from std_msgs.msg import Float32MultiArray
     from std_srvs.srv import Trigger
 
-    summary = tmp_path / "summary.json"
+    summary = tmp_path / "new" / "summary.json"  # make_parents: a launch file's new session directory
     params = tmp_path / "sim.yaml"  # settings from a params file, as a launch file passes them
     params.write_text(f"/**:\n  ros__parameters:\n    mode: lockstep\n    seed: 11\n    summary: '{summary}'\n"
-                      f"    start_time: {START}.0\n")
+                      f"    make_parents: true\n    start_time: {START}.0\n")
     sim = spawn(ros2("run", "sim", "node", "--ros-args", "--params-file", params), "sim")
     states, targets, transitions, clocks, joint_states = [], [], [], [], []
     with probe_node() as node:
