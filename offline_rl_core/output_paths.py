@@ -19,17 +19,9 @@ from .errors import UserError
 def ensure_parent(path: str | os.PathLike, what: str, make_parents: bool = False) -> Path:
     """``path``'s directory: existing and writable, or made when ``make_parents``; else a UserError."""
     path = Path(path)
-    parent = path.parent
-    if not parent.is_dir():
-        if not make_parents:
-            raise UserError(f"{what} {path}: the directory {parent} does not exist; create it first")
-        try:
-            parent.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise UserError(f"{what} {path}: cannot create the directory {parent} ({exc.strerror or exc})") from None
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise UserError(f"{what} {path}: the directory {parent} is not writable")
-    return parent
+    if not path.parent.is_dir() and not make_parents:
+        raise UserError(f"{what} {path}: the directory {path.parent} does not exist; create it first")
+    return _writable_dir(path.parent, f"{what} {path}: ", f"the directory {path.parent} ")
 
 
 def checked_output_file(path: str | os.PathLike, what: str, make_parents: bool = False) -> Path:
@@ -44,10 +36,15 @@ def checked_output_file(path: str | os.PathLike, what: str, make_parents: bool =
 def checked_output_dir(path: str | os.PathLike, what: str) -> Path:
     """A run directory: made with its parents, writable."""
     path = Path(path)
+    return _writable_dir(path, f"{what} {path}: ", "the directory ")
+
+
+def _writable_dir(directory: Path, prefix: str, name: str) -> Path:
+    """``directory``, made with its parents if missing; a UserError ``prefix`` + why when it cannot be written."""
     try:
-        path.mkdir(parents=True, exist_ok=True)
+        directory.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise UserError(f"{what} {path}: cannot create the directory ({exc.strerror or exc})") from None
-    if not os.access(path, os.W_OK | os.X_OK):
-        raise UserError(f"{what} {path}: the directory is not writable")
-    return path
+        raise UserError(f"{prefix}cannot create {name}({exc.strerror or exc})") from None
+    if not os.access(directory, os.W_OK | os.X_OK):
+        raise UserError(f"{prefix}{name}is not writable")
+    return directory
