@@ -35,8 +35,8 @@ def register(subparsers) -> None:
     p.add_argument("--smoke", action="store_true", help="the chapter's smoke settings: 20 episodes, 400 steps, "
                    "batch 64, hidden 64, 2 suites x 4 eval episodes")
     p.add_argument("--deterministic", action=argparse.BooleanOptionalAction, default=False,
-                   help="fp32 everywhere (smoke always); the default runs the hidden layer in bf16 where the CPU "
-                        "has native bf16. Both are byte-identical run to run for a seed")
+                   help="fp32 everywhere (smoke always); the default runs the hidden layer in bf16 where that "
+                        "measured clearly faster on this CPU (cached per machine, so later runs choose the same)")
     p.add_argument("--workers", type=int, default=None, metavar="N",
                    help="training processes, one (learner, seed) run each; results do not depend on it "
                         "(default: one per CPU core; smoke: 1)")

@@ -1,8 +1,8 @@
 """Several training runs at once, one worker process per CPU core.
 
 One training step is a chain of small matmuls that a second intra-op thread barely
-speeds up (and on a shared machine OpenMP's spinning threads slow it down many-fold),
-so the cores are used by whole runs instead: each worker trains with one thread
+speeds up (and on a shared machine OpenMP's spinning threads stall it), so the cores
+are used by whole runs instead: each worker trains with one thread
 while runs wait for a worker. Once none waits, a run still training takes the cores
 of the finished ones (its step spread over threads by the C++ replay).
 A run's result depends only on its seed and data, never on which worker or which
