@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 
 from ..errors import UserError
+from ..output_paths import check_output_dir
+from ..seeds import seed_arg
 from ..experiment import ExperimentConfig, format_table, run_experiment, summary_rows, verdict
 
 OFFLINE_ALGOS = ("awac", "iql", "filtered_bc", "naive", "auto")
@@ -19,8 +21,8 @@ def register(subparsers) -> None:
         "Writes DIR/metrics.json (DIR/seed_<s>/... and DIR/summary.md|png for several seeds).",
     )
     seeds = p.add_mutually_exclusive_group()
-    seeds.add_argument("--seed", type=int, default=None, help="one experiment seed (default 0)")
-    seeds.add_argument("--seeds", type=int, nargs="+", help="several seeds")
+    seeds.add_argument("--seed", type=seed_arg, default=None, help="one experiment seed (default 0)")
+    seeds.add_argument("--seeds", type=seed_arg, nargs="+", help="several seeds")
     p.add_argument("--algo", choices=OFFLINE_ALGOS, default=None,
                    help="offline learner compared with BC (default awac); auto: the learner and budget chosen from "
                         "each seed's dataset (README, 'The best prior')")
@@ -70,6 +72,7 @@ def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_output_dir(args.out, "--out")
     cfg = config_from_args(args)
     outcomes = run_experiment(cfg, args.out, log=lambda line: print(line, flush=True))
     rows = summary_rows(cfg, outcomes)

@@ -6,6 +6,7 @@ import json
 
 from ..hil import DEFAULT_BAG, EVAL_SEED, HilConfig, run_hil
 from ..hil_online import OnlineHilConfig, run_hil_online
+from ..seeds import seed_arg
 
 
 def _run(args) -> int:
@@ -55,7 +56,7 @@ def register(subparsers) -> None:
     p.add_argument("--prior", metavar="CKPT", help="checkpoint to start from (default: train AWAC on --bag (--online: see --prior-algo), or reuse "
                    "runs/demo/awac/policy.pt when it was trained so)")
     p.add_argument("--bag", action="append", metavar="PATH", help=f"offline bag(s) of the prior (default: {DEFAULT_BAG})")
-    p.add_argument("--seed", type=int, default=d.seed, help="seed of training and of the corrector (default: %(default)s)")
+    p.add_argument("--seed", type=seed_arg, default=d.seed, help="seed of training and of the corrector (default: %(default)s)")
     p.add_argument("--prior-steps", type=int, default=d.prior_steps, help="steps of the prior's training (default: %(default)s)")
     p.add_argument("--steps", type=int, default=d.steps, help="retraining steps per round (default: %(default)s)")
     p.add_argument("--correction-ratio", type=float, default=d.correction_ratio,
@@ -63,7 +64,7 @@ def register(subparsers) -> None:
     p.add_argument("--beta", type=float, default=d.beta, help="AWAC temperature of the retraining (default: %(default)s)")
     p.add_argument("--eval-episodes", type=int, default=d.eval_episodes,
                    help="held-out rollouts per evaluation (default: %(default)s)")
-    p.add_argument("--eval-seed", type=int, default=EVAL_SEED, help="first held-out reset seed (default: %(default)s)")
+    p.add_argument("--eval-seed", type=seed_arg, default=EVAL_SEED, help="first held-out reset seed (default: %(default)s)")
     c = p.add_argument_group("scripted corrector")
     c.add_argument("--patience", type=int, default=d.patience, help="k: steps without progress before a takeover (default: %(default)s)")
     c.add_argument("--hold-steps", type=int, default=d.hold_steps, help="m: steps before handing back (default: %(default)s)")
