@@ -51,3 +51,9 @@ def _probe(directory: Path, path: Path, flag: str) -> None:
         os.unlink(probe)
     except OSError as exc:
         raise UserError(f"{flag} {path}: cannot write in {directory} ({exc.strerror})") from None
+
+
+def remove_if_empty(path: Path, created: bool) -> None:
+    """Remove ``path`` if this run ``created`` it and a failure left it empty."""
+    if created and path.is_dir() and not any(path.iterdir()):
+        path.rmdir()
