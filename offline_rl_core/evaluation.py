@@ -192,8 +192,8 @@ def mujoco_timers_off():
     """Step MuJoCo without its profiling timer inside the block.
 
     ``import mujoco`` installs a clock_gettime ``mjcb_time`` so that ``MjData.timer``
-    profiles every pipeline stage; for this 2-DoF arm the clock reads are ~40 % of an
-    ``mj_step``. Only ``MjData.timer`` reads the callback, never the physics. Where
+    profiles every pipeline stage; for this 2-DoF arm the clock reads are a large
+    share of an ``mj_step`` (bench/RESULTS.md). Only ``MjData.timer`` reads the callback, never the physics. Where
     libmujoco cannot be reached this does nothing.
     """
     slot = _mujoco_timer_slot()

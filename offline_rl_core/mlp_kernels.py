@@ -37,20 +37,18 @@ class HiddenLayer:
         return t.to(self.dtype)
 
 
-def mlp_forward(x, w1, b1, w2, b2, w3, b3, tanh_output: bool, hidden: HiddenLayer, w2c=None, b2c=None):
-    """(E, B, in) -> (y, w2c, activations): the three layers member by member. ``w2c``
-    / ``b2c``, the hidden weights already cast, may be passed in by a caller that runs
-    one network twice between updates."""
+def mlp_forward(x, w1, b1, w2, b2, w3, b3, tanh_output: bool, hidden: HiddenLayer):
+    """(E, B, in) -> (y, w2c, activations): the three layers member by member; ``w2c`` is
+    the hidden weight in the hidden layer's precision."""
     members = w1.shape[0]
-    if w2c is None:
-        w2c, b2c = hidden.cast(w2), hidden.cast(b2)
+    w2c, b2c = hidden.cast(w2), hidden.cast(b2)
     acts, outs = [], []
     for m in range(members):
         h1 = torch.addmm(b1[m], x[m], w1[m]).relu_()
         h1c = hidden.cast(h1)
         h2 = hidden.forward_relu(h1c, w2c[m], b2c[m, 0]).float()
-        # the thin output layer as (w.T @ h.T).T: MKL is several times slower on a
-        # 256x256 by 256x2 product than on its transpose on some CPUs
+        # the thin output layer as (w.T @ h.T).T: MKL is much slower on a 256x256 by
+        # 256x2 product than on its transpose on some CPUs
         outs.append(torch.addmm(b3[m].t(), w3[m].t(), h2.t()).t())
         acts.append((h1, h1c, h2))
     y = _stacked(outs).contiguous()
@@ -100,8 +98,8 @@ def mlp_backward(grad_y, x, w1, w2c, w3, y, acts, tanh_output: bool, hidden: Hid
 
 
 class _EnsembleMLPFunction(torch.autograd.Function):
-    """Members one by one with 2-D products: torch's batched ``bmm`` on CPU is an order
-    of magnitude slower than ``addmm`` for the thin first and last layers."""
+    """Members one by one with 2-D products: torch's batched ``bmm`` on CPU is much
+    slower than ``addmm`` for the thin first and last layers."""
 
     @staticmethod
     def forward(ctx, x, w1, b1, w2, b2, w3, b3, tanh_output: bool, hidden: HiddenLayer):

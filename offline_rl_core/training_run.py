@@ -161,12 +161,7 @@ def run_training(
     if resume:
         log(f"resuming from {points.path}" if points.path.exists() else f"no resume point at {points.path}; starting")
     log(f"training {cfg.algo} on {len(data)} transitions from {len(bags)} bag(s), {cfg.steps} steps, seed {seed}")
-    try:
-        result = train(data, cfg, seed, progress=progress, init=init_ckpt, resume=points)
-    except ValueError as exc:
-        if not str(exc).startswith(f"{points.path}:"):
-            raise  # a bug, not the user's input
-        raise UserError(str(exc)) from None  # an unreadable or foreign resume point
+    result = train(data, cfg, seed, progress=progress, init=init_ckpt, resume=points)  # UserError: a bad resume point
     _check_finite(result.checkpoint, cfg, points)
 
     metrics: dict = {

@@ -169,9 +169,10 @@ def test_policy_actions_just_before_a_takeover_are_not_imitated():
     assert float(md.actor_mask.sum()) == len(data) - 5
 
 
-def test_training_several_seeds_together_equals_training_each_alone():
+@pytest.mark.parametrize("algo", ["awac", "sac"])  # SAC: its policy noise too
+def test_training_several_seeds_together_equals_training_each_alone(algo):
     d0, d1 = collect_transitions(4, 0.5, 0), collect_transitions(4, 0.5, 1)
-    c = TrainConfig(algo="awac", steps=20, batch_size=16, hidden=16, log_every=10)
+    c = TrainConfig(algo=algo, steps=20, batch_size=16, hidden=16, log_every=10)
     both = train_seeds([d0, d1], c, [0, 1])
     alone = [train(d0, c, 0), train(d1, c, 1)]
     for together, single in zip(both, alone):

@@ -133,22 +133,60 @@ def test_draws_from_a_learners_own_generator_replay_like_eager(monkeypatch, data
     _assert_same_bytes(got, _run(monkeypatch, data, "autograd", "bc", seeds=[0]))
 
 
-def test_an_update_that_reads_a_tensor_back_runs_eagerly(monkeypatch, data, capsys):
-    """A Python branch on a value read back from a tensor cannot be replayed: the learner
-    runs eagerly, says so, and trains exactly as autograd."""
+READ_BACKS = {
+    "float": lambda t: float(t),
+    "numpy": lambda t: float(t.detach().numpy()),  # reads memory without an operator call
+    "tolist": lambda t: t.detach().tolist(),
+}
+
+
+@pytest.mark.parametrize("read", sorted(READ_BACKS))
+def test_an_update_that_reads_a_tensor_back_runs_eagerly(monkeypatch, data, capsys, read):
+    """A value read back from a tensor cannot be replayed (the replay would keep the one
+    read while recording): the learner runs eagerly, says so, and trains exactly as
+    autograd."""
     from offline_rl_core.learners.bc import BC
 
-    def branchy(self, batch):
+    def scaled_by_its_own_error(self, batch):
         err = regression_error(self.policy(batch.obs), batch.action)
-        loss = per_member_mean(err * 2.0 if float(err.mean()) > 0.5 else err)
+        loss = per_member_mean(err) / READ_BACKS[read](err.mean())
         self.step_policy(loss)
         return {"policy_loss": loss.detach()}
 
-    monkeypatch.setattr(BC, "update", branchy)
+    monkeypatch.setattr(BC, "update", scaled_by_its_own_error)
     got = _run(monkeypatch, data, "auto", "bc", seeds=[0])
     assert got[0].step_kind == "not recordable"
     assert "eagerly" in capsys.readouterr().err
     _assert_same_bytes(got, _run(monkeypatch, data, "autograd", "bc", seeds=[0]))
+
+
+def test_a_refused_recording_is_undone_for_loose_parameters_too(monkeypatch, data):
+    """SAC's log-std is a parameter of its own, outside any module: the recording that
+    stops after the optimiser's step must undo that step for it too, or the eager step
+    taken instead applies it twice."""
+    from offline_rl_core.learners.sac import SAC
+
+    plain_update = SAC.update
+
+    def update_then_read_back(self, batch):
+        losses = plain_update(self, batch)
+        float(losses["critic_loss"].sum())  # after every optimiser step: refused at the end
+        return losses
+
+    monkeypatch.setattr(SAC, "update", update_then_read_back)
+    got = _run(monkeypatch, data, "auto", "sac", seeds=[0])
+    assert got[0].step_kind == "not recordable"
+    _assert_same_bytes(got, _run(monkeypatch, data, "autograd", "sac", seeds=[0]))
+
+
+def test_without_the_cpp_replay_the_default_trains_the_cpp_bytes(monkeypatch, data):
+    """The Python replay and plain autograd run on one thread unless told otherwise, so
+    a machine without a compiler trains what one with it does."""
+    monkeypatch.delenv("PUSHER_RL_STEP", raising=False)
+    cfg = {**CFG, "batch_size": 256, "hidden": 256, "steps": 12, "log_every": 4}
+    want = train_seeds(data, TrainConfig(algo="awac", **cfg), [0])
+    for mode in ("python", "autograd"):
+        _assert_same_bytes(_run(monkeypatch, data, mode, "awac", seeds=[0], **cfg), want)
 
 
 @pytest.mark.skipif(not has_compiler, reason="no g++ / ninja")

@@ -127,8 +127,8 @@ class TwinCritic:
 
         The critics run in chunks (their activations for a 2M-row bag would be GBs); the
         per-row Qs are kept (8 bytes a row, in one buffer allocated up front: small
-        per-chunk tensors left between the chunks' freed activations fragmented the heap
-        by 100+ MiB on a 2M-row bag) and summed once, so the figure does not depend on
+        per-chunk tensors left between the chunks' freed activations fragment the heap
+        on a large bag) and summed once, so the figure does not depend on
         the chunk size."""
         device = data.obs.device
         sizes = torch.tensor(data.sizes, device=device)

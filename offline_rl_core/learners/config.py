@@ -50,15 +50,19 @@ class TrainConfig:
         None, "share of each batch drawn from correction runs (policy/human transitions); default: uniform")
     log_every: int = _opt(100, "steps between progress reports (and loss read-backs)", "run")
     # A chapter-size step's products are too small to split over threads (OpenMP's
-    # fork/join costs what it saves, and on a shared machine its spinning threads slow a
-    # step many-fold), so the threads run different operator calls of the recorded step
-    # side by side instead (``traced.py``); each call stays single-threaded.
+    # fork/join costs about what it saves, and on a shared machine its spinning threads
+    # stall), so the threads run different operator calls of the recorded step side by
+    # side instead (``traced.py``); each call stays single-threaded.
     threads: int | None = _opt(
         None, "CPU threads one training step runs on (default: as many of this machine's free cores as the "
-              "step's measured shape can use); any number gives the same bytes", "run", kind=int)
+              "step's measured shape can use); with the C++ step replay (built by make setup) any number gives "
+              "the same bytes. Without it (no compiler, or PUSHER_RL_STEP=python/autograd) the default is one "
+              "thread, which trains the same bytes as the C++ replay; a number given there trains its own",
+        "run", kind=int)
     deterministic: bool = _opt(
-        False, "fp32 everywhere; the default may run the hidden layer in bf16 where that measured faster on this CPU "
-               "(see kernel_choice). Both are byte-identical run to run for a seed", "run")
+        False, "fp32 everywhere. The default runs the hidden layer in bf16 where that measured clearly faster on "
+               "this CPU (kernel_choice; the choice is cached per machine in ~/.cache/pusher-rl, so later runs make "
+               "the same one); the checkpoint records which (its 'kernels')", "run")
     device: str = _opt("cpu", "cpu, or cuda / cuda:N to train on an NVIDIA GPU; evaluation stays on the CPU", "run")
     # A chapter-size step is a few hundred tiny kernels: on a GPU, one replayed graph
     # replaces all of those launches.

@@ -154,7 +154,11 @@ def train_seeds(
     if saved is not None:
         if saved["identity"] != identity:
             raise UserError(f"{resume.path}: that resume point is of another run (settings, seeds or data differ)")
-        load_learner_training_state(learner, saved["learner"])
+        try:
+            load_learner_training_state(learner, saved["learner"])
+        except KeyError as exc:
+            raise UserError(f"{resume.path}: that resume point lacks {exc} (written by another version of "
+                            "pusher-rl); delete it to start over") from None
         sampler.load_state(saved["sampler"])
         histories, first_step, before = saved["histories"], int(saved["step"]) + 1, float(saved["elapsed_s"])
     rates = LearningRates(learner, cfg.lr_schedule, cfg.steps)  # after a resume point's optimiser state

@@ -10,7 +10,8 @@ Actor:  alpha log pi(a | s) - min Q(s, a), a ~ pi(s) reparameterised,
         batch's rows a person (source "human") chose.
 alpha: fixed at ``alpha`` (with ``target_entropy`` set, tuned toward it instead).
 
-Noise comes from the learner's own generator, so a seed gives the same run.
+Noise comes from each member's own generator, so a seed gives the same run, alone or
+beside others.
 """
 
 from __future__ import annotations
@@ -36,13 +37,16 @@ class SAC(Learner):
         self.policy_opt = make_adam([*self.policy.parameters(), self.log_std], cfg.lr, cfg.device)
         self.log_alpha = torch.nn.Parameter(torch.full((members, 1, 1), math.log(cfg.alpha), device=cfg.device))
         self.alpha_opt = make_adam([self.log_alpha], cfg.lr, cfg.device) if cfg.target_entropy is not None else None
-        self.noise_gen = torch.Generator().manual_seed(int(torch.randint(0, 2**62, (1,), generator=generators[0])))
+        # one noise stream per member, seeded from its own generator: a run's noise does not
+        # depend on which runs train beside it (``loop.train_seeds``)
+        self.noise_gens = [torch.Generator().manual_seed(int(torch.randint(0, 2**62, (1,), generator=g)))
+                           for g in generators]
 
     def sample(self, mean):
         """(action, log pi(action)) with a ~ tanh(N(mean, std)), reparameterised:
         (M, B, A), (M, B, 1)."""
         log_std = self.log_std.clamp(LOG_STD_MIN, LOG_STD_MAX)
-        eps = torch.randn(mean.shape, generator=self.noise_gen).to(mean.device)
+        eps = torch.stack([torch.randn(mean.shape[1:], generator=g) for g in self.noise_gens]).to(mean.device)
         u = mean + log_std.exp() * eps
         action = torch.tanh(u)
         # log N(u; mean, std) minus log |d tanh(u) / du| = 2 (log 2 - u - softplus(-2u))

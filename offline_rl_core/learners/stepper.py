@@ -1,11 +1,11 @@
-"""How one gradient step is run: directly, or on a GPU as a replayed CUDA graph.
+"""How one gradient step is run: recorded and replayed on the CPU, a CUDA graph on a GPU.
 
-A learner's ``update`` is the same Python either way. On the CPU the loop calls it.
-On CUDA, chapter-size networks are bound by kernel launches, not arithmetic: one
-AWAC step is a few hundred kernels of a few microseconds each, and Python issues
-them more slowly than the GPU runs them. ``CudaGraphStep`` records the whole step
-(batch gather, forwards, backwards, both Adam steps, Polyak) once and then replays
-it with a single launch per step.
+A learner's ``update`` is the same Python on every path. On the CPU its calls are
+recorded once and replayed (``traced.RecordedStep``; ``PUSHER_RL_STEP=autograd`` calls
+``update`` every step instead). On CUDA, chapter-size networks are bound by kernel
+launches, not arithmetic, and Python issues them more slowly than the GPU runs them:
+``CudaGraphStep`` records the whole step (batch gather, forwards, backwards, both Adam
+steps, Polyak) once and then replays it with a single launch per step.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from .traced import RecordedStep, step_mode
 # Eager steps before the capture: Adam creates its state and cuBLAS its workspaces
 # on first use, and neither may happen inside a capture. They are real training
 # steps: the run's results do not depend on when the capture happens.
-WARMUP_STEPS = 3
+CUDA_CAPTURE_AFTER_STEPS = 3
 
 
 class EagerStep:
@@ -33,7 +33,7 @@ class EagerStep:
 
 
 class CudaGraphStep:
-    """``update(data.gather(idx))`` recorded as a CUDA graph after ``WARMUP_STEPS``.
+    """``update(data.gather(idx))`` recorded as a CUDA graph after ``CUDA_CAPTURE_AFTER_STEPS``.
 
     The graph reads the batch indices from one static tensor, so each step is a copy
     of the next indices into it and one replay. The returned losses are the graph's
@@ -51,7 +51,7 @@ class CudaGraphStep:
     def __call__(self, idx: torch.Tensor) -> dict[str, torch.Tensor]:
         self.static_idx.copy_(idx)
         if self.graph is None:
-            if self.eager_steps < WARMUP_STEPS:
+            if self.eager_steps < CUDA_CAPTURE_AFTER_STEPS:
                 self.eager_steps += 1
                 return self._eager_on_side_stream()
             self.graph = torch.cuda.CUDAGraph()
@@ -98,15 +98,18 @@ def chooses_threads(threads: int | None) -> bool:
 
 
 def intra_op_threads(threads: int | None) -> int:
-    """torch's own threads per operator call while training: one when the C++ replay
-    spreads the calls over the step's threads, else all of them (eager and Python
-    replay can only split each call)."""
-    n = step_threads(threads)
-    if n == 1 or step_mode() in ("python", "autograd"):
-        return n
+    """torch's own threads per operator call while training. One by default, and always
+    under the C++ replay, which spreads the calls over the step's threads instead: then
+    every path (C++ replay, Python replay, plain autograd) trains the same bytes. A
+    number given runs eager and Python-replayed steps on that many (each call split
+    over them, which changes how its sums are ordered, so each number its own bytes)."""
+    if threads is None or int(threads) <= 1:
+        return 1
+    if step_mode() in ("python", "autograd"):
+        return int(threads)
     from . import graph_runner
 
-    return 1 if graph_runner.unavailable_reason() is None else n
+    return 1 if graph_runner.unavailable_reason() is None else int(threads)
 
 
 def available_cores() -> int:
@@ -117,7 +120,7 @@ def available_cores() -> int:
 
 
 def make_step(update: Callable, data: MemberData, idx_shape: tuple[int, int], device: str, cuda_graph: bool,
-              threads: int | None = 1):
+              threads: int | None = None):
     """The step runner for ``device``: a CUDA graph on CUDA (unless ``cuda_graph`` is
     False); on the CPU the update recorded once and replayed (``traced``) on
     up to ``step_threads(threads)`` threads, unless ``PUSHER_RL_STEP=autograd``."""

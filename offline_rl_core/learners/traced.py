@@ -3,7 +3,7 @@
 A learner is written once, as plain torch (``bc.py``, ``awac.py``, ...): forwards,
 ``loss.backward()``, ``optimizer.step()``. On a CPU, the Python around the arithmetic
 (autograd's engine, ``torch.optim``'s bookkeeping, per-op dispatch from Python) is a
-third of a chapter-size step. So the training loop records one real step of the
+large share of a chapter-size step (bench/RESULTS.md). So the training loop records one real step of the
 learner's ``update`` as the exact list of operator calls it made (``make_fx`` in real
 mode: the step runs for real while it is recorded, its backward and optimiser calls
 included), and then replays that list for every later step: in C++
@@ -41,13 +41,14 @@ from torch._subclasses.fake_tensor import FakeTensorMode
 
 from ..errors import UserError
 from .data import Batch, MemberData
+from .state import named, walk
 
 STEP_ENV = "PUSHER_RL_STEP"
 STEP_MODES = ("auto", "cpp", "python", "autograd")
 # Eager steps before the recording: optimisers create their state on first use, and a
 # creation recorded would re-create it at every replay.
-WARMUP_STEPS = 1
-# Bookkeeping calls that change no tensor (the optimiser's profiler markers, detach)
+RECORD_AFTER_STEPS = 1
+# Bookkeeping calls that change no tensor: the optimiser's profiler markers
 _DROPPED = {"profiler._record_function_enter_new.default", "profiler._record_function_exit._RecordFunction",
             "profiler._record_function_enter.default", "profiler._record_function_exit.default"}
 
@@ -85,8 +86,8 @@ def record(fn: Callable[..., list[torch.Tensor]], inputs: list[torch.Tensor]):
 
     try:
         # one fake-tensor mode for the recorded values' metadata: without it make_fx
-        # builds a mode (and captures a Python stack) for every value, 40 % of a recording
-        with tracing(TracingContext(FakeTensorMode(allow_fallback_kernels=True))):
+        # builds a mode (and captures a Python stack) for every value
+        with tracing(TracingContext(FakeTensorMode(allow_fallback_kernels=True))), _RefuseReadBacks():
             gm = make_fx(capture, tracing_mode="real")(*inputs)
     except RuntimeError as exc:
         if "_local_scalar_dense" in str(exc) or "data-dependent" in str(exc):
@@ -107,6 +108,19 @@ def record(fn: Callable[..., list[torch.Tensor]], inputs: list[torch.Tensor]):
     graph.lint()
     gm.recompile()
     return gm, [t.detach() for t in outputs[0]]
+
+
+class _RefuseReadBacks(torch.overrides.TorchFunctionMode):
+    """``.item()`` and ``float(t)`` go through an operator the recording sees and refuses;
+    ``.numpy()`` and ``.tolist()`` read memory directly, so the recording would keep the
+    value read once as a constant. Refuse those here instead."""
+
+    _READS = {torch.Tensor.numpy, torch.Tensor.tolist, torch.Tensor.__array__}
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):
+        if func in self._READS:
+            raise NotRecordable(f"the update reads a tensor back into Python (.{func.__name__}())")
+        return func(*args, **(kwargs or {}))
 
 
 # Operators that only make a view (new shape, strides or offset over the same memory)
@@ -376,7 +390,7 @@ class _Hazards:
 
 
 class RecordedStep:
-    """``update(data.gather(idx))``: eager for ``WARMUP_STEPS``, recorded on the next
+    """``update(data.gather(idx))``: eager for ``RECORD_AFTER_STEPS``, recorded on the next
     step, replayed after that. The batch gather is part of the recording, so a step's
     only input is its (members, batch) index tensor."""
 
@@ -393,7 +407,7 @@ class RecordedStep:
     def __call__(self, idx: torch.Tensor) -> dict[str, torch.Tensor]:
         if self.replay is not None:
             return dict(zip(self.keys, self.replay([idx])))
-        if self.eager_steps < WARMUP_STEPS or self.kind == "not recordable":
+        if self.eager_steps < RECORD_AFTER_STEPS or self.kind == "not recordable":
             self.eager_steps += 1
             return self.update(self.data.gather(idx))
         return self._record(idx)
@@ -426,9 +440,12 @@ class RecordedStep:
         snapshot = Snapshot(getattr(self.update, "__self__", None))
         try:
             gm, outputs = record(step, [idx])  # this step, taken for real
-        except NotRecordable as exc:  # stopped part-way: undo what it did, take it eagerly
+        except Exception as exc:  # noqa: BLE001 - stopped part-way: undo what it did, take it eagerly
+            # (an error of the update itself is raised again there, as without recording)
             snapshot.restore()
-            self._refuse(str(exc))
+            self._refuse(str(exc) if isinstance(exc, NotRecordable) else
+                         f"its update could not be recorded ({type(exc).__name__}: {str(exc).splitlines()[0][:160]})")
+            self.keys = None
             return self.update(self.data.gather(idx))
         try:
             self.replay, self.kind = self._replayer(gm)
@@ -457,18 +474,23 @@ class RecordedStep:
 
 class Snapshot:
     """Copies of every tensor and generator state a learner's step can change (its
-    modules' parameters and buffers, its optimisers' state, its generators), to undo a
-    recording that stopped part-way."""
+    modules' parameters and buffers, its loose parameters, its optimisers' parameters
+    and state, its generators), to undo a recording that stopped part-way."""
 
     def __init__(self, learner):
         self.tensors: list[tuple[torch.Tensor, torch.Tensor]] = []
         self.generators: list[tuple[torch.Generator, torch.Tensor]] = []
         seen: set[int] = set()
-        for obj in _reachable(learner):
+        for _, obj in walk(learner, depth=2):
             if isinstance(obj, torch.nn.Module):
                 for t in [*obj.parameters(), *obj.buffers()]:
                     self._keep(t, seen)
+            elif isinstance(obj, torch.Tensor):  # a loose parameter (SAC's log-std)
+                self._keep(obj, seen)
             elif isinstance(obj, torch.optim.Optimizer):
+                for group in obj.param_groups:
+                    for t in group["params"]:
+                        self._keep(t, seen)
                 for state in obj.state.values():
                     for t in state.values():
                         if isinstance(t, torch.Tensor):
@@ -489,16 +511,6 @@ class Snapshot:
             gen.set_state(state)
 
 
-def _reachable(obj, depth: int = 2):
-    """``obj``'s attributes, and theirs, to ``depth`` levels (modules are not entered)."""
-    if obj is None or depth < 0 or not hasattr(obj, "__dict__"):
-        return
-    for value in vars(obj).values():
-        yield value
-        if not isinstance(value, (torch.nn.Module, torch.Tensor, torch.optim.Optimizer)):
-            yield from _reachable(value, depth - 1)
-
-
 def _free_grads(update) -> None:
     """The recording leaves the parameters' ``.grad`` set; replay never reads them."""
     learner = getattr(update, "__self__", None)
@@ -510,4 +522,4 @@ def _free_grads(update) -> None:
 
 def optimizers_of(obj) -> list[torch.optim.Optimizer]:
     """The optimisers held by a learner (its attributes and theirs)."""
-    return [v for v in _reachable(obj) if isinstance(v, torch.optim.Optimizer)]
+    return list(named(obj, torch.optim.Optimizer, depth=2).values())
