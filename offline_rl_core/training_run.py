@@ -113,12 +113,13 @@ def load_bags(paths: list[str], from_topics: str | None = None) -> tuple[Transit
     return (parts[0] if len(parts) == 1 else Transitions.concatenate(parts)), summary
 
 
-def console_progress(stream=sys.stderr) -> Callable[[Progress], None]:
+def console_progress(stream=None) -> Callable[[Progress], None]:
+    """Progress lines on ``stream`` (default: sys.stderr as it is when a line is printed)."""
     def report(p: Progress) -> None:
         rate = p.step / p.elapsed_s if p.elapsed_s > 0 else 0.0
         eta = (p.total - p.step) / rate if rate > 0 else 0.0
         losses = "  ".join(f"{k} {v:.4g}" for k, v in p.scalars.items())
-        print(f"  step {p.step:>6}/{p.total}  {rate:6.0f} steps/s  eta {eta:5.0f}s  {losses}", file=stream, flush=True)
+        print(f"  step {p.step:>6}/{p.total}  {rate:6.0f} steps/s  eta {eta:5.0f}s  {losses}", file=stream or sys.stderr, flush=True)
     return report
 
 
