@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 
 from ..errors import RunFailed, UserError
+from ..output_paths import check_output_dir
+from ..seeds import seed_arg
 from ..experiment import ExperimentConfig, format_table, run_experiment, summary_rows, verdict
 
 OFFLINE_ALGOS = ("awac", "iql", "filtered_bc", "naive", "auto")
@@ -20,8 +22,8 @@ def register(subparsers) -> None:
         "Training writes resume points every second, so a killed experiment loses little: rerun it with --resume.",
     )
     seeds = p.add_mutually_exclusive_group()
-    seeds.add_argument("--seed", type=int, default=None, help="one experiment seed (default 0)")
-    seeds.add_argument("--seeds", type=int, nargs="+", help="several seeds")
+    seeds.add_argument("--seed", type=seed_arg, default=None, help="one experiment seed (default 0)")
+    seeds.add_argument("--seeds", type=seed_arg, nargs="+", help="several seeds")
     p.add_argument("--algo", choices=OFFLINE_ALGOS, default=None,
                    help="offline learner compared with BC (default awac); auto: the learner and budget chosen from "
                         "each seed's dataset (README, 'The best prior')")
@@ -76,6 +78,7 @@ def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_output_dir(args.out, "--out")
     cfg = config_from_args(args)
     if args.resume_every <= 0:
         raise UserError(f"--resume-every must be > 0, got {args.resume_every}")
