@@ -10,7 +10,7 @@ import argparse
 import importlib
 import sys
 
-from .errors import UserError
+from .errors import RunFailed, UserError
 
 # Order is the order shown by --help.
 COMMAND_MODULES = (
@@ -50,9 +50,13 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         result = args.func(args)
-    except UserError as exc:
+    except (UserError, RunFailed) as exc:
         print(f"offline-rl: error: {exc}", file=sys.stderr)
         return exc.exit_code
+    except OSError as exc:  # a path that could not be written or read: name it, no traceback
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"offline-rl: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        return UserError.exit_code
     except KeyboardInterrupt:
         print("offline-rl: interrupted", file=sys.stderr)
         return 130

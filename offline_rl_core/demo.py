@@ -162,7 +162,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--bag", default="bags/mix.db3", help="training bag (default: %(default)s)")
     parser.add_argument("--steps", type=int, default=8000, help="gradient steps per learner (default: the chapter's 8000)")
     parser.add_argument("--record-episodes", type=int, default=10, help="episodes to record over ROS (default: %(default)s)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=seeds.seed_arg, default=0)
     args = parser.parse_args(argv)
     try:
         return run_demo(Path(args.out), Path(args.bag), args.steps, args.record_episodes, args.seed)

@@ -11,6 +11,13 @@ class UserError(Exception):
     exit_code = 2
 
 
+class RunFailed(Exception):
+    """A run stopped by something outside the user's input, e.g. a training worker killed
+    by the OOM killer. Printed like a UserError, as one line; exit status 1."""
+
+    exit_code = 1
+
+
 def caused_by_interrupt(exc: BaseException) -> bool:
     """True when ``exc`` comes from Ctrl-C: a KeyboardInterrupt raised inside a C
     extension (e.g. rclpy deserialising a message) can surface as another exception

@@ -8,6 +8,10 @@ interval. Training uses one worker process per core, each (learner, seed) run in
 one (``learners/parallel.py``); with one worker all seeds train together in this
 process (one ``train_seeds`` call for BC and one for the offline learner). Either way
 each seed trains on its own dataset and gets the same numbers.
+Each training job writes a resume point (``resume_bc.pt``, ``resume_offline.pt``, in the
+seed's directory, or in DIR when all seeds train together) every ``resume_every``
+seconds; ``resume=True`` continues a killed experiment from them with the same bytes.
+They are removed once the experiment has written its results.
 """
 
 from __future__ import annotations
@@ -19,10 +23,11 @@ from typing import Callable
 
 from .collect import collect_transitions
 from . import seeds
-from .atomic import write_json_atomic
+from .atomic import write_json_atomic, write_text_atomic
 from .evaluation import RolloutResult, format_rate, round6, rollout
 from .learners import Progress, TrainConfig
 from .learners.parallel import TrainJob, run_jobs
+from .learners.resume import ResumePoints
 from .learners.stepper import available_cores
 from .policy import save_checkpoint
 from .stats import excludes_zero, newcombe_diff_ci, wilson_ci
@@ -155,8 +160,10 @@ def _progress_printer(label: str, log: Callable[[str], None]) -> Callable[[Progr
     return report
 
 
-def run_experiment(cfg: ExperimentConfig, out_dir: str | Path, log: Callable[[str], None] = print) -> list[SeedOutcome]:
-    """Run the experiment for every seed of ``cfg``; writes metrics, checkpoints and plots."""
+def run_experiment(cfg: ExperimentConfig, out_dir: str | Path, log: Callable[[str], None] = print,
+                   resume: bool = False, resume_every: float = 1.0) -> list[SeedOutcome]:
+    """Run the experiment for every seed of ``cfg``; writes metrics, checkpoints and plots.
+    ``resume``: continue the training jobs from the resume points a killed run left."""
     from .plots import plot_training_curve
 
     out_dir = Path(out_dir)
@@ -174,8 +181,18 @@ def run_experiment(cfg: ExperimentConfig, out_dir: str | Path, log: Callable[[st
         log(f"seed {s}: collected {cfg.episodes} episodes ({len(data)} transitions, expert_frac {cfg.expert_frac})")
     log(f"collection took {time.perf_counter() - t0:.1f}s")
 
+    points: list[ResumePoints] = []
+
+    def resume_points(role: str, job_seeds: list[int]) -> ResumePoints:
+        where = seed_dirs[job_seeds[0]] if len(job_seeds) == 1 else out_dir
+        points.append(ResumePoints(where / f"resume_{role}.pt", resume_every, resume))
+        if resume:
+            log(f"resuming from {points[-1].path}" if points[-1].path.exists() else
+                f"no resume point at {points[-1].path}; starting")
+        return points[-1]
+
     plans = [cfg.offline_config(data, log) for data in datasets]
-    trained = train_all(cfg, seeds, datasets, log, [p[0] for p in plans])
+    trained = train_all(cfg, seeds, datasets, log, [p[0] for p in plans], resume_points)
     outcomes = []
     for m, s in enumerate(seeds):
         reset_seeds = eval_reset_seeds(s, cfg.n_seeds, cfg.eval_episodes)
@@ -197,23 +214,29 @@ def run_experiment(cfg: ExperimentConfig, out_dir: str | Path, log: Callable[[st
 
     if multi:
         write_summary(cfg, outcomes, out_dir)
+    for p in points:
+        p.done()  # the results are written: the resume points are spent
     log(f"total {time.perf_counter() - t0:.1f}s")
     return outcomes
 
 
 def train_all(cfg: ExperimentConfig, seeds: list[int], datasets: list, log: Callable[[str], None],
-              offline_cfgs: list[TrainConfig] | None = None) -> dict:
+              offline_cfgs: list[TrainConfig] | None = None,
+              resume_points: Callable[[str, list[int]], ResumePoints] | None = None) -> dict:
     """{"bc": [TrainResult per seed], "offline": [...]}: BC and the offline learner for
     every seed, one process per core. ``offline_cfgs``: the offline learner's config per
-    seed (default: ``cfg.train_config(cfg.algo)``)."""
+    seed (default: ``cfg.train_config(cfg.algo)``). ``resume_points(role, seeds)``: the
+    resume points of the job training ``role`` ("bc" or "offline") for those seeds."""
+    points = resume_points or (lambda role, job_seeds: None)
     offline_cfgs = offline_cfgs or [cfg.train_config(cfg.algo)] * len(seeds)
     per_seed = {"offline": offline_cfgs, "bc": [cfg.train_config("bc")] * len(seeds)}
     roles = ("offline", "bc")  # the heavier learner first: it starts first
     workers = cfg.worker_count()
     if workers == 1 and all(c == offline_cfgs[0] for c in offline_cfgs):
-        jobs = [TrainJob(per_seed[role][0].algo, datasets, per_seed[role][0], seeds) for role in roles]
+        jobs = [TrainJob(per_seed[role][0].algo, datasets, per_seed[role][0], seeds, points(role, seeds))
+                for role in roles]
     else:
-        jobs = [TrainJob(f"{per_seed[role][m].algo} s{s}", [datasets[m]], per_seed[role][m], [s])
+        jobs = [TrainJob(f"{per_seed[role][m].algo} s{s}", [datasets[m]], per_seed[role][m], [s], points(role, [s]))
                 for role in roles for m, s in enumerate(seeds)]
     workers = min(workers, len(jobs))
     where = "together in this process" if workers == 1 else f"in {workers} worker processes"
@@ -293,9 +316,7 @@ def write_summary(cfg: ExperimentConfig, outcomes: list[SeedOutcome], out_dir: P
         f"Success rates with 95% Wilson intervals; the difference with Newcombe's hybrid score interval.\n\n"
         + format_table(cfg, rows, markdown=True) + "\n\n" + verdict(cfg, rows[-1]) + "\n"
     )
-    tmp = out_dir / ".summary.md.tmp"
-    tmp.write_text(text, encoding="utf-8")
-    tmp.replace(out_dir / "summary.md")
+    write_text_atomic(out_dir / "summary.md", text)
     bars = []
     for r in rows:
         bc, off = r["bc"], r["offline"]

@@ -39,6 +39,7 @@ from . import seeds
 from .atomic import atomic_path, write_json_atomic
 from .bag import read_transitions
 from .errors import UserError
+from .output_paths import remove_if_empty
 from .evaluation import evaluate_policy
 from .policy import load_checkpoint, load_policy
 from .launch import LaunchedProcesses, find_launch_file, load_launch
@@ -47,6 +48,16 @@ from .stats import newcombe_diff_ci, wilson_ci
 from .transitions import SOURCE_HUMAN, SOURCE_POLICY
 
 DEFAULT_BAG = "bags/mix.db3"
+PROJECT_BAG = Path(__file__).resolve().parents[1] / DEFAULT_BAG  # where `make bag` writes it
+
+
+def default_bag() -> str:
+    """bags/mix.db3 of the working directory, else the project's (from anywhere)."""
+    return DEFAULT_BAG if Path(DEFAULT_BAG).exists() or not PROJECT_BAG.exists() else str(PROJECT_BAG)
+
+
+def no_such_bag(bag: str) -> UserError:
+    return UserError(f"{bag}: no such bag (in {Path.cwd()}); `make bag` writes {PROJECT_BAG}")
 DEMO_PRIOR = "runs/demo/awac/policy.pt"
 DEMO_AUTO_PRIOR = "runs/demo/auto/policy.pt"  # make demo's --algo auto prior
 EVAL_SEED = seeds.HELD_OUT
@@ -91,7 +102,7 @@ class HilConfig:
             raise UserError(f"--beta must be > 0, got {self.beta}")
         for bag in self.bags:
             if not Path(bag).exists():
-                raise UserError(f"{bag}: no such bag (make bag writes bags/mix.db3)")
+                raise no_such_bag(bag)
         if self.prior is not None and not Path(self.prior).exists():
             raise UserError(f"{self.prior}: no such checkpoint")
 
@@ -354,6 +365,7 @@ def plot_rounds(rows: list[dict], final: dict, path: Path) -> None:
 def run_hil(cfg: HilConfig, log: Callable[[str], None] = lambda s: print(s, file=sys.stderr, flush=True)) -> dict:
     cfg.validate()
     out = Path(cfg.out)
+    created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.monotonic()
     loop = Loop(cfg, log)
@@ -422,6 +434,9 @@ def run_hil(cfg: HilConfig, log: Callable[[str], None] = lambda s: print(s, file
             f"intervention rate {rows[0]['intervention_rate']:.3f} -> {rows[-1]['intervention_rate']:.3f}; "
             f"{summary['wall_seconds']:.0f} s; wrote {out / 'summary.json'} and {out / 'rounds.png'}")
         return summary
+    except BaseException:
+        remove_if_empty(out, created)  # a run that failed before writing anything leaves no directory
+        raise
     finally:
         loop.stop_all()
         if previous is not None:

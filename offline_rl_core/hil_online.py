@@ -30,6 +30,7 @@ import numpy as np
 
 from .atomic import write_json_atomic
 from .errors import UserError
+from .output_paths import remove_if_empty
 from .evaluation import evaluate_policy
 from .online_loop import EVAL_SEED, TRAIN_SEED_BASE, steps_to
 from .policy import load_checkpoint, load_policy
@@ -88,7 +89,9 @@ class OnlineHilConfig:
             raise UserError("--prior and --no-prior contradict each other")
         for bag in self.bags:
             if not Path(bag).exists():
-                raise UserError(f"{bag}: no such bag (make bag writes bags/mix.db3)")
+                from .hil import no_such_bag
+
+                raise no_such_bag(bag)
         if self.prior and not Path(self.prior).exists():
             raise UserError(f"{self.prior}: no such checkpoint")
 
@@ -97,6 +100,7 @@ def run_hil_online(cfg: OnlineHilConfig, log: Callable[[str], None] = lambda s: 
                                                                                            flush=True)) -> dict:
     cfg.validate()
     out = Path(cfg.out)
+    created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
     from .hil import HilConfig, Loop, _main_thread, _raise_interrupt, resolve_prior
 
@@ -110,6 +114,9 @@ def run_hil_online(cfg: OnlineHilConfig, log: Callable[[str], None] = lambda s: 
             result = _in_process(cfg, prior_path, log)
         else:
             result = _over_ros(cfg, loop, prior_path, out, log)
+    except BaseException:
+        remove_if_empty(out, created)  # a run that failed before writing anything leaves no directory
+        raise
     finally:
         loop.stop_all()
         if previous is not None:

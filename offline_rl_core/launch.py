@@ -104,6 +104,8 @@ def find_launch_file(package: str, file_name: str) -> Path:
     share = ament_index.package_share(package)
     if share is not None:
         candidates.append(share / "launch" / file_name)
+    elif not (REPO_SRC / package).is_dir():
+        raise UserError(f"Package '{package}' not found")
     candidates.append(REPO_SRC / package / "launch" / file_name)
     for path in candidates:
         if path.is_file():

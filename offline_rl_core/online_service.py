@@ -37,7 +37,7 @@ from .errors import UserError
 from .learners.config import TrainConfig
 from .learners.online import OnlineLearner, OnlineSettings, PriorMismatch
 from .joint_messages import VALUE_LIMIT
-from .output_paths import checked_output_dir
+from .output_paths import check_output_dir
 from .policy import (LoadedPolicy, checkpoint_from_bytes, checkpoint_to_bytes, load_checkpoint, policy_for_task,
                      save_checkpoint)
 from .rejections import Rejection, RejectionCounter
@@ -123,7 +123,8 @@ class LearnerService:
         from .training_run import load_bags
 
         self.cfg, self.log = cfg, log
-        self.out = checked_output_dir(cfg.out, "parameter out:")  # before the bags load: a bad path is refused at once
+        self.out = check_output_dir(cfg.out, "parameter out:")  # before the bags load: a bad path is refused at once
+        self.out.mkdir(parents=True, exist_ok=True)
         offline, _ = load_bags(cfg.bags)
         prior = load_checkpoint(cfg.prior) if cfg.prior else None  # validated as the policy node validates it
         if prior is not None:

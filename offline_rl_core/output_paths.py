@@ -1,50 +1,59 @@
-"""Where a long-running process will write, checked when it starts, not when it ends.
-
-A node that writes its file on exit (the sim's summary) or a directory of its own (the
-learner's ``out``) would otherwise find out after the whole run that it cannot. The rules
-follow the command line's: an output *file* needs an existing directory (as ``offline-rl
-collect --out`` does) unless the caller asks for it to be made (``make_parents``: a launch
-file naming a new session directory); a run *directory* is made with its parents (as
-``offline-rl train --out`` does).
-"""
+"""Checks of an output path before the work that fills it, so that a path that cannot be
+written fails in one line at the start, not with a traceback after minutes of training,
+rolling out or benchmarking (and before anything else of the run is written)."""
 
 from __future__ import annotations
 
 import os
+import tempfile
 from pathlib import Path
 
 from .errors import UserError
 
 
-def ensure_parent(path: str | os.PathLike, what: str, make_parents: bool = False) -> Path:
-    """``path``'s directory: existing and writable, or made when ``make_parents``; else a UserError."""
-    path = Path(path)
-    if not path.parent.is_dir() and not make_parents:
-        raise UserError(f"{what} {path}: the directory {path.parent} does not exist; create it first")
-    return _writable_dir(path.parent, f"{what} {path}: ", f"the directory {path.parent} ")
-
-
-def checked_output_file(path: str | os.PathLike, what: str, make_parents: bool = False) -> Path:
-    """A file to be written later: not a directory, in a writable directory."""
+def check_output_file(path: str | os.PathLike, flag: str) -> Path:
+    """``path`` (given as ``flag``) can be written as a file: not a directory, and its nearest
+    existing ancestor is a writable directory (missing directories are created on writing)."""
     path = Path(path)
     if path.is_dir():
-        raise UserError(f"{what} {path}: is a directory; expected a file to write")
-    ensure_parent(path, what, make_parents)
+        raise UserError(f"{flag} {path}: is a directory; expected a file path")
+    _check_parent(path, flag)
     return path
 
 
-def checked_output_dir(path: str | os.PathLike, what: str) -> Path:
-    """A run directory: made with its parents, writable."""
+def check_output_dir(path: str | os.PathLike, flag: str) -> Path:
+    """``path`` (given as ``flag``) is, or can be created as, a writable directory."""
     path = Path(path)
-    return _writable_dir(path, f"{what} {path}: ", "the directory ")
+    if path.exists() and not path.is_dir():
+        raise UserError(f"{flag} {path}: exists and is not a directory; expected a directory")
+    if path.is_dir():
+        _probe(path, path, flag)
+    else:
+        _check_parent(path, flag)
+    return path
 
 
-def _writable_dir(directory: Path, prefix: str, name: str) -> Path:
-    """``directory``, made with its parents if missing; a UserError ``prefix`` + why when it cannot be written."""
+def _check_parent(path: Path, flag: str) -> None:
+    ancestor = path.absolute().parent
+    while not ancestor.exists() and not ancestor.is_symlink() and ancestor != ancestor.parent:
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise UserError(f"{flag} {path}: cannot write: {ancestor} is a file, not a directory")
+    _probe(ancestor, path, flag)
+
+
+def _probe(directory: Path, path: Path, flag: str) -> None:
+    """Create and remove a file in ``directory``: the one test that permission bits, read-only
+    mounts and pseudo file systems (/proc) all answer truly."""
     try:
-        directory.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".offline-rl-probe.", dir=directory)
+        os.close(fd)
+        os.unlink(probe)
     except OSError as exc:
-        raise UserError(f"{prefix}cannot create {name}({exc.strerror or exc})") from None
-    if not os.access(directory, os.W_OK | os.X_OK):
-        raise UserError(f"{prefix}{name}is not writable")
-    return directory
+        raise UserError(f"{flag} {path}: cannot write in {directory} ({exc.strerror})") from None
+
+
+def remove_if_empty(path: Path, created: bool) -> None:
+    """Remove ``path`` if this run ``created`` it and a failure left it empty."""
+    if created and path.is_dir() and not any(path.iterdir()):
+        path.rmdir()

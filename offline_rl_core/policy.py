@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import io
 import os
+import pickle
 import warnings
 import zipfile
 from pathlib import Path
@@ -55,14 +56,43 @@ def checkpoint_from_bytes(data: bytes, source: str) -> dict:
 
 
 def _torch_load(f, source) -> dict:
+    problem = _not_a_checkpoint(f)
     try:
-        _check_zip_crcs(f)
-        with warnings.catch_warnings():  # a corrupt file's pickle-protocol notes say nothing the error does not
-            warnings.simplefilter("ignore")
-            return torch.load(f, map_location="cpu", weights_only=True)
+        if problem is None:
+            _check_zip_crcs(f)
+            with warnings.catch_warnings():  # a corrupt file's pickle-protocol notes say nothing the error does not
+                warnings.simplefilter("ignore")
+                return torch.load(f, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as exc:
+        problem = ("it holds objects other than tensors and plain values" if "weights_only" in str(exc)
+                   else "not a torch checkpoint")
     except Exception as exc:  # torch raises many types for corrupt files
-        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise UserError(f"{source}: not a readable pusher-rl checkpoint ({reason[:160]})") from None
+        problem = _first_words(exc)
+    raise UserError(f"{source}: not a readable pusher-rl checkpoint ({problem})") from None
+
+
+def _not_a_checkpoint(f) -> str | None:
+    """What the file is instead of a torch.save zip, in plain words (None: it may be one)."""
+    head = f.read(16)
+    size = f.seek(0, io.SEEK_END)
+    f.seek(0)
+    if size == 0:
+        return "the file is empty"
+    if head.startswith(b"SQLite format 3\x00"):
+        return "an SQLite database, e.g. a rosbag2 .db3 bag, not a torch checkpoint"
+    if head.startswith(b"\x89MCAP"):
+        return "an MCAP file, e.g. a rosbag2 .mcap bag, not a torch checkpoint"
+    if head.startswith(b"PK\x03\x04"):
+        return None if zipfile.is_zipfile(f) else "truncated: the torch zip archive ends early"
+    if head[:1] == b"\x80":
+        return None  # a pickle: torch's legacy format, judged by torch.load
+    return "not a torch checkpoint"
+
+
+def _first_words(exc: BaseException, limit: int = 160) -> str:
+    """The first line of ``exc``'s text, cut at a word boundary."""
+    text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    return text if len(text) <= limit else text[:limit].rsplit(" ", 1)[0] + " ..."
 
 
 def _check_zip_crcs(f) -> None:
@@ -72,7 +102,7 @@ def _check_zip_crcs(f) -> None:
         with zipfile.ZipFile(f) as archive:  # leaves ``f`` open
             bad = archive.testzip()
         if bad is not None:
-            raise ValueError(f"record {bad} fails its CRC check")
+            raise ValueError(f"damaged: record {bad} fails its CRC check")
     f.seek(0)
 
 

@@ -17,13 +17,17 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
+import torch
 
 from . import seeds
+from .seeds import seed_arg
 from .bag import read_transitions
 from .errors import UserError
 from .atomic import write_json_atomic
+from .output_paths import check_output_dir
 from .evaluation import evaluate_policy
 from .learners import ALGORITHMS, Progress, TrainConfig, train
+from .learners.config import CHOICES
 from .learners.resume import ResumePoints
 from .plots import plot_training_curve
 from .prior import plan_training
@@ -52,12 +56,12 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
                         help="train for about S seconds: converted to steps before training from the learner's step "
                              "rate on this machine (measured once, cached), and recorded in metrics.json; "
                              "--algo auto's default is the chapter's AWAC loop time on this machine")
-    parser.add_argument("--seed", type=int, default=0, help="seed of init and batch sampling (default: %(default)s)")
+    parser.add_argument("--seed", type=seed_arg, default=0, help="seed of init and batch sampling (default: %(default)s)")
     parser.add_argument("--out", metavar="DIR",
                         help="output directory for policy.pt, metrics.json, training_curve.png (default: runs/ALGO-seedS)")
     parser.add_argument("--eval-episodes", type=int, default=100,
                         help="held-out rollouts after training, 0 to skip (default: %(default)s)")
-    parser.add_argument("--eval-seed", type=int, default=DEFAULT_EVAL_SEED,
+    parser.add_argument("--eval-seed", type=seed_arg, default=DEFAULT_EVAL_SEED,
                         help="first reset seed of the evaluation rollouts (default: %(default)s)")
     parser.add_argument("--init", metavar="CHECKPOINT", help="warm-start policy (and critics if stored) from a checkpoint")
     parser.add_argument("--resume", action="store_true",
@@ -72,6 +76,8 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
         options = dict(default=default, help=f.metadata["help"] + (" (default: %(default)s)" if default is not None else ""))
         if isinstance(default, bool):
             options["action"] = argparse.BooleanOptionalAction
+        elif f.name in CHOICES:
+            options["choices"] = CHOICES[f.name]
         else:
             options["type"] = type(default) if default is not None else (f.metadata.get("kind") or float)
         groups[f.metadata["group"]].add_argument(flag, **options)
@@ -107,12 +113,13 @@ def load_bags(paths: list[str], from_topics: str | None = None) -> tuple[Transit
     return (parts[0] if len(parts) == 1 else Transitions.concatenate(parts)), summary
 
 
-def console_progress(stream=sys.stderr) -> Callable[[Progress], None]:
+def console_progress(stream=None) -> Callable[[Progress], None]:
+    """Progress lines on ``stream`` (default: sys.stderr as it is when a line is printed)."""
     def report(p: Progress) -> None:
         rate = p.step / p.elapsed_s if p.elapsed_s > 0 else 0.0
         eta = (p.total - p.step) / rate if rate > 0 else 0.0
         losses = "  ".join(f"{k} {v:.4g}" for k, v in p.scalars.items())
-        print(f"  step {p.step:>6}/{p.total}  {rate:6.0f} steps/s  eta {eta:5.0f}s  {losses}", file=stream, flush=True)
+        print(f"  step {p.step:>6}/{p.total}  {rate:6.0f} steps/s  eta {eta:5.0f}s  {losses}", file=stream or sys.stderr, flush=True)
     return report
 
 
@@ -136,9 +143,7 @@ def run_training(
     """Train ``cfg`` on the bags and write the run's files to ``out_dir``. ``auto``: the
     learner is the one ``prior.plan_training`` picks for the bag; ``auto`` or ``budget_s``:
     as many steps as the budget allows, unless ``steps`` is given (then ``steps``)."""
-    out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise UserError(f"{out}: exists and is not a directory; --out needs a directory")
+    out = check_output_dir(out_dir, "--out")
     if eval_episodes < 0:
         raise UserError(f"--eval-episodes must be >= 0, got {eval_episodes}")
     data, bag_summary = load_bags(bags, from_topics)
@@ -157,10 +162,8 @@ def run_training(
     if resume:
         log(f"resuming from {points.path}" if points.path.exists() else f"no resume point at {points.path}; starting")
     log(f"training {cfg.algo} on {len(data)} transitions from {len(bags)} bag(s), {cfg.steps} steps, seed {seed}")
-    try:
-        result = train(data, cfg, seed, progress=progress, init=init_ckpt, resume=points)
-    except ValueError as exc:  # an unreadable or foreign resume point
-        raise UserError(str(exc)) from None
+    result = train(data, cfg, seed, progress=progress, init=init_ckpt, resume=points)  # UserError: a bad resume point
+    _check_finite(result.checkpoint, cfg, points)
 
     metrics: dict = {
         "algorithm": cfg.algo,
@@ -186,6 +189,16 @@ def run_training(
     plot_training_curve(result.history, out / "training_curve.png", title=f"{cfg.algo} seed {seed}")
     points.done()  # the run is complete: its resume point is spent
     return out
+
+
+def _check_finite(checkpoint: dict, cfg: TrainConfig, points: ResumePoints) -> None:
+    """Refuse to write weights the loader would refuse: a diverged run keeps the previous
+    checkpoint (and its spent resume point goes; resuming would diverge again)."""
+    bad = [name for name, tensor in checkpoint["policy_state"].items() if not bool(torch.isfinite(tensor).all())]
+    if bad:
+        points.done()
+        raise UserError(f"{cfg.algo} diverged: policy weight '{bad[0]}' is not finite after {cfg.steps} steps; "
+                        f"nothing written (try a smaller --lr or --beta)")
 
 
 def default_out_dir(algo: str, seed: int) -> str:

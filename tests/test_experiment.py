@@ -2,6 +2,13 @@
 
 import dataclasses
 import json
+import multiprocessing
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
 
 import pytest
 import torch
@@ -115,3 +122,57 @@ def test_a_run_takes_the_cores_of_finished_runs_and_trains_the_same_bytes():
     assert alone.checkpoint["train_threads"] == 1
     for name, value in alone.checkpoint["policy_state"].items():
         assert torch.equal(spread.checkpoint["policy_state"][name], value), name
+
+
+def test_a_killed_worker_fails_the_experiment_at_once_naming_its_job(tmp_path, capsys):
+    """A worker killed by the OOM killer (here SIGKILL by pid) fails the experiment with
+    one line naming its job and a non-zero exit; the other worker is stopped, not awaited."""
+    out = tmp_path / "run"
+    codes = []
+    experiment = threading.Thread(target=lambda: codes.append(main([
+        "experiment", "--smoke", "--episodes", "2", "--steps", "1000000", "--workers", "2", "--out", str(out)])),
+        daemon=True)
+    experiment.start()
+    deadline = time.monotonic() + 300  # a bound, should this ever hang; not a timing assertion
+    while not (out / "resume_bc.pt").exists():  # the BC job is training in its worker
+        assert experiment.is_alive() and time.monotonic() < deadline, capsys.readouterr()
+        time.sleep(0.01)
+    (worker,) = [c for c in multiprocessing.active_children() if c.name == "training worker for 'bc s0'"]
+    os.kill(worker.pid, signal.SIGKILL)
+    experiment.join(timeout=120)
+    assert not experiment.is_alive(), "the experiment still waits for its dead worker"
+    assert codes == [1]
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("offline-rl: error: training worker for 'bc s0' died (killed by signal 9, SIGKILL")
+    assert "--resume" in err[-1] and "Traceback" not in "".join(err)
+    assert multiprocessing.active_children() == []  # the AWAC worker was stopped
+
+
+EXPERIMENT = [sys.executable, "-m", "offline_rl_core", "experiment", "--smoke", "--seed", "0", "--episodes", "8",
+              "--steps", "1000"]
+
+
+def test_a_killed_experiment_resumes_to_the_same_bytes(tmp_path, capsys):
+    """SIGKILL mid-training loses at most the last resume point's worth of training:
+    --resume continues the jobs and gives the same metrics.json bytes as a run never stopped."""
+    killed = tmp_path / "killed"
+    proc = subprocess.Popen([*EXPERIMENT, "--out", str(killed), "--resume-every", "0.1"],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        for line in proc.stdout:  # the offline learner has trained; BC's first progress line
+            if " bc step" in line:
+                break
+        else:
+            pytest.fail("the experiment ended before BC trained")
+        assert (killed / "resume_offline.pt").exists() and (killed / "resume_bc.pt").exists()
+        os.kill(proc.pid, signal.SIGKILL)
+    finally:
+        proc.kill()
+        proc.wait()
+    assert not (killed / "metrics.json").exists()  # killed mid-training
+
+    assert main([*EXPERIMENT[3:], "--out", str(killed), "--resume"]) == 0
+    assert f"resuming from {killed / 'resume_bc.pt'}" in capsys.readouterr().out
+    assert main([*EXPERIMENT[3:], "--out", str(tmp_path / "whole")]) == 0
+    assert (killed / "metrics.json").read_bytes() == (tmp_path / "whole" / "metrics.json").read_bytes()
+    assert not list(killed.glob("*resume*"))  # spent once the results are written, temp files too

@@ -175,7 +175,7 @@ def test_a_prior_that_does_not_fit_the_learner_is_one_clear_line(tmp_path, files
             _service(tmp_path, d / "offline.db3", path, "out")
         assert str(refused.value).startswith(f"{path}: ") and expected in str(refused.value), str(refused.value)
     (tmp_path / "file").write_text("")
-    with pytest.raises(UserError, match=r"parameter out: .*/file/out: cannot create the directory \(Not a directory\)"):
+    with pytest.raises(UserError, match=r"parameter out: .*/file/out: cannot write: .*/file is a file"):
         _service(tmp_path / "file", d / "offline.db3", d / "prior.pt", "out")  # at start, not at the first save
 
 

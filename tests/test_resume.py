@@ -69,3 +69,25 @@ def test_a_resume_point_of_another_run_is_refused(tmp_path):
     assert other.returncode == 2
     assert "resume.pt: that resume point is of another run" in other.stderr
     assert "Traceback" not in other.stderr
+
+
+def test_a_resume_point_write_killed_half_way_leaves_no_temp_file_behind_the_next_run(tmp_path):
+    """A kill during a resume point's write leaves its partial temp file (as big as the
+    resume point); the next run, resumed or not, removes it and keeps the other files."""
+    from offline_rl_core.collect import collect_transitions
+    from offline_rl_core.learners import TrainConfig, train_seeds
+    from offline_rl_core.learners.resume import ResumePoints
+
+    path = tmp_path / "resume.pt"
+    half_write = ("import os, signal, sys\nfrom offline_rl_core.atomic import atomic_path\n"
+                  "with atomic_path(sys.argv[1]) as tmp:\n    tmp.write_bytes(b'half a resume point')\n"
+                  "    os.kill(os.getpid(), signal.SIGKILL)\n")
+    data = collect_transitions(2, 0.5, 0)
+    (tmp_path / "metrics.json").write_text("{}")
+    for resume in (False, True):
+        killed = subprocess.run([sys.executable, "-c", half_write, str(path)])
+        assert killed.returncode == -signal.SIGKILL
+        assert len(list(tmp_path.glob(".resume.pt.*.tmp"))) == 1
+        train_seeds(data, TrainConfig(algo="bc", steps=3, batch_size=8, hidden=8), [0],
+                    resume=ResumePoints(path, resume=resume))
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["metrics.json", "resume.pt"]  # this run's own

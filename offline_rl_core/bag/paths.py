@@ -50,8 +50,52 @@ def resolve_target(path: str | os.PathLike, storage: str | None = None) -> BagTa
         raise UserError(f"{path}: storage {storage!r} does not match the {path.suffix} suffix (that is {suffix_storage})")
     parent = path.parent
     if not parent.is_dir():
+        if parent.exists():
+            raise UserError(f"{path}: {parent} is a file, not a directory")
         raise UserError(f"{path}: the directory {parent} does not exist; create it first")
     return BagTarget(path, suffix_storage or storage or "sqlite3", suffix_storage is not None)
+
+
+def check_replaceable(target: BagTarget, overwrite: bool) -> None:
+    """Refuse an existing ``target`` unless ``overwrite`` and it is a bag: a text file, a
+    database or a directory of other files at a bag's path is never replaced."""
+    path = target.path
+    if not (path.exists() or path.is_symlink()):
+        return
+    if not overwrite:
+        raise UserError(f"{path} exists already; not overwriting a recording")
+    if target.single_file and path.is_dir():
+        raise UserError(f"{path} is a directory; expected a {path.suffix} file or a new path")
+    if not target.single_file and not (path / "metadata.yaml").is_file():
+        raise UserError(f"{path} exists and is not a rosbag2 bag directory (no metadata.yaml); not replacing it")
+    if target.single_file and not _is_bag_file(path):
+        raise UserError(f"{path} exists and is not a rosbag2 {target.storage} bag file; not replacing it")
+
+
+def _is_bag_file(path: Path) -> bool:
+    """An MCAP file, or an sqlite3 database with rosbag2's topics and messages tables."""
+    try:
+        with path.open("rb") as f:
+            head = f.read(16)
+    except OSError:
+        return False
+    from .storage_mcap import MAGIC
+
+    if head.startswith(MAGIC):
+        return True
+    if not head.startswith(b"SQLite format 3\x00"):
+        return False
+    import sqlite3
+
+    try:
+        db = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
+        try:
+            tables = {row[0] for row in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+        finally:
+            db.close()
+    except sqlite3.Error:
+        return False
+    return {"topics", "messages"} <= tables
 
 
 class StagedBag:
@@ -60,13 +104,7 @@ class StagedBag:
     def __init__(self, target: BagTarget, overwrite: bool):
         self.target = target
         path = target.path
-        if path.exists() or path.is_symlink():
-            if not overwrite:
-                raise UserError(f"{path} exists already; not overwriting a recording")
-            if target.single_file and path.is_dir():
-                raise UserError(f"{path} is a directory; expected a {path.suffix} file or a new path")
-            if not target.single_file and not (path / "metadata.yaml").is_file():
-                raise UserError(f"{path} exists and is not a rosbag2 bag directory (no metadata.yaml); not replacing it")
+        check_replaceable(target, overwrite)
         self.tmpdir = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent))
         # rosbags names the storage file after the bag directory: <dir>/<name>.db3.
         self.bag_dir = self.tmpdir / (path.stem if target.single_file else path.name)

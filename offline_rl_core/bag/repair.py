@@ -64,6 +64,21 @@ def _old_metadata(bag_dir: Path) -> dict:
         return {}
 
 
+def _facts(info: dict) -> tuple | None:
+    """What a metadata.yaml says about the bag's files and messages; a healthy bag's file is
+    left alone even where its writer spelled the rest differently (version, empty QoS)."""
+    try:
+        files = tuple((f["path"], f["message_count"], f["duration"]["nanoseconds"],
+                       f["starting_time"]["nanoseconds_since_epoch"]) for f in info["files"])
+        topics = sorted((t["topic_metadata"]["name"], t["topic_metadata"]["type"],
+                         t["topic_metadata"]["serialization_format"], t["message_count"])
+                        for t in info["topics_with_message_count"])
+        return (info["storage_identifier"], tuple(info["relative_file_paths"]), info["message_count"],
+                info["duration"]["nanoseconds"], info["starting_time"]["nanoseconds_since_epoch"], files, topics)
+    except (KeyError, TypeError):
+        return None  # missing or malformed: rebuilt
+
+
 def _repair_directory(bag_dir: Path) -> list[str]:
     old = _old_metadata(bag_dir)
     listed = [Path(str(p)).name for p in old.get("relative_file_paths") or []]
@@ -82,7 +97,7 @@ def _repair_directory(bag_dir: Path) -> list[str]:
         topics += file_topics
         files.append(stats)
     info = bag_metadata(storage_id, files, topics, old.get("custom_data"), old.get("ros_distro") or ros_distro())
-    if YAML(typ="safe").load(dump_yaml(info)) != old:
+    if _facts(YAML(typ="safe").load(dump_yaml(info))) != _facts(old):
         write_metadata_yaml(bag_dir, info)
         what = "rebuilt" if not old else "rewrote"
         done.append(f"{what} metadata.yaml: {len(files)} file(s), {info['message_count']} messages")

@@ -246,15 +246,6 @@ def results_json(figures: list[Figure], settings: BenchSettings, machine: dict, 
     return out
 
 
-def write_json(path: str | os.PathLike, payload: dict) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(payload, indent=2, sort_keys=True) + "\n", encoding="utf-8")
-    tmp.replace(path)
-    return path
-
-
 def run_bench(settings: BenchSettings, only: list[str] | None = None, log: Callable[[str], None] = print) -> tuple[list[Figure], dict]:
     """Run the selected figure groups; returns the figures and the JSON payload."""
     import importlib

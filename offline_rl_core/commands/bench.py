@@ -7,6 +7,7 @@ import os
 import sys
 
 from ..errors import UserError
+from ..output_paths import check_output_file
 
 
 def register(subparsers) -> None:
@@ -49,17 +50,23 @@ def _rerun_with_isa_cap(isa: str) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..benchmarks.harness import GROUPS, BenchSettings, format_table, run_bench, write_json
+    from ..atomic import write_json_atomic
+    from ..benchmarks.harness import GROUPS, BenchSettings, format_table, run_bench
 
     _rerun_with_isa_cap(args.isa)
 
-    only = [g.strip() for g in args.only.split(",") if g.strip()] if args.only else None
-    if only:
+    only = None
+    if args.only is not None:
+        only = [g.strip() for g in args.only.split(",") if g.strip()]
+        if not only:
+            raise UserError(f"--only: expected some of {', '.join(GROUPS)} (comma-separated), got '{args.only}'")
         unknown = [g for g in only if g not in GROUPS]
         if unknown:
             raise UserError(f"--only: unknown group(s) {', '.join(unknown)}; expected some of {', '.join(GROUPS)}")
     if args.threads is not None and args.threads < 1:
         raise UserError(f"--threads must be >= 1, got {args.threads}")
+    if args.json:
+        check_output_file(args.json, "--json")  # before the minutes of measuring
     settings = BenchSettings.tiny_settings() if args.tiny else BenchSettings.quick_settings() if args.quick else BenchSettings()
     settings.threads = args.threads
     from ..learners.config import check_device
@@ -73,6 +80,6 @@ def run(args: argparse.Namespace) -> int:
     print()
     print(format_table(figures, markdown=args.markdown))
     if args.json:
-        path = write_json(args.json, payload)
+        path = write_json_atomic(args.json, payload)
         print(f"wrote {path}")
     return 0

@@ -7,9 +7,10 @@ from pathlib import Path
 
 from ..bag import write_transitions
 from ..bag.info import summarize_sources
-from ..bag.paths import resolve_target
+from ..bag.paths import check_replaceable, resolve_target
 from ..collect import collect_transitions, expert_episode_count
 from ..errors import UserError
+from ..seeds import seed_arg
 
 
 def register(subparsers) -> None:
@@ -24,10 +25,11 @@ def register(subparsers) -> None:
     )
     parser.add_argument("--episodes", type=int, default=200, help="episodes to roll out (default: 200)")
     parser.add_argument("--expert-frac", type=float, default=0.3, help="fraction of expert episodes (default: 0.3)")
-    parser.add_argument("--seed", type=int, default=0, help="episode ep resets with seed + ep (default: 0)")
+    parser.add_argument("--seed", type=seed_arg, default=0, help="episode ep resets with seed + ep (default: 0)")
     parser.add_argument(
         "--out", required=True, type=Path,
-        help="bag to write: x.db3 or x.mcap (single file), else a bag directory; replaced atomically",
+        help="bag to write: x.db3 or x.mcap (single file), else a bag directory; an existing bag is replaced "
+             "atomically, any other existing file or directory is refused",
     )
     parser.add_argument("--storage", choices=("sqlite3", "mcap"), default=None,
                         help="storage of a bag directory (default: from the suffix, else sqlite3)")
@@ -40,6 +42,7 @@ def run(args) -> int:
     if not 0.0 <= args.expert_frac <= 1.0:
         raise UserError(f"--expert-frac must be in [0, 1], got {args.expert_frac}")
     target = resolve_target(args.out, args.storage)  # refuse a bad --out before rolling out
+    check_replaceable(target, overwrite=True)  # an existing bag is replaced; anything else is kept
     n_expert = expert_episode_count(args.episodes, args.expert_frac)
     print(
         f"collect: {args.episodes} episodes ({n_expert} expert, {args.episodes - n_expert} random), seed {args.seed}",

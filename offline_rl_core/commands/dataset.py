@@ -6,11 +6,12 @@ import argparse
 import json
 from pathlib import Path
 
-from ..atomic import atomic_path
+from ..atomic import write_text_atomic
 from ..bag import write_transitions
 from ..bag.info import summarize_sources
 from ..bag.paths import resolve_target
 from ..errors import UserError
+from ..output_paths import check_output_file
 from ..raw_topics import load_spec, transitions_from_topics
 
 REPORT_KEY = "offline_rl.dataset"  # the bag's custom metadata entry holding the join report (JSON)
@@ -63,12 +64,13 @@ def run(args) -> int:
         raise UserError(f"{args.out_bag}: OUT_BAG is the input bag; write the transitions to another path")
     if (target.path.exists() or target.path.is_symlink()) and not args.overwrite:
         raise UserError(f"{target.path} exists already; pass --overwrite to replace it")
+    if args.report:
+        check_output_file(args.report, "--report")  # before OUT_BAG is written
     data, report = transitions_from_topics(args.in_bag, spec)
     text = json.dumps(report.as_dict(), sort_keys=True)
     write_transitions(target.path, data, storage=target.storage, custom_data={REPORT_KEY: text})
     if args.report:
-        with atomic_path(args.report) as tmp:
-            tmp.write_text(json.dumps(report.as_dict(), indent=2) + "\n")
+        write_text_atomic(args.report, json.dumps(report.as_dict(), indent=2) + "\n")
     print(report.format())
     print(f"wrote {target.path}: {len(data)} transitions in {report.episodes} episodes")
     for s in summarize_sources(data):

@@ -7,8 +7,9 @@ import argparse
 from ..errors import UserError
 from ..atomic import write_json_atomic
 from ..evaluation import evaluate_policy, format_rate
+from ..output_paths import check_output_file
 from ..policy import load_policy
-from ..seeds import HELD_OUT
+from ..seeds import HELD_OUT, seed_arg
 
 
 def register(subparsers) -> None:
@@ -16,11 +17,11 @@ def register(subparsers) -> None:
         "eval",
         help="roll a checkpoint out on held-out reset seeds",
         description="Roll a checkpoint out for N episodes on reset seeds SEED..SEED+N-1 and report "
-        "the success rate with its 95 %% Wilson interval and the mean final distance.",
+        "the success rate with its 95 % Wilson interval and the mean final distance.",
     )
-    p.add_argument("--checkpoint", required=True, help="policy checkpoint (.pt, or a directory holding policy.pt)")
+    p.add_argument("--checkpoint", required=True, help="policy checkpoint (.pt, or a directory holding policy.pt, such as a train --out DIR)")
     p.add_argument("--episodes", type=int, default=100, help="episodes to roll out (default 100)")
-    p.add_argument("--seed", type=int, default=HELD_OUT, help=f"first reset seed (default {HELD_OUT}, the held-out range)")
+    p.add_argument("--seed", type=seed_arg, default=HELD_OUT, help=f"first reset seed (default {HELD_OUT}, the held-out range)")
     p.add_argument("--json", metavar="OUT", help="also write the results as JSON to OUT")
     p.add_argument("--sequential", action="store_true", help="one env at a time (reference loop) instead of batched")
     p.set_defaults(func=run)
@@ -29,6 +30,8 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.episodes < 1:
         raise UserError(f"--episodes must be >= 1, got {args.episodes}")
+    if args.json:
+        check_output_file(args.json, "--json")
     policy = load_policy(args.checkpoint)
     result = evaluate_policy(policy, args.episodes, args.seed, batched=not args.sequential, checkpoint=str(args.checkpoint))
     print(f"checkpoint      {args.checkpoint} ({policy.algorithm})")

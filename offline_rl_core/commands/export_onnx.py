@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from ..onnx_export import export_onnx, verify_onnx
+from ..output_paths import check_output_file
 from ..policy import load_policy
 
 
@@ -15,13 +16,14 @@ def register(subparsers) -> None:
         description="Export the policy of a checkpoint to ONNX (input 'obs' [batch, 8], output 'action' "
         "[batch, 2]) and check with onnxruntime that it matches the checkpoint to 1e-5.",
     )
-    p.add_argument("--checkpoint", required=True, help="policy checkpoint (.pt)")
+    p.add_argument("--checkpoint", required=True, help="policy checkpoint (.pt, or a directory holding policy.pt, such as a train --out DIR)")
     p.add_argument("--out", required=True, help="where to write the .onnx file")
     p.add_argument("--no-verify", action="store_true", help="skip the onnxruntime comparison")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    check_output_file(args.out, "--out")
     policy = load_policy(args.checkpoint)
     out = export_onnx(policy, args.out)
     print(f"wrote {out} (input 'obs' [batch, {policy.obs_dim}] -> output 'action' [batch, {policy.act_dim}])")

@@ -4,15 +4,44 @@ from __future__ import annotations
 
 import json
 
-from ..hil import DEFAULT_BAG, EVAL_SEED, HilConfig, run_hil
+from ..errors import UserError
+from ..output_paths import check_output_dir
+from ..hil import EVAL_SEED, HilConfig, default_bag, run_hil
 from ..hil_online import OnlineHilConfig, run_hil_online
+from ..seeds import seed_arg
+
+
+# Flags of one mode only: their defaults are filled in by mode, so that one given to the
+# other mode is refused instead of silently ignored.
+OFFLINE_ONLY = ("rounds", "episodes", "steps", "correction_ratio", "beta", "patience", "hold_steps", "grace_steps",
+                "noise", "reaction_delay")
+ONLINE_ONLY = ("env_steps", "corrector", "mode", "prior_algo", "no_prior", "utd", "publish_every", "eval_every",
+               "in_process")
+
+
+def _resolve_mode_flags(args) -> None:
+    ours, theirs, defaults = ((ONLINE_ONLY, OFFLINE_ONLY, OnlineHilConfig()) if args.online
+                              else (OFFLINE_ONLY, ONLINE_ONLY, HilConfig()))
+    given = [name for name in theirs if getattr(args, name) is not None]
+    if given:
+        flags = ", ".join("--" + name.replace("_", "-") for name in given)
+        raise UserError(f"{flags}: only with{'out' if args.online else ''} --online; "
+                        f"{'the online stage' if args.online else 'the offline rounds'} do not use it")
+    for name in ours:
+        if getattr(args, name) is None:
+            setattr(args, name, getattr(defaults, name))
+    if args.out is None:
+        args.out = defaults.out
+    args.bag = args.bag or [default_bag()]
+    check_output_dir(args.out, "--out")
 
 
 def _run(args) -> int:
+    _resolve_mode_flags(args)
     if args.online:
         return _run_online(args)
     cfg = HilConfig(
-        out=args.out, rounds=args.rounds, episodes=args.episodes, prior=args.prior, bags=args.bag or [DEFAULT_BAG],
+        out=args.out, rounds=args.rounds, episodes=args.episodes, prior=args.prior, bags=args.bag,
         seed=args.seed, prior_steps=args.prior_steps, steps=args.steps, correction_ratio=args.correction_ratio,
         eval_episodes=args.eval_episodes, eval_seed=args.eval_seed, patience=args.patience,
         hold_steps=args.hold_steps, grace_steps=args.grace_steps, beta=args.beta, noise=args.noise, reaction_delay=args.reaction_delay,
@@ -25,10 +54,10 @@ def _run(args) -> int:
 
 def _run_online(args) -> int:
     cfg = OnlineHilConfig(
-        out=args.out if args.out != HilConfig().out else OnlineHilConfig().out, env_steps=args.env_steps,
+        out=args.out, env_steps=args.env_steps,
         seed=args.seed, prior=args.prior, no_prior=args.no_prior, prior_steps=args.prior_steps,
         prior_algo=args.prior_algo,
-        bags=args.bag or [DEFAULT_BAG], corrector=args.corrector, mode=args.mode, utd=args.utd,
+        bags=args.bag, corrector=args.corrector, mode=args.mode, utd=args.utd,
         publish_every=args.publish_every, eval_every=args.eval_every, eval_episodes=args.eval_episodes,
         eval_seed=args.eval_seed, in_process=args.in_process)
     summary = run_hil_online(cfg)
@@ -38,7 +67,7 @@ def _run_online(args) -> int:
 
 
 def register(subparsers) -> None:
-    d = HilConfig()
+    d, od = HilConfig(), OnlineHilConfig()
     p = subparsers.add_parser(
         "hil",
         help="HIL-SERL corrections loop over ROS: serve, correct, record, retrain, reload",
@@ -47,50 +76,51 @@ def register(subparsers) -> None:
         "served checkpoint on the offline bag plus all corrections (trainer node, --correction-ratio), reload. "
         "Writes DIR/summary.json and DIR/rounds.png. With --online: the HIL-SERL stage itself, the online "
         "learner fine-tuning the prior from the live stream while the policy node acts (DIR/summary.json with the "
-        "learning curve, DIR/online.png).",
+        "learning curve, DIR/online.png). The flags of one mode are refused in the other.",
     )
-    p.add_argument("--out", default=d.out, metavar="DIR", help="output directory (default: %(default)s)")
-    p.add_argument("--rounds", type=int, default=d.rounds, help="correction rounds (default: %(default)s)")
-    p.add_argument("--episodes", type=int, default=d.episodes, help="corrected episodes per round (default: %(default)s)")
+    p.add_argument("--out", default=None, metavar="DIR", help=f"output directory (default: {d.out}; with --online: {od.out})")
     p.add_argument("--prior", metavar="CKPT", help="checkpoint to start from (default: train AWAC on --bag (--online: see --prior-algo), or reuse "
                    "runs/demo/awac/policy.pt when it was trained so)")
-    p.add_argument("--bag", action="append", metavar="PATH", help=f"offline bag(s) of the prior (default: {DEFAULT_BAG})")
-    p.add_argument("--seed", type=int, default=d.seed, help="seed of training and of the corrector (default: %(default)s)")
+    p.add_argument("--bag", action="append", metavar="PATH",
+                   help="offline bag(s) of the prior (default: bags/mix.db3 here, else the project's)")
+    p.add_argument("--seed", type=seed_arg, default=d.seed, help="seed of training and of the corrector (default: %(default)s)")
     p.add_argument("--prior-steps", type=int, default=d.prior_steps, help="steps of the prior's training (default: %(default)s)")
-    p.add_argument("--steps", type=int, default=d.steps, help="retraining steps per round (default: %(default)s)")
-    p.add_argument("--correction-ratio", type=float, default=d.correction_ratio,
-                   help="share of each batch from correction runs (default: %(default)s)")
-    p.add_argument("--beta", type=float, default=d.beta, help="AWAC temperature of the retraining (default: %(default)s)")
     p.add_argument("--eval-episodes", type=int, default=d.eval_episodes,
                    help="held-out rollouts per evaluation (default: %(default)s)")
-    p.add_argument("--eval-seed", type=int, default=EVAL_SEED, help="first held-out reset seed (default: %(default)s)")
-    c = p.add_argument_group("scripted corrector")
-    c.add_argument("--patience", type=int, default=d.patience, help="k: steps without progress before a takeover (default: %(default)s)")
-    c.add_argument("--hold-steps", type=int, default=d.hold_steps, help="m: steps before handing back (default: %(default)s)")
-    c.add_argument("--grace-steps", type=int, default=d.grace_steps,
-                   help="states at an episode's start before progress is judged (default: %(default)s)")
-    c.add_argument("--noise", type=float, default=d.noise, help="std of noise on the corrections (default: %(default)s)")
-    c.add_argument("--reaction-delay", type=int, default=d.reaction_delay, help="steps of reaction delay (default: %(default)s)")
+    p.add_argument("--eval-seed", type=seed_arg, default=EVAL_SEED, help="first held-out reset seed (default: %(default)s)")
+    r = p.add_argument_group("offline rounds (without --online)")
+    r.add_argument("--rounds", type=int, help=f"correction rounds (default: {d.rounds})")
+    r.add_argument("--episodes", type=int, help=f"corrected episodes per round (default: {d.episodes})")
+    r.add_argument("--steps", type=int, help=f"retraining steps per round (default: {d.steps})")
+    r.add_argument("--correction-ratio", type=float,
+                   help=f"share of each batch from correction runs (default: {d.correction_ratio})")
+    r.add_argument("--beta", type=float, help=f"AWAC temperature of the retraining (default: {d.beta})")
+    c = p.add_argument_group("scripted corrector of the offline rounds")
+    c.add_argument("--patience", type=int, help=f"k: steps without progress before a takeover (default: {d.patience})")
+    c.add_argument("--hold-steps", type=int, help=f"m: steps before handing back (default: {d.hold_steps})")
+    c.add_argument("--grace-steps", type=int,
+                   help=f"states at an episode's start before progress is judged (default: {d.grace_steps})")
+    c.add_argument("--noise", type=float, help=f"std of noise on the corrections (default: {d.noise})")
+    c.add_argument("--reaction-delay", type=int, help=f"steps of reaction delay (default: {d.reaction_delay})")
     o = p.add_argument_group("online stage (--online)")
-    od = OnlineHilConfig()
     o.add_argument("--online", action="store_true", help="run the online learner instead of offline rounds "
-                   "(default output directory: runs/hil-online)")
-    o.add_argument("--env-steps", type=int, default=od.env_steps, help="environment steps of the session "
-                   "(default: %(default)s, 400 s of robot time at 50 Hz)")
-    o.add_argument("--corrector", choices=("scripted", "keyboard", "none"), default=od.corrector,
+                   f"(default output directory: {od.out})")
+    o.add_argument("--env-steps", type=int, help=f"environment steps of the session "
+                   f"(default: {od.env_steps}, 400 s of robot time at 50 Hz)")
+    o.add_argument("--corrector", choices=("scripted", "keyboard", "none"),
                    help="who takes over: the scripted stand-in, a person at this terminal (realtime), or nobody "
-                        "(default: %(default)s)")
-    o.add_argument("--mode", choices=("lockstep", "realtime"), default=od.mode,
-                   help="lockstep: paced by the learner, reproducible; realtime: 50 Hz, as a robot (default: %(default)s)")
-    o.add_argument("--prior-algo", choices=("auto", "awac"), default=od.prior_algo,
+                        f"(default: {od.corrector})")
+    o.add_argument("--mode", choices=("lockstep", "realtime"),
+                   help=f"lockstep: paced by the learner, reproducible; realtime: 50 Hz, as a robot (default: {od.mode})")
+    o.add_argument("--prior-algo", choices=("auto", "awac"),
                    help="without --prior: train the prior with --algo auto (the best prior from the bag; README, "
-                        "'The best prior') or the chapter's AWAC for --prior-steps (default: %(default)s)")
-    o.add_argument("--no-prior", action="store_true", help="the learner starts from scratch (an ablation)")
-    o.add_argument("--utd", type=int, default=od.utd, help="gradient steps per environment step (default: %(default)s)")
-    o.add_argument("--publish-every", type=int, default=od.publish_every,
-                   help="environment steps between weights versions (default: %(default)s, 1 s at 50 Hz)")
-    o.add_argument("--eval-every", type=int, default=od.eval_every,
-                   help="environment steps between points of the learning curve (default: %(default)s)")
-    o.add_argument("--in-process", action="store_true", help="the same stage in one process, without ROS "
+                        f"'The best prior') or the chapter's AWAC for --prior-steps (default: {od.prior_algo})")
+    o.add_argument("--no-prior", action="store_true", default=None, help="the learner starts from scratch (an ablation)")
+    o.add_argument("--utd", type=int, help=f"gradient steps per environment step (default: {od.utd})")
+    o.add_argument("--publish-every", type=int,
+                   help=f"environment steps between weights versions (default: {od.publish_every}, 1 s at 50 Hz)")
+    o.add_argument("--eval-every", type=int,
+                   help=f"environment steps between points of the learning curve (default: {od.eval_every})")
+    o.add_argument("--in-process", action="store_true", default=None, help="the same stage in one process, without ROS "
                    "(the reference; ablations)")
     p.set_defaults(func=_run)

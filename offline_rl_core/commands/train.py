@@ -14,7 +14,7 @@ def _run(args) -> int:
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "train",
-        help="train BC / filtered BC / AWAC / IQL / naive on rosbag2 bags",
+        help="train BC / filtered BC / AWAC / IQL / naive / SAC (or auto: chosen from the bag) on rosbag2 bags",
         description="Train a policy on the /pusher/transition messages of one or more rosbag2 bags. "
         "Writes DIR/policy.pt, DIR/metrics.json and DIR/training_curve.png.",
     )

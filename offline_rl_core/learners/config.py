@@ -6,6 +6,7 @@ Defaults are the chapter's hyper-parameters (and Kostrikov et al.'s for IQL).
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field
 
 from .schedule import SCHEDULES
@@ -68,27 +69,67 @@ class TrainConfig:
     cuda_graph: bool = _opt(True, "on CUDA, replay each step as one recorded CUDA graph", "run")
 
     def __post_init__(self) -> None:
+        # Messages name the flag (``--gamma``): the CLI and the trainer node show them as they are.
         if self.algo not in ALGORITHMS:
-            raise ValueError(f"unknown algorithm '{self.algo}'; expected one of {', '.join(ALGORITHMS)}")
+            raise ValueError(f"--algo: unknown algorithm '{self.algo}'; expected one of {', '.join(ALGORITHMS)}")
         for name in ("steps", "batch_size", "hidden", "log_every", "threads"):
             if getattr(self, name) is not None and int(getattr(self, name)) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if self.lr_schedule not in SCHEDULES:
-            raise ValueError(f"lr_schedule: expected one of {', '.join(SCHEDULES)}, got '{self.lr_schedule}'")
-        if self.filter_by not in ("return", "goal"):
-            raise ValueError(f"filter_by: expected return or goal, got '{self.filter_by}'")
-        if not 0.0 < self.filter_top_frac <= 1.0:
-            raise ValueError(f"filter_top_frac must be in (0, 1], got {self.filter_top_frac}")
-        if self.alpha <= 0:
-            raise ValueError(f"alpha must be > 0, got {self.alpha}")
-        if self.bc_weight < 0:
-            raise ValueError(f"bc_weight must be >= 0, got {self.bc_weight}")
-        if self.correction_ratio is not None and not 0.0 <= self.correction_ratio <= 1.0:
-            raise ValueError(f"correction_ratio must be in [0, 1], got {self.correction_ratio}")
-        check_device(self.device)
+                raise ValueError(f"{_flag(name)} must be >= 1, got {getattr(self, name)}")
+        for name, choices in CHOICES.items():
+            if getattr(self, name) not in choices:
+                raise ValueError(f"{_flag(name)}: expected one of {', '.join(choices)}, got '{getattr(self, name)}'")
+        from .sac import LOG_STD_MAX, LOG_STD_MIN  # outside them the log-std is clamped and stops learning
+
+        for name, (low, high, low_open, high_open) in {**RANGES, "init_log_std": (LOG_STD_MIN, LOG_STD_MAX, False, False)}.items():
+            value = getattr(self, name)
+            if value is not None:
+                _check_range(name, value, low, high, low_open, high_open)
+        try:
+            check_device(self.device)
+        except ValueError as exc:
+            raise ValueError(f"--{exc}") from None
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+CHOICES = {"lr_schedule": SCHEDULES, "filter_by": ("return", "goal")}
+
+# (low, high, low excluded, high excluded) of each float field; every one must also be finite.
+# A NaN or a value out of these ranges trains a diverging or meaningless learner.
+RANGES = {
+    "lr": (0.0, math.inf, True, False),
+    "gamma": (0.0, 1.0, False, False),
+    "tau": (0.0, 1.0, True, False),
+    "beta": (0.0, math.inf, True, False),
+    "weight_clip": (0.0, math.inf, True, False),
+    "expectile": (0.0, 1.0, True, True),
+    "temperature": (0.0, math.inf, False, False),
+    "max_weight": (0.0, math.inf, True, False),
+    "alpha": (0.0, math.inf, True, False),
+    "target_entropy": (-math.inf, math.inf, False, False),
+    "bc_weight": (0.0, math.inf, False, False),
+    "filter_top_frac": (0.0, 1.0, True, False),
+    "correction_ratio": (0.0, 1.0, False, False),
+}
+
+
+def _flag(name: str) -> str:
+    return "--" + name.replace("_", "-")
+
+
+def _check_range(name: str, value: float, low: float, high: float, low_open: bool, high_open: bool) -> None:
+    value = float(value)
+    inside = math.isfinite(value) and (value > low if low_open else value >= low) and \
+        (value < high if high_open else value <= high)
+    if inside:
+        return
+    if math.isinf(high):
+        expected = f"> {low:g}" if low_open else f">= {low:g}"
+        expected = "finite" if math.isinf(low) else f"finite and {expected}"
+    else:
+        expected = f"in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
+    raise ValueError(f"{_flag(name)} must be {expected}, got {value:g}")
 
 
 def check_device(device: str) -> None:

@@ -16,7 +16,8 @@ from pathlib import Path
 
 import torch
 
-from ..atomic import atomic_path
+from ..atomic import atomic_path, remove_partial_writes
+from ..errors import UserError
 from .state import named
 
 RESUME_FORMAT = "pusher-rl/resume"
@@ -73,15 +74,18 @@ class ResumePoints:
         self._last = time.monotonic()
 
     def read(self) -> dict | None:
+        """The resume point to start from (None: start afresh). Called as a run starts, so
+        it first clears the temp files of writes a kill interrupted."""
+        remove_partial_writes(self.path)
         if not self.resume or not self.path.exists():
             return None
         try:
             state = torch.load(self.path, map_location="cpu", weights_only=True)
         except Exception as exc:  # noqa: BLE001 - torch raises many types for a damaged file
-            raise ValueError(f"{self.path}: unreadable resume point ({str(exc).strip().splitlines()[0][:120]}); "
+            raise UserError(f"{self.path}: unreadable resume point ({str(exc).strip().splitlines()[0][:120]}); "
                              "delete it to start over") from None
         if not isinstance(state, dict) or state.get("format") != RESUME_FORMAT:
-            raise ValueError(f"{self.path}: not a pusher-rl resume point")
+            raise UserError(f"{self.path}: not a pusher-rl resume point")
         return state
 
     def done(self) -> None:

@@ -107,12 +107,6 @@ class Param:
         return value, None
 
 
-# An output file's missing directories: refused at start (as the command line refuses them),
-# made only when asked, as a launch file naming a new session directory asks.
-MAKE_PARENTS = Param("make_parents", False, "create the missing parent directories of the file this node "
-                     "writes (off: a missing directory is refused at start)", read_only=True, flag="--make-parents")
-
-
 # ---------------------------------------------------------------- command-line aliases
 def add_flags(parser: argparse.ArgumentParser, params: Sequence[Param]) -> None:
     """Add each parameter's ``flag``; a flag left out leaves the parameter alone."""

@@ -34,6 +34,7 @@ import importlib
 import struct
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 from geometry_msgs.msg import PointStamped
@@ -51,10 +52,10 @@ from offline_rl_core.collect import expert_episode_count
 from offline_rl_core.env import ACT_DIM, JOINT_NAMES
 from offline_rl_core.errors import UserError
 from offline_rl_core.expert import expert_action
-from offline_rl_core.output_paths import ensure_parent
+from offline_rl_core.output_paths import check_output_dir
 from offline_rl_core.transitions import LAYOUT_SLICES, SOURCE_EXPERT, SOURCE_NAMES, SOURCE_RANDOM
 from pusher_common.node_main import run_node
-from pusher_common.params import MAKE_PARENTS, Param, Settings
+from pusher_common.params import Param, Settings
 from pusher_common.spin import spin_until_future_complete
 from pusher_common.stamps import stamp_key
 
@@ -85,7 +86,10 @@ PARAMS = (
           read_only=True, flag="--storage"),
     Param("overwrite", False, "replace an existing bag at out (it is deleted at start)", read_only=True,
           flag="--overwrite"),
-    MAKE_PARENTS,
+    # a bag's directory must exist (as for offline-rl collect), unless a launch file naming a
+    # new session directory asks for it to be made
+    Param("make_parents", False, "create out's missing parent directories (off: a missing directory is refused "
+          "at start)", read_only=True, flag="--make-parents"),
     Param("topics", [], "topics to record (relative names resolve in the node's namespace); none: every topic when "
           "passive, the loop's when driving", read_only=True, flag="--topics", kind=list),
     Param("flush_interval", 1.0, "seconds between writes to disk: a kill loses at most this much", low=0.001,
@@ -186,7 +190,8 @@ class Recorder(Node):
         self.matched = False
 
         if s.make_parents:  # a launch file's new session directory; the bag itself is checked by BagWriter
-            ensure_parent(s.out, "--out", make_parents=True)
+            parent = check_output_dir(Path(s.out).parent, "--out")
+            parent.mkdir(parents=True, exist_ok=True)
         self.bag = BagWriter(s.out, storage=s.storage or None, overwrite=s.overwrite, flush_interval=s.flush_interval,
                              max_bag_size=s.max_bag_size, max_bag_duration=s.max_bag_duration)
         self.record_all = self.active is False and not s.topics

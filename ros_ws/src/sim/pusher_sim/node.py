@@ -43,11 +43,11 @@ from offline_rl_core.env import CONTROL_HZ, JOINT_NAMES
 from offline_rl_core.joint_messages import action_from_effort, action_from_torques
 from offline_rl_core.pairing import check_answer_stamp, check_stamp
 from offline_rl_core.errors import UserError
-from offline_rl_core.output_paths import checked_output_file
+from offline_rl_core.output_paths import check_output_file
 from offline_rl_core.sim_loop import MAX_START_TIME_S, MODES, ArmState, SimLoop, Step, TickTiming
 from offline_rl_core.transitions import SOURCE_NAMES, SOURCE_POLICY, source_from_tag
 from pusher_common.node_main import run_node
-from pusher_common.params import MAKE_PARENTS, Param, Settings
+from pusher_common.params import Param, Settings
 from pusher_common.scheduling import THREAD_PRIORITY, apply_thread_priority
 from pusher_common.spin import spin_node_fast
 from pusher_common.stamps import NS_PER_S, stamp_from_ns, stamp_key
@@ -63,8 +63,7 @@ PARAMS = (
     Param("seed", 0, "episode e resets with reset seed seed + e", low=0, read_only=True),
     Param("episodes", 0, "episodes to run before exiting (0: run until stopped)", low=0),
     Param("summary", "", "JSON file written on exit: episodes, success_rate, mean_final_dist, mean_return "
-          "(empty: none); its directory must exist (see make_parents)"),
-    MAKE_PARENTS,
+          "(empty: none); checked at start, missing directories made on writing"),
     Param("terminate_on_success", False, "end an episode as soon as the fingertip reaches the target"),
     Param("republish_period", 0.1, "lockstep: seconds before a state whose command has not come is published again",
           low=0.001, high=60.0),
@@ -86,7 +85,7 @@ class PusherSim(Node):
         super().__init__("sim", parameter_overrides=list(overrides))
         self.settings = s = Settings(self, PARAMS, on_change=self.on_parameter_change, check=self.check_parameter)
         if s.summary:  # checked now, not after the whole run
-            checked_output_file(s.summary, "parameter summary:", s.make_parents)
+            check_output_file(s.summary, "parameter summary:")
         apply_thread_priority(self.settings.thread_priority, self.get_logger())
         start_ns = int(s.start_time * NS_PER_S) if s.start_time > 0 else time.time_ns() // NS_PER_S * NS_PER_S
         self.loop = SimLoop(s.mode, s.seed, s.episodes, s.terminate_on_success, start_ns)
@@ -135,7 +134,7 @@ class PusherSim(Node):
     def check_parameter(self, name: str, value) -> str | None:
         if name == "summary" and value:
             try:
-                checked_output_file(value, "", self.settings.make_parents)
+                check_output_file(value, "")
             except UserError as exc:
                 return str(exc).strip()
         return None

@@ -168,11 +168,13 @@ def bag_command(args: list[str]) -> int:
     info_p = sub.add_parser("info", help="Print information about a bag to the screen")
     info_p.add_argument("bag_path", help="Bag to open (a directory, or a .db3 / .mcap file)")
     info_p.add_argument("-s", "--storage", default="", help="Storage implementation of the bag (detected)")
-    opts = parser.parse_args(args)
-    if opts.verb != "info":
-        parser.print_help()
-        print("ros2 bag: this shim implements 'info'; record with 'ros2 run recorder node'", file=sys.stderr)
+    if not args or args[0] not in ("info", "-h", "--help"):  # record, play, ...: say what to use instead
+        parser.print_usage(sys.stderr)
+        verb = f"'{args[0]}' is not implemented here; " if args else ""
+        print(f"ros2 bag: error: {verb}this shim implements 'info'; record with 'ros2 run recorder node'",
+              file=sys.stderr)
         return 2
+    opts = parser.parse_args(args)
     try:
         from offline_rl_core.bag import bag_info
         from offline_rl_core.errors import UserError

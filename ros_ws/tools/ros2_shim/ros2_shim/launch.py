@@ -28,7 +28,8 @@ def launch_command(args: list[str]) -> int:
     parser.add_argument("-s", "--show-args", "--show-arguments", action="store_true",
                         help="Show arguments that may be given to the launch file")
     parser.add_argument("package_name", help="Name of the ROS package which contains the launch file, or a launch file path")
-    parser.add_argument("launch_arguments", nargs="*", help="The launch file name and arguments 'name:=value'")
+    parser.add_argument("launch_arguments", nargs="*", default=[],  # a default: argparse requires a bare '*' positional
+                        help="The launch file name and arguments 'name:=value'")
     opts = parser.parse_args(args)
     rest = list(opts.launch_arguments)
     try:

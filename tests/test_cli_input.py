@@ -1,0 +1,215 @@
+"""`offline-rl` given bad flags or paths: one line naming the flag or file and what was
+expected, exit code 2, no traceback, and nothing already written lost or replaced."""
+
+from __future__ import annotations
+
+import hashlib
+import shutil
+from pathlib import Path
+
+import pytest
+
+from offline_rl_core import cli
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _sha(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _one_error_line(capsys, *words: str) -> str:
+    """The run's error: the last line on stderr (after any progress), the only one of its kind."""
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert "Traceback" not in err and lines[-1].startswith("offline-rl: error: "), err
+    assert sum(line.startswith("offline-rl:") for line in lines) == 1, err
+    assert all(w in lines[-1] for w in words), lines[-1]
+    return lines[-1]
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """A 2-episode bag and a finished BC run on it (DIR/policy.pt, metrics.json)."""
+    from offline_rl_core.bag import write_transitions
+    from offline_rl_core.collect import collect_transitions
+
+    root = tmp_path_factory.mktemp("cli_input")
+    bag = root / "tiny.db3"
+    write_transitions(bag, collect_transitions(2, 0.5, 0))
+    run = root / "run"
+    assert cli.main(["train", "--bag", str(bag), "--algo", "bc", "--steps", "2", "--batch-size", "8", "--hidden", "8",
+                     "--eval-episodes", "0", "--out", str(run)]) == 0
+    text = root / "text.db3"
+    text.write_text("not a bag\n")
+    return {"bag": bag, "run": run, "text": text}
+
+
+def _train(tiny, *flags: str) -> int:
+    return cli.main(["train", "--bag", str(tiny["bag"]), "--algo", "bc", "--steps", "2", "--batch-size", "8",
+                     "--hidden", "8", "--eval-episodes", "0", "--out", str(tiny["run"]), *flags])
+
+
+@pytest.mark.parametrize("flags, expected", [
+    (("--gamma", "nan"), "--gamma must be in [0, 1], got nan"),
+    (("--gamma", "5"), "--gamma must be in [0, 1]"),
+    (("--tau", "-1"), "--tau must be in (0, 1]"),
+    (("--algo", "iql", "--expectile", "2"), "--expectile must be in (0, 1)"),
+    (("--beta", "0"), "--beta must be finite and > 0"),
+    (("--alpha", "nan"), "--alpha must be finite and > 0"),
+    (("--algo", "sac", "--target-entropy", "nan"), "--target-entropy must be finite"),
+    (("--lr", "nan"), "--lr must be finite and > 0"),
+    (("--steps", "-5"), "--steps must be >= 1, got -5"),
+    (("--batch-size", "0"), "--batch-size must be >= 1"),
+])
+def test_flags_out_of_range_are_refused_naming_the_flag_and_keep_the_run(tiny, capsys, flags, expected):
+    before = _sha(tiny["run"] / "policy.pt")
+    assert _train(tiny, *flags) == 2
+    _one_error_line(capsys, expected)
+    assert _sha(tiny["run"] / "policy.pt") == before
+
+
+def test_a_run_that_diverges_writes_nothing_and_keeps_the_previous_checkpoint(tiny, capsys):
+    before = {p.name: _sha(p) for p in tiny["run"].iterdir()}
+    assert _train(tiny, "--lr", "1e30") == 2
+    _one_error_line(capsys, "bc diverged", "not finite", "nothing written")
+    assert {p.name: _sha(p) for p in tiny["run"].iterdir()} == before  # no resume.pt left either
+
+
+def test_choice_flags_are_checked_before_the_bag_is_read(capsys):
+    for flag in ("--lr-schedule", "--filter-by"):
+        with pytest.raises(SystemExit) as exit_:
+            cli.main(["train", "--bag", "no/such.db3", flag, "linear"])
+        assert exit_.value.code == 2
+        assert f"argument {flag}: invalid choice: 'linear'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, flag", [
+    (["collect", "--episodes", "1", "--out", "x.db3", "--seed", "-1"], "--seed"),
+    (["eval", "--checkpoint", "x.pt", "--seed", "-1"], "--seed"),
+    (["experiment", "--smoke", "--out", "x", "--seed", "-1"], "--seed"),
+    (["experiment", "--smoke", "--out", "x", "--seeds", "0", "-1"], "--seeds"),
+    (["train", "--bag", "x.db3", "--seed", "-1"], "--seed"),
+    (["train", "--bag", "x.db3", "--eval-seed", "-1"], "--eval-seed"),
+    (["train", "--bag", "x.db3", "--seed", str(2**32)], "--seed"),
+    (["hil", "--seed", "-1"], "--seed"),
+    (["hil", "--online", "--eval-seed", "-1"], "--eval-seed"),
+])
+def test_negative_seeds_are_refused_naming_the_flag(capsys, argv, flag):
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(argv)
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert f"argument {flag}: expected a whole number from 0 to 4294967295" in err and "Traceback" not in err
+
+
+def _unwritable_cases(tiny, tmp: Path):
+    """(argv, the flag) whose output path cannot be written; each must fail before its work."""
+    text, run, bag = tiny["text"], tiny["run"], tiny["bag"]
+    a_dir = tmp / "a_dir"
+    a_dir.mkdir()
+    return [
+        (["train", "--bag", str(bag), "--steps", "2", "--eval-episodes", "0", "--out", f"{text}/sub"], "--out"),
+        (["train", "--bag", str(bag), "--steps", "2", "--eval-episodes", "0", "--out", str(text)], "--out"),
+        (["eval", "--checkpoint", str(run), "--episodes", "2", "--json", f"{text}/x.json"], "--json"),
+        (["eval", "--checkpoint", str(run), "--episodes", "2", "--json", str(a_dir)], "--json"),
+        (["export-onnx", "--checkpoint", str(run), "--out", f"{text}/x.onnx"], "--out"),
+        (["export-onnx", "--checkpoint", str(run), "--out", str(a_dir)], "--out"),
+        (["experiment", "--smoke", "--out", str(text)], "--out"),
+        (["bench", "--tiny", "--only", "decode", "--json", f"{text}/b.json"], "--json"),
+        (["hil", "--out", f"{text}/hil"], "--out"),
+    ]
+
+
+def test_an_output_that_cannot_be_written_fails_in_one_line_before_the_work(tiny, tmp_path, capsys):
+    before = _sha(tiny["text"])
+    for argv, flag in _unwritable_cases(tiny, tmp_path):
+        assert cli.main(argv) == 2, argv
+        _one_error_line(capsys, flag)
+    assert _sha(tiny["text"]) == before
+
+
+def test_dataset_checks_its_report_path_before_writing_the_bag(tiny, tmp_path, capsys):
+    out_bag = tmp_path / "d2.db3"
+    argv = ["dataset", "--from-topics", str(REPO / "bags/pusher_topics.yaml"), str(tiny["bag"]), str(out_bag),
+            "--report", f"{tiny['text']}/r.json"]
+    assert cli.main(argv) == 2
+    _one_error_line(capsys, "--report", f"{tiny['text']} is a file, not a directory")
+    assert not out_bag.exists()  # the rerun is not refused with "exists already"
+
+
+def test_collect_never_replaces_a_file_that_is_not_a_bag(tiny, tmp_path, capsys):
+    victim = tmp_path / "victim.db3"
+    shutil.copy(tiny["text"], victim)
+    assert cli.main(["collect", "--episodes", "1", "--out", str(victim)]) == 2
+    _one_error_line(capsys, str(victim), "is not a rosbag2 sqlite3 bag file; not replacing it")
+    assert victim.read_text() == "not a bag\n"
+    assert cli.main(["collect", "--episodes", "1", "--out", f"{tiny['text']}/x.db3"]) == 2
+    _one_error_line(capsys, f"{tiny['text']} is a file, not a directory")
+
+
+def test_bench_only_with_no_group_is_refused(capsys):
+    assert cli.main(["bench", "--tiny", "--only", ","]) == 2
+    _one_error_line(capsys, "--only: expected some of train, decode, eval, serve, record, online")
+
+
+def test_unreadable_checkpoints_say_what_they_are(tiny, tmp_path, capsys):
+    good = (tiny["run"] / "policy.pt").read_bytes()
+    cases = {"empty.pt": (b"", "the file is empty"),
+             "text.pt": (b"101 not a checkpoint\n", "not a torch checkpoint"),
+             "cut.pt": (good[: len(good) // 2], "truncated: the torch zip archive ends early"),
+             "bag.db3": (tiny["bag"].read_bytes(), "an SQLite database, e.g. a rosbag2 .db3 bag, not a torch checkpoint")}
+    for name, (data, words) in cases.items():
+        (tmp_path / name).write_bytes(data)
+        assert cli.main(["eval", "--checkpoint", str(tmp_path / name), "--episodes", "1"]) == 2
+        line = _one_error_line(capsys, name, f"({words})")
+        assert line.endswith(")"), line  # whole words, never cut mid-word
+
+
+def test_hil_takes_its_defaults_by_mode_and_refuses_the_other_modes_flags(capsys, tmp_path, monkeypatch):
+    from offline_rl_core.commands.hil import _resolve_mode_flags
+    from offline_rl_core.hil import PROJECT_BAG
+
+    for argv, flags in ((["hil", "--online", "--rounds", "2", "--beta", "0.2"], "--rounds, --beta: only without --online"),
+                        (["hil", "--utd", "2"], "--utd: only with --online")):
+        assert cli.main(argv) == 2
+        _one_error_line(capsys, flags)
+    monkeypatch.chdir(tmp_path)  # not the project: the default bag is still found
+    parser = cli.build_parser()
+    explicit = parser.parse_args(["hil", "--online", "--out", "runs/hil"])
+    _resolve_mode_flags(explicit)
+    assert explicit.out == "runs/hil" and explicit.env_steps == 20000 and explicit.rounds is None
+    default = parser.parse_args(["hil"])
+    _resolve_mode_flags(default)
+    assert default.out == "runs/hil" and default.rounds == 3 and default.bag == [str(PROJECT_BAG)]
+    assert parser.parse_args(["hil", "--online"]).out is None  # resolved to runs/hil-online by mode
+    online = parser.parse_args(["hil", "--online"])
+    _resolve_mode_flags(online)
+    assert online.out == "runs/hil-online"
+
+
+def test_bag_repair_leaves_a_healthy_bag_alone(tmp_path, capsys):
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    String = store.types["std_msgs/msg/String"]
+    with Writer(tmp_path / "chatter", version=8) as writer:  # another tool's bag: its own metadata spelling
+        conn = writer.add_connection("/chatter", "std_msgs/msg/String", typestore=store)
+        for i in range(3):
+            writer.write(conn, 1000 + i, store.serialize_cdr(String(data="hi"), "std_msgs/msg/String"))
+    metadata = tmp_path / "chatter" / "metadata.yaml"
+    before = metadata.read_bytes()
+    assert cli.main(["bag", "repair", str(tmp_path / "chatter")]) == 0
+    assert capsys.readouterr().out.strip().endswith("nothing to repair")
+    assert metadata.read_bytes() == before
+
+
+def test_help_texts_match_what_the_commands_take(capsys):
+    for argv in (["eval", "--help"], ["export-onnx", "--help"], ["--help"]):
+        with pytest.raises(SystemExit):
+            cli.main(argv)
+    out = " ".join(capsys.readouterr().out.split())  # argparse wraps lines
+    assert "95 % Wilson" in out and "%%" not in out
+    assert out.count("a directory holding policy.pt") == 2  # eval's and export-onnx's --checkpoint
+    assert "SAC" in out and "auto" in out  # the top-level summary of train
