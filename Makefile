@@ -25,7 +25,7 @@ setup: $(STAMP)
 
 # Re-runs only when the project's packaging changes; torch goes in first so that
 # nothing else can make pip pick a newer (CUDA) torch.
-$(STAMP): pyproject.toml $(ROS_FILES)
+$(STAMP): pyproject.toml $(ROS_FILES) offline_rl_core/ros_install.py
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PIP) install torch==2.13.0
 	$(PIP) install -e '.[ros,dev,onnx]'
