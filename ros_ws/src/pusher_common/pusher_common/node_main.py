@@ -127,7 +127,10 @@ def _interrupt(signum, frame):
 
 
 def _rcl_reason(exc: Exception) -> str:
-    """rcl's reason without its prefix and source locations: "Couldn't parse remap rule: '-r x'. ..."."""
+    """Return rcl's reason without its prefix and source locations.
+
+    For example "Couldn't parse remap rule: '-r x'. ...".
+    """
     text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
     text = text.removeprefix("Failed to parse ROS arguments: ")
     return re.sub(r", at /\S+:\d+", "", text)

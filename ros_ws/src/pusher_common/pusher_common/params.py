@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import difflib
 import math
+import typing
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
@@ -193,8 +194,10 @@ class Settings:
 
 
 def _refuse_unknown_overrides(node, params: Sequence[Param]) -> None:
-    """A ``-p`` or params-file value for a parameter the node does not have (a misspelling)
-    is refused: rclpy would drop it silently and the node would run on the default."""
+    """Refuse a ``-p`` or params-file value for a parameter the node does not have.
+
+    rclpy would drop a misspelt one silently and the node would run on the default.
+    """
     given = getattr(node, "_parameter_overrides", {})  # rclpy keeps no public list of them
     declared = set(node._parameters)  # noqa: SLF001 - ours, and rclpy's own (use_sim_time, ...)
     # qos_overrides.* only apply to publishers made with QoS overriding options: rclpy's, not ours
@@ -226,7 +229,10 @@ def params_from_parser(parser: argparse.ArgumentParser, read_only: bool = True) 
         elif isinstance(action, argparse._AppendAction):  # noqa: SLF001
             default, kind = list(action.default or []), list
         else:
-            kind = action.type or (type(action.default) if action.default is not None else str)
+            kind = action.type if isinstance(action.type, type) else None  # a parsing function: its return type
+            if kind is None and callable(action.type):
+                kind = typing.get_type_hints(action.type).get("return")
+            kind = kind if isinstance(kind, type) else type(action.default) if action.default is not None else str
             default = action.default
         params.append(Param(action.dest, default, description, choices=tuple(action.choices or ()),
                             read_only=read_only, flag=flag, kind=kind))
