@@ -14,9 +14,8 @@ import numpy as np
 
 from offline_rl_core.bag import BagWriter, encode_transition_rows, typestore
 from offline_rl_core.env import ACT_DIM, JOINT_NAMES, MAX_STEPS, PusherReachEnv
-from offline_rl_core.collect import expert_episode_count
-from offline_rl_core.expert import reach_action
-from offline_rl_core.transitions import LAYOUT_SLICES, SOURCE_EXPERT, SOURCE_NAMES, SOURCE_RANDOM, TRANSITION_WIDTH
+from offline_rl_core.collect import EpisodePlan
+from offline_rl_core.transitions import LAYOUT_SLICES, SOURCE_NAMES, TRANSITION_WIDTH
 
 TICK_NS = 20_000_000
 START_NS = 1_735_689_600 * 10**9
@@ -92,9 +91,8 @@ def record_raw_bag(
     """
     msgs = _Messages()
     env = PusherReachEnv()
-    rng = np.random.default_rng(seed)
+    plan = EpisodePlan(episodes, expert_frac, seed)  # who acts, as offline-rl collect and the recorder
     noise = np.random.default_rng(noise_seed)
-    n_expert = expert_episode_count(episodes, expert_frac)
     types = {t: TYPES[t] for t in topics}
     if "/pusher/command" in types:
         del types["/pusher/command"]
@@ -130,12 +128,12 @@ def record_raw_bag(
         tick = 0
         for ep in range(episodes):
             obs = env.reset(seed=seed + ep)
-            source = SOURCE_EXPERT if ep < n_expert else SOURCE_RANDOM
+            source = plan.source(ep)
             done = False
             while not done:
                 ns = tick * TICK_NS
                 publish_state(ns)
-                action = reach_action(env) if source == SOURCE_EXPERT else rng.uniform(-1, 1, size=ACT_DIM).astype(np.float32)
+                action = plan.action(ep, env.qpos, env.qvel, env.target[:2])
                 if torque_commands:
                     torques = np.asarray(action, np.float64) * 0.5
                     write("/effort_controller/commands", msgs.float64_array(torques), START_NS + ns + 500_000, True)

@@ -7,7 +7,7 @@
 - ``repair_bag(path)``: ``offline-rl bag repair``: makes a bag cut off by a kill whole again.
 - ``bag_info(path)``: ``ros2 bag info`` plus a dataset summary, for any rosbag2 bag.
 - ``encode_transition_rows`` / ``decode_transition_payloads``: vectorised CDR of
-  std_msgs/Float32MultiArray transitions.
+  std_msgs/Float32MultiArray transitions; ``transition_ends_episode`` reads one's done flags.
 
 Paths: ``x.db3`` / ``x.mcap`` is a single self-describing storage file, any other path a bag
 directory with metadata.yaml (see ``paths``).
@@ -21,6 +21,7 @@ from .cdr import (
     TransitionDecodeError,
     decode_transition_payloads,
     encode_transition_rows,
+    transition_ends_episode,
     transition_layout_msg_fields,
 )
 from .info import BagInfo, bag_info
@@ -48,6 +49,7 @@ __all__ = [
     "read_transitions",
     "repair_bag",
     "topic_payloads",
+    "transition_ends_episode",
     "transition_layout_msg_fields",
     "typestore",
     "write_transitions",

@@ -20,7 +20,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ..transitions import TRANSITION_LAYOUT, TRANSITION_WIDTH
+from ..transitions import LAYOUT_SLICES, TRANSITION_LAYOUT, TRANSITION_WIDTH
 
 TRANSITION_TOPIC = "/pusher/transition"
 TRANSITION_MSGTYPE = "std_msgs/msg/Float32MultiArray"
@@ -76,6 +76,10 @@ def _cdr_header(little_endian: bool = True) -> bytes:
 
 TRANSITION_CDR_HEADER = _cdr_header()
 TRANSITION_MESSAGE_SIZE = len(TRANSITION_CDR_HEADER) + 4 * TRANSITION_WIDTH
+# Columns of the terminated and truncated flags, and their byte offsets in a message
+# carrying TRANSITION_CDR_HEADER (the sim's and every tool's here).
+_DONE_COLUMNS = (LAYOUT_SLICES["terminated"].start, LAYOUT_SLICES["truncated"].start)
+_DONE_OFFSETS = tuple(len(TRANSITION_CDR_HEADER) + 4 * column for column in _DONE_COLUMNS)
 
 
 def encode_transition_rows(rows: np.ndarray) -> list[bytes]:
@@ -96,6 +100,14 @@ def encode_transition_blob(rows: np.ndarray) -> bytes:
     out[:, : header.size] = header
     out[:, header.size :] = rows.view(np.uint8).reshape(rows.shape[0], -1)
     return out.tobytes()
+
+
+def transition_ends_episode(payload: bytes) -> bool:
+    """Whether a transition message is its episode's last (terminated or truncated)."""
+    if payload.startswith(TRANSITION_CDR_HEADER):  # our own header: read the two flags in place
+        return any(struct.unpack_from("<f", payload, at)[0] for at in _DONE_OFFSETS)
+    row = decode_transition_payloads([payload])[0]  # another writer's header
+    return bool(row[_DONE_COLUMNS[0]] or row[_DONE_COLUMNS[1]])
 
 
 @dataclass(frozen=True)

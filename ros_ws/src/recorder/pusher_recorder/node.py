@@ -23,20 +23,18 @@ strictly increasing so the bag's order is the arrival order. Ctrl-C or SIGTERM c
 bag with every message received; a SIGKILL loses at most the last ``flush_interval``
 (1 s) of messages (``offline_rl_core.bag.recording``).
 
-Protocol of the active loop: a command answers the latest state whose target (same stamp)
-has arrived, and only once the transition caused by the previous command is in, so
-episode boundaries are known before the next action is chosen.
+Who acts, episode counting and the command/transition handshake are
+``offline_rl_core.collect_driver.CollectDriver`` (free of ROS, its docstring gives the
+protocol); this node subscribes, publishes and writes the bag.
 """
 
 from __future__ import annotations
 
 import importlib
-import struct
 import sys
 import time
 from pathlib import Path
 
-import numpy as np
 from geometry_msgs.msg import PointStamped
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -46,18 +44,18 @@ from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, Qo
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float32MultiArray
 
-from offline_rl_core.bag import TRANSITION_CDR_HEADER, BagWriter, decode_transition_payloads, typestore
+from offline_rl_core.bag import BagWriter, transition_ends_episode, typestore
 from offline_rl_core.bag.recording import MIN_SQLITE_SPLIT_SIZE
-from offline_rl_core.collect import expert_episode_count
-from offline_rl_core.env import ACT_DIM, JOINT_NAMES
+from offline_rl_core.collect import EpisodePlan
+from offline_rl_core.collect_driver import CollectDriver, Command
+from offline_rl_core.env import JOINT_NAMES
 from offline_rl_core.errors import UserError
-from offline_rl_core.expert import expert_action
 from offline_rl_core.output_paths import check_output_dir
-from offline_rl_core.transitions import LAYOUT_SLICES, SOURCE_EXPERT, SOURCE_NAMES, SOURCE_RANDOM
+from offline_rl_core.transitions import SOURCE_EXPERT, SOURCE_NAMES, SOURCE_RANDOM
 from pusher_common.node_main import run_node
 from pusher_common.params import Param, Settings
 from pusher_common.spin import spin_until_future_complete
-from pusher_common.stamps import stamp_key
+from pusher_common.stamps import stamp_from_ns, stamp_key
 
 # The loop's topics, relative to the node's namespace, and their types.
 TRANSITION, STATE, TARGET, COMMAND = "pusher/transition", "pusher/state", "pusher/target", "pusher/command"
@@ -68,9 +66,6 @@ LOOP_TYPES = {
     COMMAND: ("sensor_msgs/msg/JointState", JointState),
 }
 DISCOVERY_PERIOD_S = 0.5
-DONE = (LAYOUT_SLICES["terminated"].start, LAYOUT_SLICES["truncated"].start)
-# Byte offsets of those two float32 flags in a transition carrying the sim's header.
-DONE_AT = tuple(len(TRANSITION_CDR_HEADER) + 4 * column for column in DONE)
 
 PARAMS = (
     Param("out", "", "bag to write: x.db3 / x.mcap (one file) or a directory (metadata.yaml + x_0.db3, x_1.db3, ...)",
@@ -100,14 +95,6 @@ PARAMS = (
           low=0.0, flag="--max-bag-duration"),
 )
 TRANSITION_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
-
-
-def ends_episode(raw: bytes) -> bool:
-    """Whether a raw transition is its episode's last (terminated or truncated)."""
-    if raw.startswith(TRANSITION_CDR_HEADER):  # the sim's own bytes: read the flags in place
-        return any(struct.unpack_from("<f", raw, at)[0] for at in DONE_AT)
-    row = decode_transition_payloads([raw])[0]  # another writer's header
-    return bool(row[DONE[0]] or row[DONE[1]])
 
 
 def message_class(msgtype: str):
@@ -169,12 +156,10 @@ class Recorder(Node):
         if self.active and s.episodes < 1:
             raise UserError("--episodes is required when driving the sim (or --passive to only record)")
         self.episodes = s.episodes or None
-        self.n_expert = expert_episode_count(s.episodes, s.expert_frac) if self.active else 0
-        self.rng = np.random.default_rng(s.seed)
+        plan = EpisodePlan(s.episodes, s.expert_frac, s.seed) if self.active else None
+        self.driver = CollectDriver(self.episodes, plan)
         self.finished = Future()
         self.exit_code = 0
-        self.episodes_done = 0
-        self.transitions = 0
         self.last_stamp_ns = 0
         self.before_clock: list[tuple[str, bytes]] = []  # (topic, message) received before sim time starts
         self.start_time = time.monotonic()
@@ -182,12 +167,7 @@ class Recorder(Node):
         self.last_progress_decile = -1
         self.warned: set[str] = set()
 
-        # Active-loop state.
-        self.state: JointState | None = None
-        self.targets: dict[int, np.ndarray] = {}
-        self.awaiting_transition = False
-        self.last_command: tuple[JointState, int] | None = None  # (command, source) last sent
-        self.matched = False
+        self.matched = False  # the active loop's topics have all matched (see connected)
 
         if s.make_parents:  # a launch file's new session directory; the bag itself is checked by BagWriter
             parent = check_output_dir(Path(s.out).parent, "--out")
@@ -216,7 +196,7 @@ class Recorder(Node):
         if self.dynamic:
             self.create_timer(DISCOVERY_PERIOD_S, self.discover)
             self.discover()
-        what = f"{self.episodes} episodes ({self.n_expert} expert)" if self.active else "passively"
+        what = f"{self.episodes} episodes ({plan.n_expert} expert)" if self.active else "passively"
         which = "every topic" if self.record_all else ", ".join(sorted(self.wanted | set(self.subs)))
         self.get_logger().info(f"recording {what} to {self.bag.path}: {which}")
 
@@ -314,13 +294,9 @@ class Recorder(Node):
     def on_transition(self, raw: bytes) -> None:
         if self.finished.done():
             return
-        ended = ends_episode(raw)
-        self.transitions += 1
-        self.awaiting_transition = False
-        if ended:
-            self.episodes_done += 1
+        if self.driver.on_transition(transition_ends_episode(raw)):
             self.show_progress()
-            if self.episodes and self.episodes_done >= self.episodes:
+            if self.driver.finished:
                 self.finish()
                 return
         self.try_act()
@@ -328,37 +304,31 @@ class Recorder(Node):
     def show_progress(self) -> None:
         if not self.episodes:
             return
+        done, transitions = self.driver.episodes_done, self.driver.transitions
         elapsed = max(time.monotonic() - self.start_time, 1e-9)
         line = (
-            f"recorder: {self.episodes_done}/{self.episodes} episodes, {self.transitions} transitions, "
-            f"{self.transitions / elapsed:.0f} transitions/s"
+            f"recorder: {done}/{self.episodes} episodes, {transitions} transitions, "
+            f"{transitions / elapsed:.0f} transitions/s"
         )
         if self.progress_tty:
-            end = "\n" if self.episodes_done >= self.episodes else ""
+            end = "\n" if done >= self.episodes else ""
             print("\r" + line, end=end, file=sys.stderr, flush=True)
             return
-        decile = 10 * self.episodes_done // self.episodes
+        decile = 10 * done // self.episodes
         if decile != self.last_progress_decile:
             self.last_progress_decile = decile
             print(line, file=sys.stderr, flush=True)
 
     # -------------------------------------------------------------- driving
     def on_state(self, msg: JointState) -> None:
-        stamp = stamp_key(msg.header.stamp)
-        if self.last_command is not None and stamp == stamp_key(self.last_command[0].header.stamp):
-            if self.awaiting_transition:
-                # The sim republished the state we answered: our command was lost (e.g.
-                # before discovery matched). Send the same one again; never redraw.
-                self.send(*self.last_command)
+        again = self.driver.on_state(stamp_key(msg.header.stamp), msg.position, msg.velocity)
+        if again is not None:  # the sim republished the state we answered: our command was lost
+            self.send(again)
             return
-        self.state = msg
         self.try_act()
 
     def on_target(self, msg: PointStamped) -> None:
-        self.targets[stamp_key(msg.header.stamp)] = np.array([msg.point.x, msg.point.y])
-        if len(self.targets) > 64:  # only the current state's target matters
-            for key in sorted(self.targets)[:-8]:
-                del self.targets[key]
+        self.driver.on_target(stamp_key(msg.header.stamp), (msg.point.x, msg.point.y))
         self.try_act()
 
     def connected(self) -> bool:
@@ -371,31 +341,18 @@ class Recorder(Node):
         return self.matched
 
     def try_act(self) -> None:
-        if not self.active or self.finished.done() or self.awaiting_transition or self.state is None:
-            return
-        state = self.state
-        stamp = stamp_key(state.header.stamp)
-        target = self.targets.get(stamp)
-        if target is None or not self.connected():
-            return
-        if self.episodes_done < self.n_expert:
-            action, source = expert_action(state.position, state.velocity, target), SOURCE_EXPERT
-        else:
-            action, source = self.rng.uniform(-1, 1, size=ACT_DIM).astype(np.float32), SOURCE_RANDOM
-        command = JointState(name=list(JOINT_NAMES), effort=[float(a) for a in action])
-        command.header.stamp = state.header.stamp
-        self.state = None
-        self.awaiting_transition = True
-        self.last_command = (command, source)
-        self.send(command, source)
+        if self.active and not self.finished.done() and self.driver.ready() and self.connected():
+            self.send(self.driver.next_command())
 
-    def send(self, command: JointState, source: int) -> None:
-        publisher = self.command_pubs[source]
-        publisher.publish(command)
+    def send(self, command: Command) -> None:
+        msg = JointState(name=list(JOINT_NAMES), effort=[float(a) for a in command.action])
+        msg.header.stamp = stamp_from_ns(command.stamp)  # the answered state's
+        publisher = self.command_pubs[command.source]
+        publisher.publish(msg)
         topic = publisher.topic_name
         if topic not in self.types:
             self.types[topic] = LOOP_TYPES[COMMAND][0]
-        self.write(topic, serialize_message(command))
+        self.write(topic, serialize_message(msg))
 
     # -------------------------------------------------------------- the end
     def finish(self) -> None:
@@ -421,9 +378,11 @@ class Recorder(Node):
         interrupted = not self.finished.done()
         self.close_bag()
         elapsed = time.monotonic() - self.start_time
+        driver = self.driver
         print(
-            f"recorder: {'interrupted; ' if interrupted else ''}wrote {self.transitions} transitions "
-            f"({self.episodes_done} episodes, {self.bag.message_count} messages) to {self.bag.path} in {elapsed:.1f} s",
+            f"recorder: {'interrupted; ' if interrupted else ''}wrote {driver.transitions} transitions "
+            f"({driver.episodes_done} episodes, {self.bag.message_count} messages) to {self.bag.path} "
+            f"in {elapsed:.1f} s",
             file=sys.stderr,
         )
 
