@@ -78,6 +78,7 @@ def _not_a_checkpoint(f) -> str | None:
     f.seek(0)
     if size == 0:
         return "the file is empty"
+    # bag.storage_sqlite.SQLITE_MAGIC, written out: the policy node loads no bag code
     if head.startswith(b"SQLite format 3\x00"):
         return "an SQLite database, e.g. a rosbag2 .db3 bag, not a torch checkpoint"
     if head.startswith(b"\x89MCAP"):

@@ -80,10 +80,11 @@ def _is_bag_file(path: Path) -> bool:
     except OSError:
         return False
     from .storage_mcap import MAGIC
+    from .storage_sqlite import SQLITE_MAGIC
 
     if head.startswith(MAGIC):
         return True
-    if not head.startswith(b"SQLite format 3\x00"):
+    if not head.startswith(SQLITE_MAGIC):
         return False
     import sqlite3
 

@@ -24,7 +24,7 @@ from ..transitions import Transitions
 from .cdr import TRANSITION_MSGTYPE, TRANSITION_TOPIC, TransitionDecodeError, decode_transition_payloads
 from .paths import SUFFIX_STORAGE
 from .storage_mcap import has_footer, summary_problem
-from .storage_sqlite import MessageDigest, WalSqlite3Reader, stored_digest, wal_path
+from .storage_sqlite import SQLITE_MAGIC, MessageDigest, WalSqlite3Reader, stored_digest, wal_path
 from .writer import field_of_column
 
 RECORD_HINT = "record one with `offline-rl collect` or `ros2 run recorder node`"
@@ -50,7 +50,7 @@ def check_sqlite_size(path: Path) -> None:
     """Refuse a sqlite3 file shorter than its header says: SQLite would read it silently."""
     with path.open("rb") as f:
         header = f.read(100)
-    if len(header) < 100 or not header.startswith(b"SQLite format 3\x00"):
+    if len(header) < 100 or not header.startswith(SQLITE_MAGIC):
         return  # not sqlite at all: SQLite itself reports it
     page_size = int.from_bytes(header[16:18], "big")
     page_size = 65536 if page_size == 1 else page_size

@@ -37,6 +37,7 @@ from ruamel.yaml import YAML
 from ..errors import UserError
 from .metadata import ROSBAG2_VERSION, FileStats, Topic
 
+SQLITE_MAGIC = b"SQLite format 3\x00"  # the first 16 bytes of every sqlite3 database file
 SCHEMA_VERSION = 4
 SCHEMA = """
 CREATE TABLE schema(schema_version INTEGER PRIMARY KEY, ros_distro TEXT NOT NULL);
