@@ -21,19 +21,19 @@ help:
 # The C++ AWAC step (offline_rl_core/csrc) compiles once into torch's extension cache;
 # later runs only check it (about a second). Without a compiler the Python step runs.
 setup: $(STAMP)
-	@$(PY) -m offline_rl_core.learners.graph_runner || echo "(recorded training steps replay in Python)"
+	@$(PY) -m offline_rl_core.fast.graph_runner || echo "(recorded training steps replay in Python)"
 
 # Re-runs only when the project's packaging changes; torch goes in first so that
 # nothing else can make pip pick a newer (CUDA) torch.
-$(STAMP): pyproject.toml $(ROS_FILES) offline_rl_core/ros_install.py
+$(STAMP): pyproject.toml $(ROS_FILES) ros_ws/tools/ros_install.py
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PIP) install torch==2.13.0
 	$(PIP) install -e '.[ros,dev,onnx]'
-	$(PY) -m offline_rl_core.ros_install --venv $(VENV) $(ROS_PACKAGES)
+	$(PY) ros_ws/tools/ros_install.py --venv $(VENV) $(ROS_PACKAGES)
 	@touch $(STAMP)
 
 demo: setup
-	$(PY) -m offline_rl_core.demo --out runs/demo
+	$(PY) -m offline_rl_core.pipelines.demo --out runs/demo
 
 test: setup
 	$(PY) -m pytest -q

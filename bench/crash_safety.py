@@ -33,10 +33,11 @@ from pathlib import Path
 
 import numpy as np
 
-from offline_rl_core.bag import read_transitions, repair_bag
-from offline_rl_core.errors import UserError
-from offline_rl_core.rosproc import RosProcess, isolated_ros_env, ros2_run
-from offline_rl_core.transitions import LAYOUT_SLICES
+from offline_rl_core.data.bag import read_transitions, repair_bag
+from offline_rl_core.common.errors import UserError
+from offline_rl_core.pipelines.processes import RosProcess, isolated_ros_env
+from ros2_shim.ament_index import ros2_run
+from offline_rl_core.data.transitions import LAYOUT_SLICES
 
 FAULTS = {"SIGKILL": signal.SIGKILL, "SIGTERM": signal.SIGTERM, "SIGINT": signal.SIGINT}
 STORAGES = {"sqlite3": ".db3", "mcap": ".mcap"}

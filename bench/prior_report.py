@@ -35,14 +35,14 @@ from pathlib import Path
 
 import torch
 
-from offline_rl_core.atomic import write_json_atomic
-from offline_rl_core.bag import read_transitions
-from offline_rl_core.benchmarks import reference_chapter as chapter
-from offline_rl_core.evaluation import rollout
-from offline_rl_core.kernel_choice import isa_flags, cpu_model_and_flags
+from offline_rl_core.common.atomic import write_json_atomic
+from offline_rl_core.data.bag import read_transitions
+from offline_rl_core.runs import chapter_loop as chapter
+from offline_rl_core.evaluation.rollouts import rollout
+from offline_rl_core.common.machine import cpu_model_and_flags, isa_flags
 from offline_rl_core.learners import TrainConfig, train
-from offline_rl_core.prior import chapter_awac_seconds, plan_training, step_rate, steps_for_budget
-from offline_rl_core.stats import wilson_ci
+from offline_rl_core.runs.prior import chapter_awac_seconds, plan_training, step_rate, steps_for_budget
+from offline_rl_core.evaluation.stats import wilson_ci
 
 ROOT = Path(__file__).resolve().parents[1]
 SEEDS = (0, 1, 2)

@@ -19,11 +19,11 @@ import json
 import time
 from pathlib import Path
 
-from offline_rl_core.atomic import write_json_atomic
-from offline_rl_core.collect import collect_transitions
-from offline_rl_core.evaluation import rollout
+from offline_rl_core.common.atomic import write_json_atomic
+from offline_rl_core.data.collect import collect_transitions
+from offline_rl_core.evaluation.rollouts import rollout
 from offline_rl_core.learners import TrainConfig, train
-from offline_rl_core.policy import LoadedPolicy
+from offline_rl_core.serving.policy import LoadedPolicy
 
 VALIDATION_RESETS = range(600000, 600200)
 DATA_SEEDS = (10, 11)

@@ -4,11 +4,11 @@ evaluation and statistics. No ROS import anywhere in this package.
     from offline_rl_core import PusherReachEnv, reach_action, read_transitions
 """
 
-from .bag import bag_info, read_transitions, write_transitions
-from .env import ACT_DIM, MAX_STEPS, OBS_DIM, PusherReachEnv, observation_from_joints
-from .expert import expert_action, reach_action
-from .gym_env import register_gym_envs
-from .transitions import Transitions
+from .data.bag import bag_info, read_transitions, write_transitions
+from .task.pusher_reach import ACT_DIM, MAX_STEPS, OBS_DIM, PusherReachEnv, observation_from_joints
+from .task.expert import expert_action, reach_action
+from .task.gym_env import register_gym_envs
+from .data.transitions import Transitions
 
 __version__ = "0.1.0"
 
@@ -17,7 +17,7 @@ def __getattr__(name: str):
     # load_policy needs torch (~0.9 s to import): loaded when first asked for, not by
     # every node and command that only needs the env or the bag code
     if name == "load_policy":
-        from .policy import load_policy
+        from .serving.policy import load_policy
 
         return load_policy
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -2,7 +2,7 @@
 failure reproduces from its seed).
 
 Each generated case carries one defect (or none) and the rejection reason a node must
-count for it (``offline_rl_core.rejections.REASONS``), or None where the node must take
+count for it (``offline_rl_core.common.rejections.REASONS``), or None where the node must take
 the message. The reasons are written out here, case by case, from what the message is,
 not computed with the code under test. Fields are plain Python values; the tests build
 the ROS messages (``tests/test_ros_fuzz.py``) or call the plain checks directly
@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from offline_rl_core.transitions import LAYOUT_SLICES, TRANSITION_LAYOUT
+from offline_rl_core.data.transitions import LAYOUT_SLICES, TRANSITION_LAYOUT
 
 JOINTS = ["shoulder", "elbow"]
 NS = 1_000_000_000

@@ -12,10 +12,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from offline_rl_core.bag import BagWriter, encode_transition_rows, typestore
-from offline_rl_core.env import ACT_DIM, JOINT_NAMES, MAX_STEPS, PusherReachEnv
-from offline_rl_core.collect import EpisodePlan
-from offline_rl_core.transitions import LAYOUT_SLICES, SOURCE_NAMES, TRANSITION_WIDTH
+from offline_rl_core.data.bag import BagWriter, encode_transition_rows, typestore
+from offline_rl_core.task.pusher_reach import ACT_DIM, JOINT_NAMES, MAX_STEPS, PusherReachEnv
+from offline_rl_core.data.collect import EpisodePlan
+from offline_rl_core.data.transitions import LAYOUT_SLICES, SOURCE_NAMES, TRANSITION_WIDTH
 
 TICK_NS = 20_000_000
 START_NS = 1_735_689_600 * 10**9

@@ -1,5 +1,5 @@
 """Shared pieces of the ROS 2 tests: an isolated DDS domain, node processes stopped by pid
-(``offline_rl_core.rosproc.RosProcess``), and an in-test rclpy node.
+(``offline_rl_core.pipelines.processes.RosProcess``), and an in-test rclpy node.
 
 Import the fixtures into a test module with ``from ros_helpers import ros_env, spawn``.
 """
@@ -16,6 +16,8 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
+# ros_ws/tools (the installer of the ROS packages) is a folder of scripts, not a package
+sys.path.insert(0, str(REPO / "ros_ws" / "tools"))
 ROS2 = Path(sys.prefix) / "bin" / "ros2"
 PACKAGES = ("sim", "recorder", "trainer", "policy", "learner")
 # The Python module of each ROS package (PyPI has packages called sim, trainer, policy,
@@ -73,7 +75,7 @@ def ros_env():
 @pytest.fixture
 def spawn(ros_env, tmp_path):
     """``spawn(cmd, name)`` starts a process on the test domain; all are stopped at teardown."""
-    from offline_rl_core.rosproc import RosProcess
+    from offline_rl_core.pipelines.processes import RosProcess
 
     started: list[RosProcess] = []
 

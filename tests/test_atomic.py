@@ -3,7 +3,7 @@
 import os
 import stat
 
-from offline_rl_core.atomic import atomic_path, write_json_atomic
+from offline_rl_core.common.atomic import atomic_path, write_json_atomic
 
 
 def test_atomically_written_files_get_the_mode_a_plain_open_gives(tmp_path):

@@ -12,9 +12,9 @@ from hypothesis import strategies as st
 from fuzz_messages import (JOINT_KINDS, POINT_KINDS, TRANSITION_KINDS, WEIGHTS_KINDS, broken_checkpoints,
                            checkpoint_bytes, command_case, flip_in_tensor_data, joint_case, point_case,
                            transition_case, weights_case)
-from offline_rl_core.joint_messages import action_from_effort, joints_from_state, point_xy
-from offline_rl_core.pairing import NS_PER_S, StampOrder, StatePairing, check_answer_stamp, check_stamp
-from offline_rl_core.rejections import REASONS, Rejection, RejectionCounter
+from offline_rl_core.nodes.joint_messages import action_from_effort, joints_from_state, point_xy
+from offline_rl_core.nodes.pairing import NS_PER_S, StampOrder, StatePairing, check_answer_stamp, check_stamp
+from offline_rl_core.common.rejections import REASONS, Rejection, RejectionCounter
 
 N = 2000  # cases per message type
 TICK = NS_PER_S // 50
@@ -56,9 +56,9 @@ def test_fuzzed_commands_are_refused_or_clipped_into_the_action_range():
 
 
 def test_fuzzed_transitions_are_refused_for_their_reason_and_good_ones_kept():
-    from offline_rl_core.bag.cdr import TransitionDecodeError, decode_transition_payloads
-    from offline_rl_core.collect import collect_transitions
-    from offline_rl_core.online_service import check_row
+    from offline_rl_core.data.bag.cdr import TransitionDecodeError, decode_transition_payloads
+    from offline_rl_core.data.collect import collect_transitions
+    from offline_rl_core.nodes.learner_service import check_row
 
     rows = collect_transitions(2, 0.5, 0).to_rows()
     rng = np.random.default_rng(3)
@@ -76,7 +76,7 @@ def test_fuzzed_transitions_are_refused_for_their_reason_and_good_ones_kept():
 
 def _cdr_float32_multiarray(data, layout) -> bytes:
     """A std_msgs/Float32MultiArray serialized by rosbags' typestore (as a publisher sends it)."""
-    from offline_rl_core.bag import typestore
+    from offline_rl_core.data.bag import typestore
 
     ts = typestore()
     Dim = ts.types["std_msgs/msg/MultiArrayDimension"]
@@ -88,8 +88,8 @@ def _cdr_float32_multiarray(data, layout) -> bytes:
 
 
 def test_fuzzed_weights_messages_never_load(tmp_path):
-    from offline_rl_core.online_service import policy_from_weights_message
-    from offline_rl_core.networks import policy_sequential
+    from offline_rl_core.nodes.learner_service import policy_from_weights_message
+    from offline_rl_core.serving.policy import policy_sequential
 
     net = policy_sequential(8, 32, 2)
     good_ckpt = {"format": "pusher-rl/policy", "version": 1, "algorithm": "sac", "obs_dim": 8, "act_dim": 2,

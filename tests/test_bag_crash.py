@@ -20,20 +20,14 @@ import numpy as np
 import pytest
 from rosbags.rosbag2 import Reader
 
-from offline_rl_core import cli
-from offline_rl_core.bag import (
-    TRANSITION_MSGTYPE,
-    TRANSITION_TOPIC,
-    BagWriter,
-    bag_info,
-    encode_transition_rows,
-    read_transitions,
-    repair_bag,
+from offline_rl_core.commands import cli
+from offline_rl_core.data.bag import (
+    TRANSITION_MSGTYPE, TRANSITION_TOPIC, BagWriter, bag_info, encode_transition_rows, read_transitions, repair_bag,
     write_transitions,
 )
-from offline_rl_core.bag.reader import read_transition_rows
-from offline_rl_core.collect import collect_transitions
-from offline_rl_core.errors import UserError
+from offline_rl_core.data.bag.reader import read_transition_rows
+from offline_rl_core.data.collect import collect_transitions
+from offline_rl_core.common.errors import UserError
 
 REPO = Path(__file__).resolve().parents[1]
 ROWS = 3000
@@ -42,7 +36,7 @@ ROWS = 3000
 CHILD = """
 import sys
 import numpy as np
-from offline_rl_core.bag import BagWriter, encode_transition_rows
+from offline_rl_core.data.bag import BagWriter, encode_transition_rows
 rows = np.random.default_rng(0).uniform(-1, 1, (%d, 25)).astype(np.float32)
 path, storage, split = sys.argv[1], sys.argv[2] or None, float(sys.argv[3])
 with BagWriter(path, storage, flush_interval=3600, max_bag_duration=split) as bag:
@@ -172,8 +166,8 @@ def test_repair_sqlite_folds_a_left_wal(tmp_path):
     path = tmp_path / "w.db3"
     code = f"""
 import os
-from offline_rl_core.bag import BagWriter, encode_transition_rows, storage_sqlite
-from offline_rl_core.collect import collect_transitions
+from offline_rl_core.data.bag import BagWriter, encode_transition_rows, storage_sqlite
+from offline_rl_core.data.collect import collect_transitions
 payloads = encode_transition_rows(collect_transitions(3, 0.5, 4).to_rows()[:150])
 bag = BagWriter({str(path)!r}, flush_interval=3600)
 bag.add_topic("/pusher/transition", "std_msgs/msg/Float32MultiArray")

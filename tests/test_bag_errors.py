@@ -6,20 +6,15 @@ import numpy as np
 import pytest
 from rosbags.rosbag2 import Writer
 
-from offline_rl_core import cli
-from offline_rl_core.bag import (
-    TRANSITION_MSGTYPE,
-    TRANSITION_TOPIC,
-    BagWriter,
-    encode_transition_rows,
-    read_transitions,
-    typestore,
+from offline_rl_core.commands import cli
+from offline_rl_core.data.bag import (
+    TRANSITION_MSGTYPE, TRANSITION_TOPIC, BagWriter, encode_transition_rows, read_transitions, typestore,
     write_transitions,
 )
-from offline_rl_core.bag import writer as bag_writer
-from offline_rl_core.collect import collect_transitions
-from offline_rl_core.errors import UserError
-from offline_rl_core.transitions import LAYOUT_SLICES
+from offline_rl_core.data.bag import writer as bag_writer
+from offline_rl_core.data.collect import collect_transitions
+from offline_rl_core.common.errors import UserError
+from offline_rl_core.data.transitions import LAYOUT_SLICES
 
 
 @pytest.fixture(scope="module")

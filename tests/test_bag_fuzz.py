@@ -18,19 +18,13 @@ from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from offline_rl_core.bag import (
-    TRANSITION_MSGTYPE,
-    TRANSITION_TOPIC,
-    BagWriter,
-    TransitionDecodeError,
-    decode_transition_payloads,
-    encode_transition_rows,
-    read_transitions,
-    typestore,
+from offline_rl_core.data.bag import (
+    TRANSITION_MSGTYPE, TRANSITION_TOPIC, BagWriter, TransitionDecodeError, decode_transition_payloads,
+    encode_transition_rows, read_transitions, typestore,
 )
-from offline_rl_core.collect import collect_transitions
-from offline_rl_core.errors import UserError
-from offline_rl_core.transitions import TRANSITION_LAYOUT, TRANSITION_WIDTH
+from offline_rl_core.data.collect import collect_transitions
+from offline_rl_core.common.errors import UserError
+from offline_rl_core.data.transitions import TRANSITION_LAYOUT, TRANSITION_WIDTH
 
 FAST = settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 TS = typestore()

@@ -8,20 +8,12 @@ import numpy as np
 import pytest
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 
-from offline_rl_core.bag import (
-    TRANSITION_MSGTYPE,
-    TRANSITION_TOPIC,
-    BagWriter,
-    bag_info,
-    decode_transition_payloads,
-    encode_transition_rows,
-    read_transitions,
-    transition_layout_msg_fields,
-    typestore,
-    write_transitions,
+from offline_rl_core.data.bag import (
+    TRANSITION_MSGTYPE, TRANSITION_TOPIC, BagWriter, bag_info, decode_transition_payloads, encode_transition_rows,
+    read_transitions, transition_layout_msg_fields, typestore, write_transitions,
 )
-from offline_rl_core.collect import collect_transitions
-from offline_rl_core.transitions import TRANSITION_WIDTH
+from offline_rl_core.data.collect import collect_transitions
+from offline_rl_core.data.transitions import TRANSITION_WIDTH
 
 REPO = Path(__file__).resolve().parents[1]
 FAKE_HASH = "RIHS01_" + "0" * 64

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 import torch
 
-from offline_rl_core.benchmarks import reference_chapter as chapter
+from offline_rl_core.runs import chapter_loop as chapter
 from offline_rl_core.benchmarks.harness import GROUPS, BenchSettings, Figure, figure, format_table, run_bench
-from offline_rl_core.cli import main
-from offline_rl_core.collect import collect_transitions
+from offline_rl_core.commands.cli import main
+from offline_rl_core.data.collect import collect_transitions
 from offline_rl_core.learners import TrainConfig, train_seeds
 
 FIGURE_KEYS = {"ours", "reference", "reference_name", "ratio", "unit", "higher_is_better", "target_text", "met",
@@ -140,7 +140,7 @@ def test_isa_avx2_caps_every_kernel_and_says_so(tmp_path):
     import sys
 
     out = tmp_path / "avx2.json"
-    run = subprocess.run([sys.executable, "-m", "offline_rl_core.cli", "bench", "--tiny", "--only", "decode",
+    run = subprocess.run([sys.executable, "-m", "offline_rl_core.commands.cli", "bench", "--tiny", "--only", "decode",
                           "--isa", "avx2", "--json", str(out)], capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr
     machine = json.loads(out.read_text())["machine"]
@@ -153,8 +153,8 @@ def test_isa_avx2_caps_every_kernel_and_says_so(tmp_path):
 
 def test_kernel_choice_is_cached_apart_under_an_isa_cap(monkeypatch):
     """A choice measured with AVX-512 kernels is not reused when the kernels are capped."""
-    from offline_rl_core import kernel_choice
+    from offline_rl_core.common import machine
 
-    uncapped = kernel_choice.machine_key("256x256")
+    uncapped = machine.machine_key("256x256")
     monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "AVX2")
-    assert kernel_choice.machine_key("256x256") != uncapped
+    assert machine.machine_key("256x256") != uncapped

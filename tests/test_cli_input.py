@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from offline_rl_core import cli
+from offline_rl_core.commands import cli
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -31,8 +31,8 @@ def _one_error_line(capsys, *words: str) -> str:
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     """A 2-episode bag and a finished BC run on it (DIR/policy.pt, metrics.json)."""
-    from offline_rl_core.bag import write_transitions
-    from offline_rl_core.collect import collect_transitions
+    from offline_rl_core.data.bag import write_transitions
+    from offline_rl_core.data.collect import collect_transitions
 
     root = tmp_path_factory.mktemp("cli_input")
     bag = root / "tiny.db3"
@@ -168,7 +168,7 @@ def test_unreadable_checkpoints_say_what_they_are(tiny, tmp_path, capsys):
 
 def test_hil_takes_its_defaults_by_mode_and_refuses_the_other_modes_flags(capsys, tmp_path, monkeypatch):
     from offline_rl_core.commands.hil import _resolve_mode_flags
-    from offline_rl_core.hil import PROJECT_BAG
+    from offline_rl_core.pipelines.hil import PROJECT_BAG
 
     for argv, flags in ((["hil", "--online", "--rounds", "2", "--beta", "0.2"], "--rounds, --beta: only without --online"),
                         (["hil", "--utd", "2"], "--utd: only with --online")):

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from offline_rl_core import cli
-from offline_rl_core.bag import read_transitions
-from offline_rl_core.collect import collect_transitions
+from offline_rl_core.commands import cli
+from offline_rl_core.data.bag import read_transitions
+from offline_rl_core.data.collect import collect_transitions
 
 
 def _collect(out, *extra) -> int:

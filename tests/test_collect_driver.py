@@ -1,14 +1,14 @@
-"""The recorder's collection logic (offline_rl_core.collect_driver) against the sim's, without DDS."""
+"""The recorder's collection logic (offline_rl_core.nodes.collect_driver) against the sim's, without DDS."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from offline_rl_core.bag import encode_transition_rows, transition_ends_episode
-from offline_rl_core.collect import EpisodePlan, collect_transitions
-from offline_rl_core.collect_driver import CollectDriver
-from offline_rl_core.sim_loop import SimLoop
-from offline_rl_core.transitions import SOURCE_EXPERT, SOURCE_RANDOM
+from offline_rl_core.data.bag import encode_transition_rows, transition_ends_episode
+from offline_rl_core.data.collect import EpisodePlan, collect_transitions
+from offline_rl_core.nodes.collect_driver import CollectDriver
+from offline_rl_core.nodes.sim_loop import SimLoop
+from offline_rl_core.data.transitions import SOURCE_EXPERT, SOURCE_RANDOM
 
 
 def _show(driver: CollectDriver, state) -> None:

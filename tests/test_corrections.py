@@ -11,19 +11,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from offline_rl_core import ros_install
-from offline_rl_core.bag import read_transitions, write_transitions
-from offline_rl_core.collect import collect_transitions
-from offline_rl_core.env import PusherReachEnv
-from offline_rl_core.transitions import SOURCE_HUMAN, SOURCE_POLICY, Transitions
+from offline_rl_core.data.bag import read_transitions, write_transitions
+from offline_rl_core.data.collect import collect_transitions
+from offline_rl_core.task.pusher_reach import PusherReachEnv
+from offline_rl_core.data.transitions import SOURCE_HUMAN, SOURCE_POLICY, Transitions
 
 from ros_helpers import INDEX, REPO, probe_node, require_ros, ros_env, spawn  # noqa: F401 - fixtures
+import ros_install  # noqa: E402 - from ros_ws/tools, on the path ros_helpers sets
 
 CORRECTIONS_SRC = REPO / "ros_ws" / "src" / "corrections"
 sys.path.insert(0, str(CORRECTIONS_SRC))  # the pure-Python parts, importable without the install
 
-from offline_rl_core.arbiter import HUMAN, POLICY, LockstepArbiter, RealtimeArbiter
-from offline_rl_core.corrector import CorrectorParams, ScriptedCorrector  # noqa: E402
+from offline_rl_core.nodes.arbiter import HUMAN, POLICY, LockstepArbiter, RealtimeArbiter
+from offline_rl_core.task.corrector import CorrectorParams, ScriptedCorrector  # noqa: E402
 
 
 def require_corrections() -> None:
@@ -166,7 +166,7 @@ def test_training_on_several_bags_with_the_correction_ratio(tmp_path):
 
     from offline_rl_core.learners import TrainConfig
     from offline_rl_core.learners.data import IndexSampler, correction_pools, intervention_actor_mask
-    from offline_rl_core.training_run import load_bags, run_training
+    from offline_rl_core.runs.training_run import load_bags, run_training
 
     mix = tmp_path / "mix.db3"
     write_transitions(mix, collect_transitions(4, 0.5, 0))
@@ -218,7 +218,7 @@ def test_mux_over_ros_lockstep_and_realtime(spawn, ros_env):
     from sensor_msgs.msg import JointState
     from std_msgs.msg import Bool
 
-    from offline_rl_core.rosproc import ros2_run
+    from ros2_shim.ament_index import ros2_run
 
     # who acted is the topic a command goes to: pusher/command/policy or pusher/command/human
     lock = spawn(ros2_run("corrections", "mux", "--ros-args", "-p", "mode:=lockstep", "-p", "require_teleop:=true",
@@ -278,7 +278,7 @@ def test_mux_over_ros_lockstep_and_realtime(spawn, ros_env):
 def weak_prior(tmp_path_factory):
     """An AWAC prior trained briefly on the reference bag (it rarely succeeds)."""
     from offline_rl_core.learners import TrainConfig
-    from offline_rl_core.training_run import run_training
+    from offline_rl_core.runs.training_run import run_training
 
     root = tmp_path_factory.mktemp("hil_prior")
     cfg = TrainConfig(algo="awac", steps=300, log_every=100)
@@ -291,8 +291,8 @@ def weak_prior(tmp_path_factory):
 def test_hil_loop_records_sources_hot_reloads_and_improves(ros_env, weak_prior, tmp_path):
     """Two short rounds over ROS: sim + policy + corrector + mux + recorder, trainer, reload."""
     require_corrections()
-    from offline_rl_core.hil import HilConfig, run_hil
-    from offline_rl_core.policy import load_policy
+    from offline_rl_core.pipelines.hil import HilConfig, run_hil
+    from offline_rl_core.serving.policy import load_policy
 
     out = tmp_path / "hil"
     cfg = HilConfig(out=str(out), rounds=2, episodes=8, prior=str(weak_prior), steps=1500, eval_episodes=100,
@@ -331,7 +331,9 @@ def test_hil_loop_records_sources_hot_reloads_and_improves(ros_env, weak_prior, 
 @pytest.mark.ros
 def test_keyboard_mode_needs_a_terminal(ros_env, tmp_path):
     require_corrections()
-    from offline_rl_core.rosproc import RosProcess, ros2_run
+    from ros2_shim.ament_index import ros2_run
+
+    from offline_rl_core.pipelines.processes import RosProcess
 
     # RosProcess gives the node /dev/null as stdin (never the terminal pytest runs in)
     with RosProcess(ros2_run("corrections", "corrector", "--mode", "keyboard"), ros_env, tmp_path / "kb.log") as node:
@@ -342,7 +344,7 @@ def test_keyboard_mode_needs_a_terminal(ros_env, tmp_path):
 def test_rosproc_stops_by_pid_with_escalation(tmp_path):
     import signal as _signal
 
-    from offline_rl_core.rosproc import RosProcess, isolated_ros_env
+    from offline_rl_core.pipelines.processes import RosProcess, isolated_ros_env
 
     env = isolated_ros_env(domain_id=42)
     assert env["ROS_DOMAIN_ID"] == "42" and env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from offline_rl_core.collect import collect_transitions
+from offline_rl_core.data.collect import collect_transitions
 from offline_rl_core.learners import TrainConfig, train_seeds
 
 cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU here")
@@ -64,7 +64,7 @@ def test_gpu_training_follows_the_cpu(data):
 
 @cuda
 def test_a_gpu_checkpoint_serves_on_the_cpu(data, tmp_path):
-    from offline_rl_core.policy import load_policy, save_checkpoint
+    from offline_rl_core.serving.policy import load_policy, save_checkpoint
 
     result = train_seeds(data, TrainConfig(algo="bc", steps=20, log_every=10, device="cuda"), [0])[0]
     assert all(v.device.type == "cpu" for v in result.checkpoint["policy_state"].values())

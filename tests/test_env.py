@@ -5,20 +5,13 @@ import math
 import numpy as np
 import pytest
 
-from offline_rl_core.collect import collect_transitions
-from offline_rl_core.env import (
-    LINK_LEN,
-    MAX_STEPS,
-    SUCCESS_BONUS,
-    SUCCESS_TOL,
-    PusherReachEnv,
-    batch_observations,
-    fingertip_from_joints,
-    observation_from_joints,
-    score_steps,
+from offline_rl_core.data.collect import collect_transitions
+from offline_rl_core.task.pusher_reach import (
+    LINK_LEN, MAX_STEPS, SUCCESS_BONUS, SUCCESS_TOL, PusherReachEnv, batch_observations, fingertip_from_joints,
+    observation_from_joints, score_steps,
 )
-from offline_rl_core.expert import reach_action
-from offline_rl_core.transitions import SOURCE_EXPERT, SOURCE_RANDOM
+from offline_rl_core.task.expert import reach_action
+from offline_rl_core.data.transitions import SOURCE_EXPERT, SOURCE_RANDOM
 
 
 def run_episode(env, seed, policy):

@@ -1,6 +1,6 @@
 """Ctrl-C that surfaces through a C extension is still recognised as Ctrl-C."""
 
-from offline_rl_core.errors import caused_by_interrupt
+from offline_rl_core.common.errors import caused_by_interrupt
 
 
 def test_an_exception_caused_by_keyboard_interrupt_counts_as_interrupt():

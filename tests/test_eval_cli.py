@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from offline_rl_core.cli import main
-from offline_rl_core.networks import policy_sequential
-from offline_rl_core.policy import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, load_policy, save_checkpoint
+from offline_rl_core.commands.cli import main
+from offline_rl_core.serving.policy import policy_sequential
+from offline_rl_core.serving.policy import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, load_policy, save_checkpoint
 
 
 def make_checkpoint(path, hidden=32, obs_dim=8, act_dim=2):

@@ -5,19 +5,13 @@ import numpy as np
 import pytest
 import torch
 
-from offline_rl_core.env import PusherReachEnv, build_model
-from offline_rl_core.evaluation import (
-    BatchedPusherEnv,
-    _mujoco_timer_slot,
-    _unconstrained,
-    batch_observations,
-    evaluate_policy,
-    expert_act_fn,
-    mujoco_timers_off,
-    rollout,
+from offline_rl_core.task.pusher_reach import PusherReachEnv, build_model
+from offline_rl_core.evaluation.rollouts import (
+    BatchedPusherEnv, _mujoco_timer_slot, _unconstrained, batch_observations, evaluate_policy, expert_act_fn,
+    mujoco_timers_off, rollout,
 )
-from offline_rl_core.networks import policy_sequential
-from offline_rl_core.policy import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, LoadedPolicy
+from offline_rl_core.serving.policy import policy_sequential
+from offline_rl_core.serving.policy import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, LoadedPolicy
 
 FIELDS = ("seeds", "success", "final_dist", "returns", "lengths")
 

@@ -13,8 +13,8 @@ import time
 import pytest
 import torch
 
-from offline_rl_core.cli import main
-from offline_rl_core.experiment import METRIC_KEYS, ExperimentConfig, eval_reset_seeds, run_experiment
+from offline_rl_core.commands.cli import main
+from offline_rl_core.runs.experiment import METRIC_KEYS, ExperimentConfig, eval_reset_seeds, run_experiment
 
 
 @pytest.fixture(autouse=True)
@@ -89,9 +89,9 @@ def test_worker_processes_give_the_same_metrics_as_one_process(tmp_path):
 def test_a_failing_run_stops_the_other_workers_and_reaches_the_caller():
     import multiprocessing
 
-    from offline_rl_core.collect import collect_transitions
+    from offline_rl_core.data.collect import collect_transitions
     from offline_rl_core.learners import TrainConfig
-    from offline_rl_core.learners.parallel import TrainJob, run_jobs
+    from offline_rl_core.runs.parallel import TrainJob, run_jobs
 
     data = collect_transitions(2, 0.5, 0)
     long_run = TrainJob("bc s0", [data], TrainConfig(algo="bc", steps=200_000, batch_size=8, hidden=8), [0])
@@ -105,10 +105,11 @@ def test_a_run_takes_the_cores_of_finished_runs_and_trains_the_same_bytes():
     """Once no run waits for a worker, the runs still training take the finished ones'
     cores (the C++ replay spreads their steps): the last long run of an experiment does
     not train on one core while the other idles, and trains exactly what it would alone."""
-    from offline_rl_core.collect import collect_transitions
-    from offline_rl_core.learners import TrainConfig, graph_runner, train_seeds
-    from offline_rl_core.learners.parallel import TrainJob, run_jobs
-    from offline_rl_core.learners.stepper import available_cores
+    from offline_rl_core.data.collect import collect_transitions
+    from offline_rl_core.learners import TrainConfig, train_seeds
+    from offline_rl_core.fast import graph_runner
+    from offline_rl_core.runs.parallel import TrainJob, run_jobs
+    from offline_rl_core.common.machine import available_cores
 
     if available_cores() < 2 or graph_runner.unavailable_reason() is not None:
         pytest.skip("needs two cores and the C++ step replayer")

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-from offline_rl_core.env import MAX_STEPS, PusherReachEnv
-from offline_rl_core.gym_env import ENV_ID, PusherReachGymEnv, register_gym_envs
-from offline_rl_core.render import TopDownRenderer, camera_pixels, render_top_down, save_png
+from offline_rl_core.task.pusher_reach import MAX_STEPS, PusherReachEnv
+from offline_rl_core.task.gym_env import ENV_ID, PusherReachGymEnv, register_gym_envs
+from offline_rl_core.task.render import TopDownRenderer, camera_pixels, render_top_down, save_png
 
 
 @pytest.fixture
@@ -31,7 +31,7 @@ def test_check_env_passes(quiet_unbounded_box):
 
 
 def test_make_with_module_prefix_needs_no_prior_import():
-    env = gymnasium.make("offline_rl_core.gym_env:" + ENV_ID)
+    env = gymnasium.make("offline_rl_core.task.gym_env:" + ENV_ID)
     assert isinstance(env.unwrapped, PusherReachGymEnv)
     assert env.spec.max_episode_steps is None  # no TimeLimit: the env truncates itself
 
@@ -66,7 +66,7 @@ def test_reset_seeding():
 
 
 def test_terminate_on_success_is_terminated_not_truncated():
-    from offline_rl_core.expert import reach_action
+    from offline_rl_core.task.expert import reach_action
 
     env = PusherReachGymEnv(terminate_on_success=True)
     env.reset(seed=0)
@@ -108,7 +108,7 @@ def test_gym_render_rgb_array():
 
 
 def test_auto_falls_back_to_numpy_when_no_gl_context_renders(monkeypatch):
-    import offline_rl_core.render as render
+    import offline_rl_core.task.render as render
 
     class BrokenContext:
         def __init__(self, width, height):

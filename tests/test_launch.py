@@ -1,4 +1,4 @@
-"""The launch-file reader (offline_rl_core.launch) on the shipped pipelines, without ROS."""
+"""The launch-file reader (ros2_shim.launch_files) on the shipped pipelines, without ROS."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import sys
 
 import pytest
 
-from offline_rl_core.errors import UserError
-from offline_rl_core.launch import find_launch_file, load_launch, parse_launch_arguments
+from offline_rl_core.common.errors import UserError
+from ros2_shim.launch_files import find_launch_file, load_launch, parse_launch_arguments
 
 from ros_helpers import REPO
 
@@ -80,7 +80,9 @@ def test_unsupported_launch_content_is_refused_naming_the_file(tmp_path):
 
 
 def test_launched_processes_end_with_the_on_exit_node_and_stop_the_rest(tmp_path):
-    from offline_rl_core.launch import LaunchedProcesses, LaunchNode
+    from ros2_shim.launch_files import LaunchNode
+
+    from offline_rl_core.pipelines.processes import LaunchedProcesses
 
     server = LaunchNode("x", "server", name="server")
     worker = LaunchNode("x", "worker", name="worker", shutdown_on_exit=True)

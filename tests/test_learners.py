@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from offline_rl_core.collect import collect_transitions
-from offline_rl_core.errors import UserError
+from offline_rl_core.data.collect import collect_transitions
+from offline_rl_core.common.errors import UserError
 from offline_rl_core.learners import TrainConfig, train, train_seeds
 from offline_rl_core.learners.awac import AWAC
 from offline_rl_core.learners.bc import BC
@@ -21,8 +21,8 @@ from offline_rl_core.learners.data import (
 )
 from offline_rl_core.learners.iql import IQL
 from offline_rl_core.learners.naive import NaiveMaxQ
-from offline_rl_core.policy import load_checkpoint, load_policy, save_checkpoint
-from offline_rl_core.transitions import SOURCE_HUMAN, SOURCE_POLICY
+from offline_rl_core.serving.policy import load_checkpoint, load_policy, save_checkpoint
+from offline_rl_core.data.transitions import SOURCE_HUMAN, SOURCE_POLICY
 
 OBS, ACT, H = 3, 2, 4
 

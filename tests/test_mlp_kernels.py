@@ -3,8 +3,8 @@
 import pytest
 import torch
 
-from offline_rl_core.kernel_choice import Kernels, native_bf16, onednn_linear_available
-from offline_rl_core.networks import EnsembleMLP
+from offline_rl_core.fast.kernel_choice import Kernels, native_bf16, onednn_linear_available
+from offline_rl_core.learners.networks import EnsembleMLP
 
 BACKENDS = ["blas"] + (["onednn"] if onednn_linear_available() else [])
 
@@ -69,7 +69,7 @@ def test_kernel_choice_is_measured_once_and_reused(tmp_path, monkeypatch):
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     monkeypatch.delenv("PUSHER_RL_KERNELS", raising=False)
-    code = "from offline_rl_core.kernel_choice import choose; print(choose(True, 32, 16).describe())"
+    code = "from offline_rl_core.fast.kernel_choice import choose; print(choose(True, 32, 16).describe())"
     first = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     cache = tmp_path / "pusher-rl" / "kernels.json"
     entries = json.loads(cache.read_text())
@@ -83,8 +83,8 @@ def test_kernel_choice_is_measured_once_and_reused(tmp_path, monkeypatch):
 
 
 def test_forced_kernels_are_checked(monkeypatch):
-    from offline_rl_core.errors import UserError
-    from offline_rl_core.kernel_choice import choose
+    from offline_rl_core.common.errors import UserError
+    from offline_rl_core.fast.kernel_choice import choose
 
     monkeypatch.setenv("PUSHER_RL_KERNELS", "fp16")
     with pytest.raises(UserError, match="PUSHER_RL_KERNELS=fp16: expected fp32 or bf16"):
@@ -101,7 +101,7 @@ def test_bf16_training_ends_where_fp32_does(monkeypatch):
     """bf16 kernels must train: the same BC run in fp32 and in bf16 ends at about the same
     loss. (Guards against a stale bf16 copy of weights the optimiser has since updated,
     which an earlier autocast version served: it ended at 0.926 against fp32's 0.288.)"""
-    from offline_rl_core.collect import collect_transitions
+    from offline_rl_core.data.collect import collect_transitions
     from offline_rl_core.learners import TrainConfig, train_seeds
 
     data = collect_transitions(10, 0.3, 0)

@@ -1,18 +1,19 @@
 """The nodes' logic as plain classes, tested without DDS: the sim's protocol
-(offline_rl_core.sim_loop), stamp pairing (pairing) and joint messages (joint_messages)."""
+(offline_rl_core.nodes.sim_loop), stamp pairing (pairing) and joint messages (joint_messages)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from offline_rl_core.collect import collect_transitions
-from offline_rl_core.expert import expert_action
-from offline_rl_core.joint_messages import (action_from_effort, action_from_torques, joints_from_state,
-                                            torques_from_action)
-from offline_rl_core.pairing import StatePairing
-from offline_rl_core.sim_loop import TICK_NS, SimLoop
-from offline_rl_core.transitions import SOURCE_EXPERT, Transitions
+from offline_rl_core.data.collect import collect_transitions
+from offline_rl_core.task.expert import expert_action
+from offline_rl_core.nodes.joint_messages import (
+    action_from_effort, action_from_torques, joints_from_state, torques_from_action,
+)
+from offline_rl_core.nodes.pairing import StatePairing
+from offline_rl_core.nodes.sim_loop import TICK_NS, SimLoop
+from offline_rl_core.data.transitions import SOURCE_EXPERT, Transitions
 
 START = 1_700_000_000 * 1_000_000_000
 
@@ -95,7 +96,7 @@ def test_a_state_reports_the_torque_the_motors_applied_in_newton_metres():
 def _checkpoint(**fields):
     import torch
 
-    from offline_rl_core.networks import policy_sequential
+    from offline_rl_core.serving.policy import policy_sequential
 
     torch.manual_seed(0)
     state = dict(policy_sequential(8, 16, 2).state_dict())
@@ -108,9 +109,9 @@ def test_a_checkpoint_whose_biases_or_normalisation_do_not_fit_is_refused_at_loa
     weights message (the old policy serving on), instead of crashing on the next state."""
     import torch
 
-    from offline_rl_core.errors import UserError
-    from offline_rl_core.online_service import policy_from_weights_message
-    from offline_rl_core.policy import checkpoint_to_bytes, load_policy, save_checkpoint
+    from offline_rl_core.common.errors import UserError
+    from offline_rl_core.nodes.learner_service import policy_from_weights_message
+    from offline_rl_core.serving.policy import checkpoint_to_bytes, load_policy, save_checkpoint
 
     good = _checkpoint()
     state = good["policy_state"]
@@ -136,8 +137,8 @@ def test_a_checkpoint_whose_biases_or_normalisation_do_not_fit_is_refused_at_loa
 
 
 def test_a_state_the_policy_fails_on_is_refused_and_the_next_one_answered():
-    from offline_rl_core.actor import Actor
-    from offline_rl_core.policy import LoadedPolicy
+    from offline_rl_core.serving.actor import Actor
+    from offline_rl_core.serving.policy import LoadedPolicy
 
     policy = LoadedPolicy(_checkpoint())
     actor = Actor(policy)

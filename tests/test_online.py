@@ -5,12 +5,12 @@ import numpy as np
 import pytest
 import torch
 
-from offline_rl_core.collect import collect_transitions
-from offline_rl_core.corrector import CorrectorParams
+from offline_rl_core.data.collect import collect_transitions
+from offline_rl_core.task.corrector import CorrectorParams
 from offline_rl_core.learners import TrainConfig, train
 from offline_rl_core.learners.online import OnlineLearner, OnlineSettings
-from offline_rl_core.online_loop import OnlineRunConfig, run_online
-from offline_rl_core.transitions import SOURCE_HUMAN, SOURCE_POLICY
+from offline_rl_core.runs.online_loop import OnlineRunConfig, run_online
+from offline_rl_core.data.transitions import SOURCE_HUMAN, SOURCE_POLICY
 
 SMALL = dict(batch_size=32, hidden=32, log_every=10)
 
@@ -115,7 +115,7 @@ def test_in_process_stage_is_reproducible_and_learns_from_corrections(offline, p
 
 # ---------------------------------------------------------------- the learner node's logic
 def _service(tmp_path, bag, prior_path, name, **kw):
-    from offline_rl_core.online_service import LearnerService, LearnerServiceConfig
+    from offline_rl_core.nodes.learner_service import LearnerService, LearnerServiceConfig
 
     cfg = LearnerServiceConfig(bags=[str(bag)], out=str(tmp_path / name), prior=str(prior_path), seed=5,
                                settings=OnlineSettings(publish_every=10), train=TrainConfig(algo="sac", **SMALL), **kw)
@@ -124,8 +124,8 @@ def _service(tmp_path, bag, prior_path, name, **kw):
 
 @pytest.fixture(scope="module")
 def files(tmp_path_factory, offline, prior):
-    from offline_rl_core.bag import write_transitions
-    from offline_rl_core.policy import save_checkpoint
+    from offline_rl_core.data.bag import write_transitions
+    from offline_rl_core.serving.policy import save_checkpoint
 
     d = tmp_path_factory.mktemp("online")
     write_transitions(d / "offline.db3", offline)
@@ -143,7 +143,7 @@ def _drain(service):
 
 
 def test_bad_live_transitions_are_counted_and_never_trained_on(tmp_path, files):
-    from offline_rl_core.bag.cdr import encode_transition_rows
+    from offline_rl_core.data.bag.cdr import encode_transition_rows
 
     d, stream = files
     service = _service(tmp_path, d / "offline.db3", d / "prior.pt", "bad")
@@ -161,8 +161,8 @@ def test_bad_live_transitions_are_counted_and_never_trained_on(tmp_path, files):
 
 
 def test_a_prior_that_does_not_fit_the_learner_is_one_clear_line(tmp_path, files, prior):
-    from offline_rl_core.errors import UserError
-    from offline_rl_core.policy import save_checkpoint
+    from offline_rl_core.common.errors import UserError
+    from offline_rl_core.serving.policy import save_checkpoint
 
     d, _ = files
     bad_bias = {**prior, "policy_state": {**prior["policy_state"], "4.bias": torch.zeros(7)}}
@@ -180,8 +180,8 @@ def test_a_prior_that_does_not_fit_the_learner_is_one_clear_line(tmp_path, files
 
 
 def test_weights_messages_round_trip_and_snapshots_are_kept(tmp_path, files):
-    from offline_rl_core.bag.cdr import encode_transition_rows
-    from offline_rl_core.online_service import decode_weights, encode_weights
+    from offline_rl_core.data.bag.cdr import encode_transition_rows
+    from offline_rl_core.nodes.learner_service import decode_weights, encode_weights
 
     d, stream = files
     service = _service(tmp_path, d / "offline.db3", d / "prior.pt", "w", snapshot_every=20)
@@ -198,7 +198,7 @@ def test_weights_messages_round_trip_and_snapshots_are_kept(tmp_path, files):
 
 
 def test_a_killed_learner_resumes_from_its_state_and_the_session_bag(tmp_path, files):
-    from offline_rl_core.bag.cdr import encode_transition_rows
+    from offline_rl_core.data.bag.cdr import encode_transition_rows
 
     d, stream = files
     payloads = encode_transition_rows(stream.to_rows())
@@ -222,8 +222,8 @@ def test_a_killed_learner_resumes_from_its_state_and_the_session_bag(tmp_path, f
 def test_a_paced_actor_waits_for_the_learners_own_weights(offline, prior):
     """Paced, the checkpoint the policy node started from does not count: the session must
     not depend on how soon the learner's first weights message arrives."""
-    from offline_rl_core.actor import Actor
-    from offline_rl_core.policy import LoadedPolicy
+    from offline_rl_core.serving.actor import Actor
+    from offline_rl_core.serving.policy import LoadedPolicy
 
     learner = _learner(offline, prior)
     actor = Actor(LoadedPolicy(prior), explore=True, seed=0, paced_every=10)

@@ -7,14 +7,14 @@ import numpy as np
 import pytest
 import torch
 
-from offline_rl_core import cli
-from offline_rl_core.bag import write_transitions
-from offline_rl_core.collect import collect_transitions
+from offline_rl_core.commands import cli
+from offline_rl_core.data.bag import write_transitions
+from offline_rl_core.data.collect import collect_transitions
 from offline_rl_core.learners import TrainConfig, train_seeds
 from offline_rl_core.learners.data import goal_episode_rows, top_episode_rows
 from offline_rl_core.learners.normalize import fold, unfold
 from offline_rl_core.learners.schedule import lr_factor
-from offline_rl_core.prior import choose_recipe, plan_training, profile_bag, step_rate, steps_for_budget
+from offline_rl_core.runs.prior import choose_recipe, plan_training, profile_bag, step_rate, steps_for_budget
 
 TINY = ["--hidden", "32", "--batch-size", "32", "--eval-episodes", "2", "--log-every", "50"]
 
@@ -164,8 +164,8 @@ def test_auto_stops_when_the_cloned_rows_need_no_more_steps(own_cache):
 
 
 def test_the_online_stage_reuses_an_auto_prior_only_of_the_same_data_and_seed(tmp_path, own_cache, monkeypatch):
-    from offline_rl_core import prior
-    from offline_rl_core.hil import reusable_auto_prior
+    from offline_rl_core.runs import prior
+    from offline_rl_core.pipelines.hil import reusable_auto_prior
 
     monkeypatch.setattr(prior, "chapter_awac_seconds", lambda data, log=None: 0.5)  # the default budget, short
     mixed, other = _bag(tmp_path, "mixed", 40, 0.3), tmp_path / "other.db3"

@@ -6,7 +6,7 @@ import argparse
 
 import pytest
 
-from offline_rl_core.errors import UserError
+from offline_rl_core.common.errors import UserError
 
 from ros_helpers import require_ros
 
@@ -125,7 +125,7 @@ def test_train_flags_become_read_only_parameters():
     require_ros()
     from pusher_common.params import params_from_parser
 
-    from offline_rl_core.training_run import add_train_arguments
+    from offline_rl_core.runs.training_run import add_train_arguments
 
     parser = argparse.ArgumentParser()
     add_train_arguments(parser)

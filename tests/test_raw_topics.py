@@ -11,16 +11,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from offline_rl_core.bag import read_transitions, typestore
-from offline_rl_core.cli import main
-from offline_rl_core.collect import collect_transitions
-from offline_rl_core.errors import UserError
+from offline_rl_core.data.bag import read_transitions, typestore
+from offline_rl_core.commands.cli import main
+from offline_rl_core.data.collect import collect_transitions
+from offline_rl_core.common.errors import UserError
 from offline_rl_core.learners import TrainConfig
-from offline_rl_core.raw_topics import TopicSpec, load_spec, spec_from_dict, transitions_from_topics
-from offline_rl_core.raw_topics.messages import JOINT_STATE, decode_messages
-from offline_rl_core.stats import newcombe_diff_ci
-from offline_rl_core.training_run import add_train_arguments, run_training, run_training_from_args
-from offline_rl_core.transitions import LAYOUT_SLICES
+from offline_rl_core.data.raw_topics import TopicSpec, load_spec, spec_from_dict, transitions_from_topics
+from offline_rl_core.data.raw_topics.messages import JOINT_STATE, decode_messages
+from offline_rl_core.evaluation.stats import newcombe_diff_ci
+from offline_rl_core.runs.training_run import add_train_arguments, run_training, run_training_from_args
+from offline_rl_core.data.transitions import LAYOUT_SLICES
 
 from raw_topic_bags import RAW_TOPICS, SIM_TOPICS, record_raw_bag
 from ros_helpers import ros2, ros_env, spawn  # noqa: F401 - fixtures

@@ -74,12 +74,12 @@ def test_a_resume_point_of_another_run_is_refused(tmp_path):
 def test_a_resume_point_write_killed_half_way_leaves_no_temp_file_behind_the_next_run(tmp_path):
     """A kill during a resume point's write leaves its partial temp file (as big as the
     resume point); the next run, resumed or not, removes it and keeps the other files."""
-    from offline_rl_core.collect import collect_transitions
+    from offline_rl_core.data.collect import collect_transitions
     from offline_rl_core.learners import TrainConfig, train_seeds
     from offline_rl_core.learners.resume import ResumePoints
 
     path = tmp_path / "resume.pt"
-    half_write = ("import os, signal, sys\nfrom offline_rl_core.atomic import atomic_path\n"
+    half_write = ("import os, signal, sys\nfrom offline_rl_core.common.atomic import atomic_path\n"
                   "with atomic_path(sys.argv[1]) as tmp:\n    tmp.write_bytes(b'half a resume point')\n"
                   "    os.kill(os.getpid(), signal.SIGKILL)\n")
     data = collect_transitions(2, 0.5, 0)

@@ -45,10 +45,10 @@ DEEP = 5000  # the probe's own queues: it must not drop what the node publishes
 def checkpoints(tmp_path_factory):
     """Two tiny checkpoints whose actions differ."""
     require_ros()
-    from offline_rl_core.bag import write_transitions
-    from offline_rl_core.collect import collect_transitions
+    from offline_rl_core.data.bag import write_transitions
+    from offline_rl_core.data.collect import collect_transitions
     from offline_rl_core.learners import TrainConfig
-    from offline_rl_core.training_run import run_training
+    from offline_rl_core.runs.training_run import run_training
 
     root = tmp_path_factory.mktemp("fuzz_ckpt")
     write_transitions(root / "expert.db3", collect_transitions(2, 1.0, 0))
@@ -146,7 +146,7 @@ class Sender:
 # ------------------------------------------------------------------ the policy node
 class StateStamps:
     """The stamps a fuzz round gives states, and what the node's stamp order makes of them
-    (``offline_rl_core.pairing.StampOrder``: stale and far-future stamps are refused unless
+    (``offline_rl_core.nodes.pairing.StampOrder``: stale and far-future stamps are refused unless
     the next state confirms them; here no two refused stamps ever confirm each other)."""
 
     def __init__(self, newest: int):
@@ -175,9 +175,9 @@ def test_policy_node_survives_fuzzed_states_targets_fingertips_and_weights(spawn
     from sensor_msgs.msg import JointState
     from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String, UInt8MultiArray
 
-    from offline_rl_core.env import observation_from_joints
-    from offline_rl_core.online_service import encode_weights
-    from offline_rl_core.policy import load_checkpoint, load_policy
+    from offline_rl_core.task.pusher_reach import observation_from_joints
+    from offline_rl_core.nodes.learner_service import encode_weights
+    from offline_rl_core.serving.policy import load_checkpoint, load_policy
 
     served = tmp_path / "policy.pt"
     shutil.copy(checkpoints["a"], served)
@@ -370,7 +370,7 @@ def test_sim_survives_fuzzed_commands_on_every_command_topic(spawn):
     from sensor_msgs.msg import JointState
     from std_msgs.msg import Float32MultiArray
 
-    from offline_rl_core.transitions import LAYOUT_SLICES
+    from offline_rl_core.data.transitions import LAYOUT_SLICES
 
     proc = spawn([sys.executable, "-m", "pusher_sim.node", "--ros-args", "-p", "mode:=lockstep",
                   "-p", f"start_time:={START // NS}", "-p", "republish_period:=5.0"], "sim")
@@ -465,7 +465,7 @@ def test_realtime_sim_survives_fuzzed_torques(spawn):
     held command is always a good one, clipped to the action range."""
     from std_msgs.msg import Float32MultiArray, Float64MultiArray
 
-    from offline_rl_core.transitions import LAYOUT_SLICES
+    from offline_rl_core.data.transitions import LAYOUT_SLICES
 
     proc = spawn([sys.executable, "-m", "pusher_sim.node", "--ros-args",
                   "-p", "effort_topic:=effort_controller/commands"], "sim")
@@ -616,8 +616,8 @@ def test_learner_survives_fuzzed_transitions(spawn, checkpoints, tmp_path):
     from rclpy.serialization import serialize_message
     from std_msgs.msg import Float32MultiArray, MultiArrayDimension
 
-    from offline_rl_core.collect import collect_transitions
-    from offline_rl_core.policy import load_policy
+    from offline_rl_core.data.collect import collect_transitions
+    from offline_rl_core.serving.policy import load_policy
 
     rows = collect_transitions(3, 0.5, 1).to_rows()
     proc = spawn([sys.executable, "-m", "pusher_learner.node", "--bag", str(checkpoints["bag"]), "--out",
@@ -677,8 +677,8 @@ def test_a_broken_checkpoint_swapped_in_under_load_leaves_the_old_policy_serving
     from sensor_msgs.msg import JointState
     from std_msgs.msg import String
 
-    from offline_rl_core.env import observation_from_joints
-    from offline_rl_core.policy import load_checkpoint, load_policy
+    from offline_rl_core.task.pusher_reach import observation_from_joints
+    from offline_rl_core.serving.policy import load_checkpoint, load_policy
 
     served = tmp_path / "policy.pt"
     shutil.copy(checkpoints["a"], served)

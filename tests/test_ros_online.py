@@ -22,9 +22,9 @@ STAGE = ["--env-steps", "300", "--publish-every", "25", "--eval-every", "150", "
 @pytest.fixture(scope="module")
 def prior(tmp_path_factory):
     require_ros()
-    from offline_rl_core.bag import read_transitions
+    from offline_rl_core.data.bag import read_transitions
     from offline_rl_core.learners import TrainConfig, train
-    from offline_rl_core.policy import save_checkpoint
+    from offline_rl_core.serving.policy import save_checkpoint
 
     path = tmp_path_factory.mktemp("prior") / "policy.pt"
     result = train(read_transitions(REPO / "bags" / "mix.db3"), TrainConfig(algo="awac", steps=100), seed=0)
@@ -35,10 +35,10 @@ def prior(tmp_path_factory):
 @pytest.fixture(scope="module")
 def reference(prior):
     """The same stage in one process: what the ROS run must reproduce bit for bit."""
-    from offline_rl_core.bag import read_transitions
+    from offline_rl_core.data.bag import read_transitions
     from offline_rl_core.learners.online import OnlineSettings
-    from offline_rl_core.online_loop import OnlineRunConfig, run_online
-    from offline_rl_core.policy import load_checkpoint
+    from offline_rl_core.runs.online_loop import OnlineRunConfig, run_online
+    from offline_rl_core.serving.policy import load_checkpoint
 
     return run_online(read_transitions(REPO / "bags" / "mix.db3"), load_checkpoint(prior),
                       OnlineRunConfig(env_steps=300, seed=0, eval_every=150, eval_episodes=4,
@@ -68,7 +68,7 @@ def test_the_stage_over_ros_reproduces_the_in_process_run(ros_env, tmp_path, pri
     assert [p["successes"] for p in summary["curve"]] == [p["successes"] for p in reference["curve"]]
     _assert_same_weights(out / "learner" / "policy.pt", reference)
     # the bag says which weights acted: every answer of the policy node is on policy/provenance
-    from offline_rl_core.bag import read_transitions
+    from offline_rl_core.data.bag import read_transitions
 
     session = read_transitions(out / "session.db3")
     assert len(session) == 300 and set(np.unique(session.source)) == {2, 3}
@@ -103,9 +103,9 @@ def test_a_killed_learner_restarts_and_the_session_ends_as_if_it_never_died(ros_
 def test_the_learner_node_drops_bad_transitions_and_counts_them(spawn, tmp_path, prior):
     from std_msgs.msg import Float32MultiArray, String
 
-    from offline_rl_core.bag import write_transitions
-    from offline_rl_core.collect import collect_transitions
-    from offline_rl_core.transitions import TRANSITION_LAYOUT as LAYOUT
+    from offline_rl_core.data.bag import write_transitions
+    from offline_rl_core.data.collect import collect_transitions
+    from offline_rl_core.data.transitions import TRANSITION_LAYOUT as LAYOUT
 
     data = collect_transitions(2, 0.5, 0)
     write_transitions(tmp_path / "offline.db3", data)

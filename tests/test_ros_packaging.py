@@ -11,9 +11,9 @@ from pathlib import Path
 
 import pytest
 
-from offline_rl_core import ros_install
 
 from ros_helpers import MODULES, PACKAGES, REPO, require_ros
+import ros_install  # noqa: E402 - from ros_ws/tools, on the path ros_helpers sets
 
 SRC = REPO / "ros_ws" / "src"
 

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 import torch
 
-from offline_rl_core.bag import write_transitions
-from offline_rl_core.collect import collect_transitions
-from offline_rl_core.env import observation_from_joints
-from offline_rl_core.policy import checkpoint_to_bytes, load_policy, save_checkpoint
+from offline_rl_core.data.bag import write_transitions
+from offline_rl_core.data.collect import collect_transitions
+from offline_rl_core.task.pusher_reach import observation_from_joints
+from offline_rl_core.serving.policy import checkpoint_to_bytes, load_policy, save_checkpoint
 
 from ros_helpers import REPO, probe_node, require_ros, ros2, ros_env, spawn  # noqa: F401 - fixtures
 
@@ -27,7 +27,7 @@ def data(tmp_path_factory):
     """A tiny bag and two tiny checkpoints (different seeds: different actions)."""
     require_ros()
     from offline_rl_core.learners import TrainConfig
-    from offline_rl_core.training_run import run_training
+    from offline_rl_core.runs.training_run import run_training
 
     root = tmp_path_factory.mktemp("policy_data")
     bag = root / "expert.db3"
@@ -60,7 +60,7 @@ def test_a_bad_start_is_one_line_and_exit_2(spawn, tmp_path, args, error):
 
 
 def test_ctrl_c_while_the_node_is_still_loading_exits_quietly(spawn, data):
-    from offline_rl_core.rosproc import ros2_run
+    from ros2_shim.ament_index import ros2_run
 
     node = spawn(ros2_run("policy", "node", "--checkpoint", data["a"]), "policy")  # the node's own pid
     # the moment torch's library is mapped, the node is still importing it (seconds): Ctrl-C
@@ -203,7 +203,7 @@ def test_trainer_stops_on_ctrl_c_when_started_with_it_ignored(ros_env, data, tmp
     """A script's background job (`trainer ... &`) starts with SIGINT ignored; Ctrl-C / kill -INT still stops it."""
     import signal
 
-    from offline_rl_core.rosproc import ros2_run
+    from ros2_shim.ament_index import ros2_run
 
     log = tmp_path / "trainer.log"
     with open(log, "wb") as out:
@@ -231,7 +231,7 @@ def test_trainer_stops_on_ctrl_c_when_started_with_it_ignored(ros_env, data, tmp
 def test_closed_loop_matches_in_process_evaluation(spawn, data, tmp_path, spin):
     """Also both ways the sim can spin: the private wait-set fast path, and rclpy's public
     executor (what runs where an rclpy lacks that API)."""
-    from offline_rl_core.evaluation import evaluate_policy
+    from offline_rl_core.evaluation.rollouts import evaluate_policy
 
     episodes, seed = 6, 500000
     summary = tmp_path / "closed_loop.json"
@@ -258,7 +258,7 @@ def test_two_namespaced_pipelines_on_one_domain_stay_apart(spawn, data, tmp_path
 
     Both lockstep sims stamp their states alike, so a policy heard across namespaces
     would answer the other sim's states and its results would no longer be its own."""
-    from offline_rl_core.evaluation import evaluate_policy
+    from offline_rl_core.evaluation.rollouts import evaluate_policy
 
     episodes = 3
     runs = {"arm1": (data["a"], 500000), "arm2": (data["b"], 600000)}

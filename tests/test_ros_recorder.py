@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 from rosbags.rosbag2 import Reader
 
-from offline_rl_core.bag import read_transitions, repair_bag
-from offline_rl_core.collect import collect_transitions
-from offline_rl_core.errors import UserError
+from offline_rl_core.data.bag import read_transitions, repair_bag
+from offline_rl_core.data.collect import collect_transitions
+from offline_rl_core.common.errors import UserError
 
 from ros_helpers import probe_node, ros2, ros_env, spawn  # noqa: F401 - fixtures
 

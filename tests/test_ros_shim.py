@@ -162,8 +162,8 @@ def test_hands_over_only_to_a_ros2cli_on_this_python(installed, tmp_path):
 
 
 def test_bag_info_prints_topics_and_counts(installed, tmp_path):
-    from offline_rl_core.bag import write_transitions
-    from offline_rl_core.collect import collect_transitions
+    from offline_rl_core.data.bag import write_transitions
+    from offline_rl_core.data.collect import collect_transitions
 
     bag = tmp_path / "tiny.db3"
     write_transitions(bag, collect_transitions(2, 0.5, 0))

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from offline_rl_core.env import PusherReachEnv
+from offline_rl_core.task.pusher_reach import PusherReachEnv
 
 from ros_helpers import probe_node, ros2, ros_env, spawn  # noqa: F401 - fixtures
 

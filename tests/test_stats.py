@@ -4,7 +4,7 @@ import math
 
 import pytest
 
-from offline_rl_core.stats import excludes_zero, newcombe_diff_ci, wilson_ci
+from offline_rl_core.evaluation.stats import excludes_zero, newcombe_diff_ci, wilson_ci
 
 
 def wilson_by_hand(k, n, z=1.959964):

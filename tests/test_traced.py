@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from offline_rl_core.collect import collect_transitions
-from offline_rl_core.kernel_choice import native_bf16
+from offline_rl_core.data.collect import collect_transitions
+from offline_rl_core.fast.kernel_choice import native_bf16
 from offline_rl_core.learners import ALGORITHMS, TrainConfig, train_seeds
 from offline_rl_core.learners.awac import AWAC
 from offline_rl_core.learners.base import per_member_mean, regression_error
@@ -191,7 +191,7 @@ def test_without_the_cpp_replay_the_default_trains_the_cpp_bytes(monkeypatch, da
 
 @pytest.mark.skipif(not has_compiler, reason="no g++ / ninja")
 def test_build_command_reports_ready():
-    proc = subprocess.run([sys.executable, "-m", "offline_rl_core.learners.graph_runner"], capture_output=True,
+    proc = subprocess.run([sys.executable, "-m", "offline_rl_core.fast.graph_runner"], capture_output=True,
                           text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert "C++ step replayer ready" in proc.stdout
@@ -214,7 +214,7 @@ def test_a_lock_left_by_an_interrupted_build_does_not_hang_the_next_run(tmp_path
     import os
     import time
 
-    from offline_rl_core.learners.graph_runner import _clear_stale_lock
+    from offline_rl_core.fast.graph_runner import _clear_stale_lock
 
     lock = tmp_path / "lock"
     lock.write_text("")
@@ -242,7 +242,7 @@ def test_a_step_replayed_on_several_threads_gives_the_same_bytes(monkeypatch, da
 def test_the_default_step_uses_the_free_cores_its_shape_can_use(monkeypatch, data):
     """By default a step may use every free core, and uses as many as its timed calls
     say pay: AWAC's twin critics always give a second thread work."""
-    from offline_rl_core.learners.stepper import available_cores
+    from offline_rl_core.common.machine import available_cores
 
     monkeypatch.delenv("PUSHER_RL_STEP", raising=False)
     result = train_seeds(data, TrainConfig(algo="awac", **{**CFG, "steps": 12}), [0])[0]  # past the timed replays

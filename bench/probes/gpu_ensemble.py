@@ -2,7 +2,7 @@
 against three seeds trained as one ensemble. Run on a CUDA machine from the repo root:
 `python bench/probes/gpu_ensemble.py`. Figures: bench/RESULTS.md, "GPU"."""
 import time, torch
-from offline_rl_core.collect import collect_transitions
+from offline_rl_core.data.collect import collect_transitions
 from offline_rl_core.learners import TrainConfig, train_seeds
 data = collect_transitions(200, 0.3, 0)
 def rate(seeds, steps=2000):

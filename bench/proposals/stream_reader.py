@@ -7,9 +7,9 @@ Run: python bench/proposals/stream_reader.py BAG.db3 [check]
 """
 import numpy as np, time, resource, sys, itertools
 from pathlib import Path
-from offline_rl_core.bag import open_bag, decode_transition_payloads
-from offline_rl_core.bag.reader import sqlite_storages
-from offline_rl_core.transitions import Transitions, TRANSITION_LAYOUT, LAYOUT_SLICES
+from offline_rl_core.data.bag import open_bag, decode_transition_payloads
+from offline_rl_core.data.bag.reader import sqlite_storages
+from offline_rl_core.data.transitions import Transitions, TRANSITION_LAYOUT, LAYOUT_SLICES
 
 CHUNK = 65536
 INT_FIELDS = ("episode", "step", "source"); BOOL_FIELDS = ("terminated", "truncated", "success")
@@ -52,6 +52,6 @@ if __name__ == "__main__":
     nbytes = sum(a.nbytes for a in d.__dict__.values())
     print(f"streaming: {len(d)} rows in {dt:.2f}s, peak +{peak-base} MiB, arrays {nbytes/2**20:.0f} MiB")
     if len(sys.argv) > 2:
-        from offline_rl_core.bag import read_transitions
+        from offline_rl_core.data.bag import read_transitions
         ref = read_transitions(sys.argv[1])
         print("equal to read_transitions:", all(np.array_equal(getattr(ref, k), getattr(d, k)) for k in d.__dict__))

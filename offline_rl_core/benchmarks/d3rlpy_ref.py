@@ -13,7 +13,7 @@ import time
 import numpy as np
 import torch
 
-from ..transitions import Transitions
+from ..data.transitions import Transitions
 
 D3RLPY_VERSION = "2.8.1"
 

@@ -14,10 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..bag import TRANSITION_TOPIC, decode_transition_payloads, read_transitions, write_transitions
-from ..bag.writer import typestore
-from ..collect import collect_transitions
-from ..transitions import TRANSITION_WIDTH, Transitions
+from ..data.bag import TRANSITION_TOPIC, decode_transition_payloads, read_transitions, write_transitions
+from ..data.bag.writer import typestore
+from ..data.collect import collect_transitions
+from ..data.transitions import TRANSITION_WIDTH, Transitions
 from .harness import BenchSettings, figure, interleave, median
 
 
@@ -49,11 +49,11 @@ def tiled_transitions(base: Transitions, rows: int) -> Transitions:
 _MEMORY_PROBE = r"""
 import json, sys, time
 import numpy as np, torch
-from offline_rl_core.bag import read_transitions
+from offline_rl_core.data.bag import read_transitions
 from offline_rl_core.learners import TrainConfig, train_seeds
 path, steps, hidden, batch = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
 import offline_rl_core.learners.loop  # everything imported (and the step replayer loaded) before the baseline
-from offline_rl_core.learners import graph_runner
+from offline_rl_core.fast import graph_runner  # the speed layer, registered onto the learners as a run has it
 graph_runner.unavailable_reason()
 def status_kib(key):
     with open("/proc/self/status") as f:
@@ -80,7 +80,7 @@ def run(s: BenchSettings, log=print) -> list:
         bag = Path(tmp) / "mix.db3"
         write_transitions(bag, data)
         n = len(data)
-        from ..bag import open_bag, topic_payloads
+        from ..data.bag import open_bag, topic_payloads
 
         with open_bag(bag) as reader:
             payloads = topic_payloads(reader, TRANSITION_TOPIC)

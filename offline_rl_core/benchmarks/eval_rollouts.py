@@ -3,7 +3,7 @@
 Both run the same numpy policy (a ``LoadedPolicy``) on the same reset seeds; the note
 says whether the per-episode success and lengths are the same and how far final
 distances and returns drift (the policy's batched matmul rounds the last bits of the
-actions differently, see ``offline_rl_core.evaluation``). A second row runs the
+actions differently, see ``offline_rl_core.evaluation.rollouts``). A second row runs the
 chapter's sequential loop with its torch policy call per step, the cost the chapter
 actually pays.
 """
@@ -14,16 +14,16 @@ import time
 
 import numpy as np
 
-from ..evaluation import rollout
-from ..seeds import HELD_OUT
+from ..evaluation.rollouts import rollout
+from ..common.seeds import HELD_OUT
 from ..learners import TrainConfig, train_seeds
-from ..transitions import Transitions
-from . import reference_chapter as chapter
+from ..data.transitions import Transitions
+from ..runs import chapter_loop as chapter
 from .harness import BenchSettings, figure, interleave, median
 
 
 def _policy(s: BenchSettings):
-    from ..collect import collect_transitions
+    from ..data.collect import collect_transitions
 
     data: Transitions = collect_transitions(max(2, s.episodes // 20), 0.3, 0)
     res = train_seeds(data, TrainConfig(algo="bc", steps=max(2, s.train_steps // 5), hidden=s.hidden,

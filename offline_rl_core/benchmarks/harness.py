@@ -158,7 +158,8 @@ def machine_info() -> dict:
     import numpy as np
     import torch
 
-    from .. import kernel_choice
+    from ..common import machine
+    from ..fast import kernel_choice
 
     model = platform.processor() or ""
     try:
@@ -173,12 +174,12 @@ def machine_info() -> dict:
     return {
         "cpu_model": model,
         "cpu_count": os.cpu_count(),
-        "isa_flags": kernel_choice.isa_flags(),  # as the kernels may use them
-        "cpu_isa_flags": [f for f in kernel_choice.ISA_FLAGS if f in kernel_choice.cpu_model_and_flags()[1]],
-        "kernel_isa_limits": kernel_choice.isa_limits(),
+        "isa_flags": machine.isa_flags(),  # as the kernels may use them
+        "cpu_isa_flags": [f for f in machine.ISA_FLAGS if f in machine.cpu_model_and_flags()[1]],
+        "kernel_isa_limits": machine.isa_limits(),
         "kernels": kernel_choice.report(),
-        "amx": "amx_bf16" in kernel_choice.isa_flags(),
-        "avx512_bf16": "avx512_bf16" in kernel_choice.isa_flags(),
+        "amx": "amx_bf16" in machine.isa_flags(),
+        "avx512_bf16": "avx512_bf16" in machine.isa_flags(),
         "native_bf16": kernel_choice.native_bf16(),
         "torch": torch.__version__,
         "torch_threads": torch.get_num_threads(),

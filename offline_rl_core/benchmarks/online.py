@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..env import CONTROL_HZ
+from ..task.pusher_reach import CONTROL_HZ
 from .harness import BenchSettings, figure, pending
 from .ros_procs import isolate, ros_missing, run_probe
 
@@ -29,12 +29,14 @@ REALTIME_PUBLISH_EVERY = 25  # 0.5 s of robot time: weights at most ~0.5 s old w
 def realtime_figures(s: BenchSettings, tmp: Path, log=print) -> list:
     import os
 
-    from ..bag import read_transitions
-    from ..launch import LaunchedProcesses, find_launch_file, load_launch
+    from ..data.bag import read_transitions
+    from ros2_shim.launch_files import find_launch_file, load_launch
+
+    from ..pipelines.processes import LaunchedProcesses
     from ..learners import TrainConfig, train
-    from ..policy import save_checkpoint
-    from ..hil_online import REALTIME_THREAD_PRIORITY
-    from ..rosproc import isolated_ros_env
+    from ..serving.policy import save_checkpoint
+    from ..pipelines.hil_online import REALTIME_THREAD_PRIORITY
+    from ..pipelines.processes import isolated_ros_env
 
     bag = Path("bags/mix.db3")
     prior = tmp / "prior.pt"

@@ -14,14 +14,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ..env import CONTROL_HZ, MAX_STEPS
+from ..task.pusher_reach import CONTROL_HZ, MAX_STEPS
 from .harness import BenchSettings, figure, pending
 from .ros_procs import NodeProcess, isolate, ros2_command, ros_missing, run_probe
 
 
 def lockstep_figures(s: BenchSettings, tmp: Path, log=print) -> list:
-    from ..bag import read_transitions
-    from ..collect import collect_transitions
+    from ..data.bag import read_transitions
+    from ..data.collect import collect_transitions
 
     ros2 = ros2_command()
     episodes = s.record_episodes
@@ -60,7 +60,7 @@ def _steady_rate(bag: Path) -> float | None:
     the rate once the nodes have started and discovered each other."""
     from rosbags.rosbag2 import Reader
 
-    from ..bag import TRANSITION_TOPIC
+    from ..data.bag import TRANSITION_TOPIC
 
     with Reader(bag) as reader:
         conns = [c for c in reader.connections if c.topic == TRANSITION_TOPIC]

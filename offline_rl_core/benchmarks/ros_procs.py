@@ -17,7 +17,7 @@ import sys
 import time
 from pathlib import Path
 
-from ..rosproc import RosProcess, isolated_ros_env
+from ..pipelines.processes import RosProcess, isolated_ros_env
 
 # The rclpy side of the DDS figures runs in its own process from the source tree:
 # offline_rl_core itself never imports ROS.

@@ -11,14 +11,14 @@ import numpy as np
 import torch
 
 from ..learners import TrainConfig, train_seeds
-from ..policy import LoadedPolicy, save_checkpoint
-from . import reference_chapter as chapter
+from ..serving.policy import LoadedPolicy, save_checkpoint
+from ..runs import chapter_loop as chapter
 from .harness import BenchSettings, figure, pending, percentile
 from .ros_procs import PROBES, NodeProcess, isolate, ros2_command, ros_missing, run_probe
 
 
 def trained_checkpoint(s: BenchSettings) -> dict:
-    from ..collect import collect_transitions
+    from ..data.collect import collect_transitions
 
     data = collect_transitions(max(2, s.episodes // 20), 0.3, 0)
     return train_seeds(data, TrainConfig(algo="bc", steps=max(2, s.train_steps // 5), hidden=s.hidden,
@@ -50,7 +50,7 @@ def inference_figures(s: BenchSettings, checkpoint: dict, log=print) -> list:
     try:
         import onnxruntime as ort
 
-        from ..onnx_export import export_onnx
+        from ..serving.onnx_export import export_onnx
     except Exception:
         ort = None
     if ort is not None:

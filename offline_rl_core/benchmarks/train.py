@@ -16,12 +16,12 @@ import time
 
 import torch
 
-from ..collect import collect_transitions
+from ..data.collect import collect_transitions
 from ..learners import TrainConfig, stepper, train_seeds
 from ..learners.loop import torch_threads
-from .. import kernel_choice
+from ..fast import kernel_choice
 from . import d3rlpy_ref
-from . import reference_chapter as chapter
+from ..runs import chapter_loop as chapter
 from .harness import BenchSettings, figure, interleave, median, pending
 
 
@@ -62,7 +62,7 @@ def step_work_and_chain(data, algo: str, s: BenchSettings, repeats: int = 5) -> 
     by call (medians over ``repeats`` recordings); None where the replay is not built.
     With n threads a step takes at least max(work / n, chain): the ceiling of any
     schedule on this CPU."""
-    from ..learners import graph_runner
+    from ..fast import graph_runner
     from ..learners.data import MemberData
     from ..learners.loop import LEARNERS, seed_generators
 
@@ -215,9 +215,9 @@ def experiment_figures(s: BenchSettings, log=print) -> list:
     script runs its seeds one after another; it is timed with this run's torch threads
     and, where that is fewer than the cores, with one intra-op thread per core too, and
     the faster of the two is the reference: both sides get every core."""
-    from ..experiment import ExperimentConfig, run_experiment
+    from ..runs.experiment import ExperimentConfig, run_experiment
     from ..learners.loop import torch_threads
-    from ..learners.stepper import available_cores
+    from ..common.machine import available_cores
 
     figs = []
     seeds = list(s.experiment_seeds)

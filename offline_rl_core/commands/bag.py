@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..bag import repair_bag
+from ..data.bag import repair_bag
 from .bag_info import add_info_parser
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..bag import bag_info
+from ..data.bag import bag_info
 
 HELP = "show a bag's files, topics and counts, and its transitions per source"
 DESCRIPTION = (

@@ -6,8 +6,8 @@ import argparse
 import os
 import sys
 
-from ..errors import UserError
-from ..output_paths import check_output_file
+from ..common.errors import UserError
+from ..common.output_paths import check_output_file
 
 
 def register(subparsers) -> None:
@@ -39,18 +39,18 @@ def register(subparsers) -> None:
 def _rerun_with_isa_cap(isa: str) -> None:
     """Start this command again with the kernels capped at ``isa``: the libraries read
     their caps once, when they load, so the environment must be set before that."""
-    from ..kernel_choice import ISA_LIMIT_ENV
+    from ..common.machine import ISA_LIMIT_ENV
 
     if isa == "native" or all(os.environ.get(k) == v for k, v in ISA_LIMIT_ENV.items()):
         return
     env = {**os.environ, **ISA_LIMIT_ENV}
     print(f"bench: capping the kernels at {isa.upper()} ({' '.join(f'{k}={v}' for k, v in ISA_LIMIT_ENV.items())})",
           flush=True)
-    os.execve(sys.executable, [sys.executable, "-m", "offline_rl_core.cli", *sys.argv[1:]], env)
+    os.execve(sys.executable, [sys.executable, "-m", "offline_rl_core.commands.cli", *sys.argv[1:]], env)
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..atomic import write_json_atomic
+    from ..common.atomic import write_json_atomic
     from ..benchmarks.harness import GROUPS, BenchSettings, format_table, run_bench
 
     _rerun_with_isa_cap(args.isa)

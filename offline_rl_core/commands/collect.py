@@ -5,12 +5,12 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from ..bag import write_transitions
-from ..bag.info import summarize_sources
-from ..bag.paths import check_replaceable, resolve_target
-from ..collect import collect_transitions, expert_episode_count
-from ..errors import UserError
-from ..seeds import seed_arg
+from ..data.bag import write_transitions
+from ..data.bag.info import summarize_sources
+from ..data.bag.paths import check_replaceable, resolve_target
+from ..data.collect import collect_transitions, expert_episode_count
+from ..common.errors import UserError
+from ..common.seeds import seed_arg
 
 
 def register(subparsers) -> None:

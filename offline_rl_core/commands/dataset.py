@@ -6,13 +6,13 @@ import argparse
 import json
 from pathlib import Path
 
-from ..atomic import write_text_atomic
-from ..bag import write_transitions
-from ..bag.info import summarize_sources
-from ..bag.paths import resolve_target
-from ..errors import UserError
-from ..output_paths import check_output_file
-from ..raw_topics import load_spec, transitions_from_topics
+from ..common.atomic import write_text_atomic
+from ..data.bag import write_transitions
+from ..data.bag.info import summarize_sources
+from ..data.bag.paths import resolve_target
+from ..common.errors import UserError
+from ..common.output_paths import check_output_file
+from ..data.raw_topics import load_spec, transitions_from_topics
 
 REPORT_KEY = "offline_rl.dataset"  # the bag's custom metadata entry holding the join report (JSON)
 

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import argparse
 
-from ..errors import UserError
-from ..atomic import write_json_atomic
-from ..evaluation import evaluate_policy, format_rate
-from ..output_paths import check_output_file
-from ..policy import load_policy
-from ..seeds import HELD_OUT, seed_arg
+from ..common.errors import UserError
+from ..common.atomic import write_json_atomic
+from ..evaluation.rollouts import evaluate_policy, format_rate
+from ..common.output_paths import check_output_file
+from ..serving.policy import load_policy
+from ..common.seeds import HELD_OUT, seed_arg
 
 
 def register(subparsers) -> None:

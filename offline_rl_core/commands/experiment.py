@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import argparse
 
-from ..errors import RunFailed, UserError
-from ..output_paths import check_output_dir
-from ..seeds import seed_arg
-from ..experiment import ExperimentConfig, format_table, run_experiment, summary_rows, verdict
+from ..common.errors import RunFailed, UserError
+from ..common.output_paths import check_output_dir
+from ..common.seeds import seed_arg
+from ..runs.experiment import ExperimentConfig, format_table, run_experiment, summary_rows, verdict
 
 OFFLINE_ALGOS = ("awac", "iql", "filtered_bc", "naive", "auto")
 

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import argparse
 
-from ..onnx_export import export_onnx, verify_onnx
-from ..output_paths import check_output_file
-from ..policy import load_policy
+from ..serving.onnx_export import export_onnx, verify_onnx
+from ..common.output_paths import check_output_file
+from ..serving.policy import load_policy
 
 
 def register(subparsers) -> None:

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import json
 
-from ..errors import UserError
-from ..output_paths import check_output_dir
-from ..hil import EVAL_SEED, HilConfig, default_bag, run_hil
-from ..hil_online import OnlineHilConfig, run_hil_online
-from ..seeds import seed_arg
+from ..common.errors import UserError
+from ..common.output_paths import check_output_dir
+from ..pipelines.hil import EVAL_SEED, HilConfig, default_bag, run_hil
+from ..pipelines.hil_online import OnlineHilConfig, run_hil_online
+from ..common.seeds import seed_arg
 
 
 # Flags of one mode only: their defaults are filled in by mode, so that one given to the

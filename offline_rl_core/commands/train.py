@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ..training_run import add_train_arguments, run_training_from_args, summary_line
+from ..runs.training_run import add_train_arguments, run_training_from_args, summary_line
 
 
 def _run(args) -> int:

@@ -8,11 +8,10 @@ from __future__ import annotations
 
 import torch
 
-from ..networks import EnsembleMLP
+from .networks import EnsembleMLP
 from .config import TrainConfig
 from .data import Batch, MemberData
-from ..kernel_choice import choose as choose_kernels
-from .stepper import intra_op_threads
+from . import acceleration
 
 
 def make_adam(params, lr: float, device: str = "cpu") -> torch.optim.Adam:
@@ -24,12 +23,14 @@ def make_adam(params, lr: float, device: str = "cpu") -> torch.optim.Adam:
 
 def make_network(cfg: TrainConfig, members: int, in_dim: int, out_dim: int, generators=None,
                  tanh_output: bool = False) -> EnsembleMLP:
-    """An ensemble MLP of the config's width and precision, on the config's device.
-    Weights are drawn on the CPU from the members' generators first, so a seed gives
-    the same initial network on every device."""
-    kernels = choose_kernels(cfg.deterministic, cfg.hidden, cfg.batch_size, intra_op_threads(cfg.threads)) \
-        if cfg.device == "cpu" else None
-    net = EnsembleMLP(members, in_dim, cfg.hidden, out_dim, generators, tanh_output=tanh_output, kernels=kernels)
+    """An ensemble MLP of the config's width, on the config's device (on the CPU, with the
+    speed layer's forward where one is registered and covers it). Weights are drawn on the
+    CPU from the members' generators first, so a seed gives the same initial network on
+    every device."""
+    net = EnsembleMLP(members, in_dim, cfg.hidden, out_dim, generators, tanh_output=tanh_output)
+    layer = acceleration.registered()
+    if cfg.device == "cpu" and layer is not None and (fast := layer.network_forward(net, cfg)) is not None:
+        net.cpu_forward, net.kernels = fast
     return net.to(cfg.device)
 
 

@@ -12,6 +12,8 @@ from dataclasses import asdict, dataclass, field
 from .schedule import SCHEDULES
 
 ALGORITHMS = ("bc", "filtered_bc", "awac", "iql", "naive", "sac")
+# SAC's log-std is clamped to these bounds (outside them it stops learning)
+LOG_STD_MIN, LOG_STD_MAX = -5.0, 1.0
 
 
 def _opt(default, help: str, group: str = "hyper-parameters", kind: type | None = None):
@@ -78,8 +80,6 @@ class TrainConfig:
         for name, choices in CHOICES.items():
             if getattr(self, name) not in choices:
                 raise ValueError(f"{_flag(name)}: expected one of {', '.join(choices)}, got '{getattr(self, name)}'")
-        from .sac import LOG_STD_MAX, LOG_STD_MIN  # outside them the log-std is clamped and stops learning
-
         for name, (low, high, low_open, high_open) in {**RANGES, "init_log_std": (LOG_STD_MIN, LOG_STD_MAX, False, False)}.items():
             value = getattr(self, name)
             if value is not None:

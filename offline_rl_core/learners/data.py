@@ -13,8 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..env import SUCCESS_TOL
-from ..transitions import SOURCE_HUMAN, SOURCE_POLICY, Transitions
+from ..task.pusher_reach import SUCCESS_TOL
+from ..data.transitions import SOURCE_HUMAN, SOURCE_POLICY, Transitions
 
 INDEX_CHUNK_STEPS = 1000
 OBS_GOAL = slice(6, 8)  # (dx, dy) in the observation: target minus fingertip

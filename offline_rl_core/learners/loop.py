@@ -16,9 +16,9 @@ from typing import Callable
 import numpy as np
 import torch
 
-from ..errors import UserError
-from ..policy import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, LoadedPolicy
-from ..transitions import Transitions
+from ..common.errors import UserError
+from ..serving.policy import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, LoadedPolicy
+from ..data.transitions import Transitions
 from .awac import AWAC
 from .bc import BC
 from .config import TrainConfig
@@ -213,7 +213,7 @@ def train_seeds(
             "train_seconds": round(time.perf_counter() - start, 3),
             "train_step": step_kind,
             "train_threads": getattr(step_once, "threads", None),
-            "kernels": learner.policy.hidden_layer.kernels.describe() if cfg.device == "cpu" else cfg.device,
+            "kernels": learner.policy.kernels if cfg.device == "cpu" else cfg.device,
         }
         results.append(TrainResult(seed, LoadedPolicy(checkpoint), checkpoint, histories[m],
                                    None if mean_abs_q is None else float(mean_abs_q[m]), step_kind))

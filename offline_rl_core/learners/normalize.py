@@ -17,7 +17,7 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from ..transitions import Transitions
+from ..data.transitions import Transitions
 
 MIN_STD = 1e-6  # a constant feature stays as it is
 

@@ -24,8 +24,8 @@ from dataclasses import asdict, dataclass
 
 import torch
 
-from ..policy import CHECKPOINT_FORMAT, CHECKPOINT_VERSION
-from ..transitions import Transitions
+from ..serving.policy import CHECKPOINT_FORMAT, CHECKPOINT_VERSION
+from ..data.transitions import Transitions
 from .config import TrainConfig
 from .data import MemberData
 from .loop import LEARNERS, seed_generators, torch_threads

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import torch
 
-from ..atomic import atomic_path, remove_partial_writes
-from ..errors import UserError
+from ..common.atomic import atomic_path, remove_partial_writes
+from ..common.errors import UserError
 from .state import named
 
 RESUME_FORMAT = "pusher-rl/resume"

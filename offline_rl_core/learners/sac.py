@@ -21,8 +21,7 @@ import math
 import torch
 
 from .base import Learner, TwinCritic, make_adam, per_member_mean
-
-LOG_STD_MIN, LOG_STD_MAX = -5.0, 1.0
+from .config import LOG_STD_MAX, LOG_STD_MIN
 
 
 class SAC(Learner):

@@ -15,7 +15,7 @@ import math
 
 import torch
 
-from .traced import optimizers_of
+from .state import optimizers_of
 
 SCHEDULES = ("constant", "cosine")
 

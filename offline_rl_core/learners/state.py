@@ -3,7 +3,7 @@
 A learner keeps its state in plain attributes: modules, loose parameters (SAC's
 log-std), optimisers, random generators, and helpers holding more of them (the twin
 critic's optimiser). Resume points (``resume.py``) and the undo of a recording that
-stopped part-way (``traced.Snapshot``) both need all of it, so both find it here, the
+stopped part-way (``fast.traced.Snapshot``) both need all of it, so both find it here, the
 same way; a new learner's state is found without either being told.
 """
 
@@ -45,3 +45,8 @@ def named(obj, kind, depth: int = 1) -> dict[str, object]:
             seen.add(id(value))
             found[name] = value
     return found
+
+
+def optimizers_of(obj) -> list[torch.optim.Optimizer]:
+    """The optimisers held by a learner (its attributes and theirs)."""
+    return list(named(obj, torch.optim.Optimizer, depth=2).values())

@@ -1,8 +1,8 @@
-"""How one gradient step is run: recorded and replayed on the CPU, a CUDA graph on a GPU.
+"""How one gradient step is run: as it is, by a speed layer on the CPU, a CUDA graph on a GPU.
 
-A learner's ``update`` is the same Python on every path. On the CPU its calls are
-recorded once and replayed (``traced.RecordedStep``; ``PUSHER_RL_STEP=autograd`` calls
-``update`` every step instead). On CUDA, chapter-size networks are bound by kernel
+A learner's ``update`` is the same Python on every path. On the CPU a registered speed
+layer may run it (``acceleration``: ``offline_rl_core.fast`` records it once and replays
+it); otherwise ``update`` runs every step. On CUDA, chapter-size networks are bound by kernel
 launches, not arithmetic, and Python issues them more slowly than the GPU runs them:
 ``CudaGraphStep`` records the whole step (batch gather, forwards, backwards, both Adam
 steps, Polyak) once and then replays it with a single launch per step.
@@ -10,13 +10,13 @@ steps, Polyak) once and then replays it with a single launch per step.
 
 from __future__ import annotations
 
-import os
 from typing import Callable
 
 import torch
 
+from ..common.machine import available_cores
+from . import acceleration
 from .data import MemberData
-from .traced import RecordedStep, step_mode
 
 # Eager steps before the capture: Adam creates its state and cuBLAS its workspaces
 # on first use, and neither may happen inside a capture. They are real training
@@ -98,32 +98,20 @@ def chooses_threads(threads: int | None) -> bool:
 
 
 def intra_op_threads(threads: int | None) -> int:
-    """torch's own threads per operator call while training. One by default, and always
-    under the C++ replay, which spreads the calls over the step's threads instead: then
-    every path (C++ replay, Python replay, plain autograd) trains the same bytes. A
-    number given runs eager and Python-replayed steps on that many (each call split
-    over them, which changes how its sums are ordered, so each number its own bytes)."""
-    if threads is None or int(threads) <= 1:
-        return 1
-    if step_mode() in ("python", "autograd"):
-        return int(threads)
-    from . import graph_runner
-
-    return 1 if graph_runner.unavailable_reason() is None else int(threads)
-
-
-def available_cores() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        return os.cpu_count() or 1
+    """torch's own threads per operator call while training: one by default, a number
+    given as it is (each call split over them, which orders its sums otherwise, so each
+    number trains its own bytes); a speed layer may say otherwise for its own steps."""
+    layer = acceleration.registered()
+    if layer is not None:
+        return layer.intra_op_threads(threads)
+    return 1 if threads is None else max(1, int(threads))
 
 
 def make_step(update: Callable, data: MemberData, idx_shape: tuple[int, int], device: str, cuda_graph: bool,
               threads: int | None = None):
     """The step runner for ``device``: a CUDA graph on CUDA (unless ``cuda_graph`` is
-    False); on the CPU the update recorded once and replayed (``traced``) on
-    up to ``step_threads(threads)`` threads, unless ``PUSHER_RL_STEP=autograd``."""
+    False); on the CPU the registered speed layer's runner, where it gives one, else
+    ``update`` itself every step."""
     dev = torch.device(device)
     if dev.type == "cuda":
         if not cuda_graph:
@@ -131,7 +119,6 @@ def make_step(update: Callable, data: MemberData, idx_shape: tuple[int, int], de
         if dev.index is None:
             dev = torch.device("cuda", torch.cuda.current_device())
         return CudaGraphStep(update, data, idx_shape, dev)
-    mode = step_mode()
-    if mode == "autograd":
-        return EagerStep(update, data)
-    return RecordedStep(update, data, mode, step_threads(threads), chooses_threads(threads))
+    layer = acceleration.registered()
+    runner = layer.step_runner(update, data, threads) if layer is not None else None
+    return runner if runner is not None else EagerStep(update, data)

@@ -20,7 +20,7 @@ setup(
     maintainer_email="maintainers@pusher-rl.invalid",
     description="HIL-SERL corrections: the policy/human command mux and the (scripted or keyboard) corrector.",
     license="Apache-2.0",
-    # Kept a literal list: offline_rl_core.ros_install reads it to generate lib/corrections/<exe>.
+    # Kept a literal list: ros_ws/tools/ros_install.py reads it to generate lib/corrections/<exe>.
     entry_points={
         "console_scripts": [
             "mux = pusher_corrections.mux:main",

@@ -20,6 +20,6 @@ setup(
     maintainer_email="maintainers@pusher-rl.invalid",
     description="The online HIL-SERL learner: fine-tunes the prior from live transitions and publishes weights.",
     license="Apache-2.0",
-    # Kept a literal list: offline_rl_core.ros_install reads it to generate lib/learner/<exe>.
+    # Kept a literal list: ros_ws/tools/ros_install.py reads it to generate lib/learner/<exe>.
     entry_points={"console_scripts": ["node = pusher_learner.node:main"]},
 )

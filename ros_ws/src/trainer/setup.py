@@ -23,6 +23,6 @@ setup(
         " publishes progress."
     ),
     license="Apache-2.0",
-    # Kept a literal list: offline_rl_core.ros_install reads it to generate lib/trainer/<exe>.
+    # Kept a literal list: ros_ws/tools/ros_install.py reads it to generate lib/trainer/<exe>.
     entry_points={"console_scripts": ["node = pusher_trainer.node:main"]},
 )

@@ -23,7 +23,7 @@ from sensor_msgs.msg import JointState
 
 from offline_rl_core.benchmarks.harness import percentile
 from offline_rl_core.benchmarks.ros_procs import wait_until
-from offline_rl_core.env import JOINT_NAMES
+from offline_rl_core.task.pusher_reach import JOINT_NAMES
 
 
 def round_trip(n: int, rate_hz: float) -> dict:

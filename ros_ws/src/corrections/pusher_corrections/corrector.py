@@ -1,7 +1,7 @@
 """``ros2 run corrections corrector``: the human in human-in-the-loop, or a stand-in.
 
 Watches ``pusher/state`` with its ``pusher/target`` (paired by stamp, as the policy
-node does: ``offline_rl_core.pairing``) and answers every state on ``teleop/action``
+node does: ``offline_rl_core.nodes.pairing``) and answers every state on ``teleop/action``
 (JointState, stamp = the state's): either a correction (effort = torques in [-1, 1]) or a
 *yield* (empty effort: the policy keeps the arm). A republished state gets the same
 answer again; each state is decided once.
@@ -39,15 +39,15 @@ from rclpy.node import Node
 from rclpy.task import Future
 from sensor_msgs.msg import JointState
 
-from offline_rl_core.errors import UserError
-from offline_rl_core.env import ACT_DIM, JOINT_NAMES
-from offline_rl_core.joint_messages import joints_from_state
-from offline_rl_core.pairing import Paired, StatePairing
+from offline_rl_core.common.errors import UserError
+from offline_rl_core.task.pusher_reach import ACT_DIM, JOINT_NAMES
+from offline_rl_core.nodes.joint_messages import joints_from_state
+from offline_rl_core.nodes.pairing import Paired, StatePairing
 from pusher_common.node_main import run_node
 from pusher_common.params import Param, Settings
 from pusher_common.stamps import stamp_key
 
-from offline_rl_core.corrector import CorrectorParams, ScriptedCorrector
+from offline_rl_core.task.corrector import CorrectorParams, ScriptedCorrector
 
 KEEP_ANSWERS = 64
 KEYS = {

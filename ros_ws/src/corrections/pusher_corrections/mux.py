@@ -16,7 +16,7 @@ Its parameters:
 
 The rule in lockstep: exactly one command per stamp. A teleop action for the stamp
 wins; a yield lets the policy's action for the stamp through; a late message for a
-decided stamp only repeats the decided command (see ``offline_rl_core.arbiter``).
+decided stamp only repeats the decided command (see ``offline_rl_core.nodes.arbiter``).
 A malformed or non-finite action, or one with a bad stamp, is not forwarded: it is
 counted by reason on ``~/status`` (``pusher_common.status``) with a throttled warning.
 """
@@ -31,16 +31,16 @@ from rclpy.qos import DurabilityPolicy, QoSProfile
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool
 
-from offline_rl_core.env import JOINT_NAMES
-from offline_rl_core.joint_messages import action_from_effort
-from offline_rl_core.pairing import check_stamp
+from offline_rl_core.task.pusher_reach import JOINT_NAMES
+from offline_rl_core.nodes.joint_messages import action_from_effort
+from offline_rl_core.nodes.pairing import check_stamp
 from pusher_common.node_main import run_node
 from pusher_common.params import Param, Settings
 from pusher_common.scheduling import THREAD_PRIORITY, apply_thread_priority
 from pusher_common.stamps import stamp_key
 from pusher_common.status import NodeStatus
 
-from offline_rl_core.arbiter import HUMAN, POLICY, LockstepArbiter, RealtimeArbiter
+from offline_rl_core.nodes.arbiter import HUMAN, POLICY, LockstepArbiter, RealtimeArbiter
 
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 

@@ -16,7 +16,7 @@ counts, losses, rejections by reason. A transition with a non-finite value, an a
 outside [-1, 1], a value out of range or an unknown layout is dropped, counted and warned
 about (throttled), never trained on.
 
-The logic lives in ``offline_rl_core.online_service``; this node only moves messages.
+The logic lives in ``offline_rl_core.nodes.learner_service``; this node only moves messages.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from std_msgs.msg import Float32MultiArray, MultiArrayDimension, UInt8MultiArray
 
 from offline_rl_core.learners.config import TrainConfig
 from offline_rl_core.learners.online import OnlineSettings
-from offline_rl_core.online_service import WEIGHTS_LABEL, LearnerService, LearnerServiceConfig, encode_weights
+from offline_rl_core.nodes.learner_service import WEIGHTS_LABEL, LearnerService, LearnerServiceConfig, encode_weights
 from pusher_common.node_main import run_node
 from pusher_common.params import Param, Settings
 from pusher_common.status import NodeStatus
@@ -83,7 +83,7 @@ class Learner(Node):
     def __init__(self, overrides=()):
         super().__init__("learner", parameter_overrides=list(overrides))
         s = Settings(self, PARAMS)
-        from offline_rl_core.errors import UserError
+        from offline_rl_core.common.errors import UserError
 
         if s.nice:
             os.nice(s.nice)  # training yields the CPU to the nodes that answer the arm in time

@@ -4,18 +4,18 @@ Every ``pusher/state`` (with its ``pusher/target``) is answered on ``policy/acti
 a JointState whose effort is the action in [-1, 1], stamped with the state's stamp; and,
 on ``effort_topic`` (default ``effort_controller/commands``), the same action as joint
 torques in N·m (std_msgs/Float64MultiArray), what a ros2_control effort controller
-takes. A malformed, non-finite or out-of-order state (``offline_rl_core.joint_messages``,
-``offline_rl_core.pairing``), target or weights message gets no action: it is counted
+takes. A malformed, non-finite or out-of-order state (``offline_rl_core.nodes.joint_messages``,
+``offline_rl_core.nodes.pairing``), target or weights message gets no action: it is counted
 by reason on ``~/status`` (``pusher_common.status``) with a throttled warning.
 The checkpoint (``--checkpoint`` or ``-p checkpoint:=``)
 is polled every ``poll_period`` seconds and hot-swapped when it changes; a file that
 fails to load leaves the previous policy serving, with an error logged. A missing or
 broken checkpoint at start is one error line and exit status 2.
 
-State, target and fingertip are paired by stamp as ``offline_rl_core.pairing`` says;
+State, target and fingertip are paired by stamp as ``offline_rl_core.nodes.pairing`` says;
 an arm that publishes no fingertip gets planar forward kinematics of its joints.
 
-The actor of the HIL-SERL stage (``offline_rl_core.actor``): with ``weights_topic`` set
+The actor of the HIL-SERL stage (``offline_rl_core.serving.actor``): with ``weights_topic`` set
 (``learner/weights``) it also takes each new weights version the online learner
 publishes; it acts deterministically unless ``explore`` is set, then it samples the
 learner's Gaussian from its own ``seed``; with ``paced_every`` (the learner's
@@ -42,14 +42,14 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E
 from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64MultiArray, String, UInt8MultiArray  # noqa: E402
 
-from offline_rl_core.actor import Actor  # noqa: E402
-from offline_rl_core.env import JOINT_NAMES, observation_from_joints  # noqa: E402
-from offline_rl_core.errors import UserError  # noqa: E402
-from offline_rl_core.joint_messages import joints_from_state, point_xy, torques_from_action  # noqa: E402
-from offline_rl_core.online_service import policy_from_weights_message  # noqa: E402
-from offline_rl_core.pairing import Paired, StatePairing, check_stamp  # noqa: E402
-from offline_rl_core.policy import LoadedPolicy, checkpoint_file, load_policy  # noqa: E402
-from offline_rl_core.rejections import Rejection  # noqa: E402
+from offline_rl_core.serving.actor import Actor  # noqa: E402
+from offline_rl_core.task.pusher_reach import JOINT_NAMES, observation_from_joints  # noqa: E402
+from offline_rl_core.common.errors import UserError  # noqa: E402
+from offline_rl_core.nodes.joint_messages import joints_from_state, point_xy, torques_from_action  # noqa: E402
+from offline_rl_core.nodes.learner_service import policy_from_weights_message  # noqa: E402
+from offline_rl_core.nodes.pairing import Paired, StatePairing, check_stamp  # noqa: E402
+from offline_rl_core.serving.policy import LoadedPolicy, checkpoint_file, load_policy  # noqa: E402
+from offline_rl_core.common.rejections import Rejection  # noqa: E402
 from pusher_common.node_main import run_node  # noqa: E402
 from pusher_common.params import Param, Settings  # noqa: E402
 from pusher_common.scheduling import THREAD_PRIORITY, apply_thread_priority  # noqa: E402

@@ -6,7 +6,7 @@
 - The command line's flags (``flags``: :class:`~pusher_common.params.Param` entries with
   a ``flag``) are parsed beside ``--ros-args`` and handed to the node's constructor as
   parameter overrides: ``make_node(overrides)``.
-- A :class:`~offline_rl_core.errors.UserError` (bad parameter, missing file) prints
+- A :class:`~offline_rl_core.common.errors.UserError` (bad parameter, missing file) prints
   ``PROG: error: ...`` on one line and exits 2; so does a ``--ros-args`` rcl cannot parse
   (``PROG: error: cannot parse --ros-args: REASON``).
 - Ctrl-C and SIGTERM end the node cleanly (exit 0 for a node that serves until stopped):
@@ -37,7 +37,7 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
-from offline_rl_core.errors import UserError, caused_by_interrupt
+from offline_rl_core.common.errors import UserError, caused_by_interrupt
 
 from .params import Param, add_flags, overrides_from_flags
 

@@ -8,7 +8,7 @@ A node lists its settings once, as :class:`Param` entries; from that list come
 - the argparse flags (``--checkpoint PATH`` for ``checkpoint``), which only set the
   parameter's starting value (a flag wins over ``-p`` and a params file);
 - one validation for start-up and run-time changes alike: a bad value at start is a
-  :class:`~offline_rl_core.errors.UserError` naming the parameter, a bad ``ros2 param set``
+  :class:`~offline_rl_core.common.errors.UserError` naming the parameter, a bad ``ros2 param set``
   is refused with the same reason.
 
 A parameter that is not read-only must take effect when set: the node passes
@@ -31,7 +31,7 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.parameter import Parameter
 
-from offline_rl_core.errors import UserError
+from offline_rl_core.common.errors import UserError
 
 INT_MIN, INT_MAX = -(2**63), 2**63 - 1
 

@@ -6,7 +6,7 @@
     self.status.warn(topic, rejection)   # only the warning, where the logic's own counter counted it
 
 The JSON is ``{"messages": {topic: n}, "rejected": {reason: n}, ...fields}``, the same
-keys on every node (reasons: ``offline_rl_core.rejections.REASONS``), so a test or an
+keys on every node (reasons: ``offline_rl_core.common.rejections.REASONS``), so a test or an
 operator reads any node's refusals the same way. The timer runs on the steady clock: a
 node under ``use_sim_time`` reports while the sim is stopped too.
 """
@@ -19,7 +19,7 @@ from typing import Callable
 from rclpy.clock import Clock, ClockType
 from std_msgs.msg import String
 
-from offline_rl_core.rejections import Rejection, RejectionCounter
+from offline_rl_core.common.rejections import Rejection, RejectionCounter
 
 STATUS_PERIOD_S = 1.0
 

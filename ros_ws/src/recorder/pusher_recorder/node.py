@@ -21,10 +21,10 @@ bag keeps their offered QoS, as ``ros2 bag record`` does. Topic names are relati
 Messages are stamped with the node's clock (sim time with ``-p use_sim_time:=true``),
 strictly increasing so the bag's order is the arrival order. Ctrl-C or SIGTERM close the
 bag with every message received; a SIGKILL loses at most the last ``flush_interval``
-(1 s) of messages (``offline_rl_core.bag.recording``).
+(1 s) of messages (``offline_rl_core.data.bag.recording``).
 
 Who acts, episode counting and the command/transition handshake are
-``offline_rl_core.collect_driver.CollectDriver`` (free of ROS, its docstring gives the
+``offline_rl_core.nodes.collect_driver.CollectDriver`` (free of ROS, its docstring gives the
 protocol); this node subscribes, publishes and writes the bag.
 """
 
@@ -44,14 +44,14 @@ from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, Qo
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float32MultiArray
 
-from offline_rl_core.bag import BagWriter, transition_ends_episode, typestore
-from offline_rl_core.bag.recording import MIN_SQLITE_SPLIT_SIZE
-from offline_rl_core.collect import EpisodePlan
-from offline_rl_core.collect_driver import CollectDriver, Command
-from offline_rl_core.env import JOINT_NAMES
-from offline_rl_core.errors import UserError
-from offline_rl_core.output_paths import check_output_dir
-from offline_rl_core.transitions import SOURCE_EXPERT, SOURCE_NAMES, SOURCE_RANDOM
+from offline_rl_core.data.bag import BagWriter, transition_ends_episode, typestore
+from offline_rl_core.data.bag.recording import MIN_SQLITE_SPLIT_SIZE
+from offline_rl_core.data.collect import EpisodePlan
+from offline_rl_core.nodes.collect_driver import CollectDriver, Command
+from offline_rl_core.task.pusher_reach import JOINT_NAMES
+from offline_rl_core.common.errors import UserError
+from offline_rl_core.common.output_paths import check_output_dir
+from offline_rl_core.data.transitions import SOURCE_EXPERT, SOURCE_NAMES, SOURCE_RANDOM
 from pusher_common.node_main import run_node
 from pusher_common.params import Param, Settings
 from pusher_common.spin import spin_until_future_complete

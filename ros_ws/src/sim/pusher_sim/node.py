@@ -3,7 +3,7 @@
 Publishes ``pusher/state`` (JointState; also on ``joint_states`` for robot_state_publisher),
 ``pusher/target`` and ``pusher/fingertip`` (PointStamped, frame ``world``),
 ``pusher/transition`` (Float32MultiArray, the 25-float layout of
-offline_rl_core.transitions) and ``/clock`` (its sim time); obeys JointState commands
+offline_rl_core.data.transitions) and ``/clock`` (its sim time); obeys JointState commands
 (effort = action in [-1, 1]) and, where ``effort_topic`` is set, Float64MultiArray torques
 in N·m as an effort controller takes them; serves ``pusher/reset`` (std_srvs/Trigger).
 
@@ -12,7 +12,7 @@ Who acted (the transition's ``source``) is the command topic a command came on:
 ``pusher/command`` counts as policy (or, for older publishers, the source named in
 ``header.frame_id``, which is deprecated: frame_id names a TF frame).
 
-The protocol (realtime / lockstep, sim time, episodes) is ``offline_rl_core.sim_loop``;
+The protocol (realtime / lockstep, sim time, episodes) is ``offline_rl_core.nodes.sim_loop``;
 this node moves messages to it and publishes what it returns. A command it cannot take
 (malformed, non-finite, a bad stamp; in lockstep, a stamp other than the current
 state's) is counted by reason on ``~/status`` (``pusher_common.status``) with a
@@ -37,15 +37,15 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float32MultiArray, Float64MultiArray
 from std_srvs.srv import Trigger
 
-from offline_rl_core.atomic import atomic_path
-from offline_rl_core.bag import encode_transition_rows
-from offline_rl_core.env import CONTROL_HZ, JOINT_NAMES
-from offline_rl_core.joint_messages import action_from_effort, action_from_torques
-from offline_rl_core.pairing import check_answer_stamp, check_stamp
-from offline_rl_core.errors import UserError
-from offline_rl_core.output_paths import check_output_file
-from offline_rl_core.sim_loop import MAX_START_TIME_S, MODES, ArmState, SimLoop, Step, TickTiming
-from offline_rl_core.transitions import SOURCE_NAMES, SOURCE_POLICY, source_from_tag
+from offline_rl_core.common.atomic import atomic_path
+from offline_rl_core.data.bag import encode_transition_rows
+from offline_rl_core.task.pusher_reach import CONTROL_HZ, JOINT_NAMES
+from offline_rl_core.nodes.joint_messages import action_from_effort, action_from_torques
+from offline_rl_core.nodes.pairing import check_answer_stamp, check_stamp
+from offline_rl_core.common.errors import UserError
+from offline_rl_core.common.output_paths import check_output_file
+from offline_rl_core.nodes.sim_loop import MAX_START_TIME_S, MODES, ArmState, SimLoop, Step, TickTiming
+from offline_rl_core.data.transitions import SOURCE_NAMES, SOURCE_POLICY, source_from_tag
 from pusher_common.node_main import run_node
 from pusher_common.params import Param, Settings
 from pusher_common.scheduling import THREAD_PRIORITY, apply_thread_priority

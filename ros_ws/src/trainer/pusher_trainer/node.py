@@ -26,8 +26,10 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile
 from std_msgs.msg import String
 
-from offline_rl_core.errors import UserError
-from offline_rl_core.training_run import add_train_arguments, console_progress, run_training_from_args, summary_line
+from offline_rl_core.common.errors import UserError
+from offline_rl_core.runs.training_run import (
+    add_train_arguments, console_progress, run_training_from_args, summary_line,
+)
 from pusher_common.node_main import run_node
 from pusher_common.params import Settings, params_from_parser
 

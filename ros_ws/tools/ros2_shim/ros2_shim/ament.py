@@ -1,5 +1,5 @@
-"""The ament resource index: ``offline_rl_core.ament_index``, shared with the launch reader."""
+"""The ament resource index: ``ros2_shim.ament_index``, shared with the launch reader."""
 
-from offline_rl_core.ament_index import executables, package_prefix, package_share, packages, prefixes
+from ros2_shim.ament_index import executables, package_prefix, package_share, packages, prefixes
 
 __all__ = ["executables", "package_prefix", "package_share", "packages", "prefixes"]

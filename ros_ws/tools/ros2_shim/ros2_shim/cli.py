@@ -176,10 +176,10 @@ def bag_command(args: list[str]) -> int:
         return 2
     opts = parser.parse_args(args)
     try:
-        from offline_rl_core.bag import bag_info
-        from offline_rl_core.errors import UserError
+        from offline_rl_core.data.bag import bag_info
+        from offline_rl_core.common.errors import UserError
     except ImportError as exc:
-        print(f"ros2 bag info: error: offline_rl_core.bag is not importable ({exc})", file=sys.stderr)
+        print(f"ros2 bag info: error: offline_rl_core.data.bag is not importable ({exc})", file=sys.stderr)
         return 1
     try:
         print(bag_info(opts.bag_path).format())

@@ -1,7 +1,7 @@
-"""``ros2 launch PKG FILE.launch.yaml [name:=value ...]`` on ``offline_rl_core.launch``.
+"""``ros2 launch PKG FILE.launch.yaml [name:=value ...]`` on ``ros2_shim.launch_files``.
 
 Reads the YAML subset this project's launch files use (arg, node; see
-``offline_rl_core.launch``), starts each node as its own process (logs under
+``ros2_shim.launch_files``), starts each node as its own process (logs under
 ``$ROS_LOG_DIR`` or ``~/.ros/log``, echoed here with a ``[exe-N]`` prefix, as ros2 launch
 does with ``output: screen``), and ends when a node marked ``on_exit: shutdown`` exits,
 when all have exited, or on Ctrl-C / SIGTERM; every process is stopped by its pid.
@@ -20,8 +20,8 @@ USAGE = "usage: ros2 launch [-h] [-s] package_name [launch_file_name] [launch_ar
 
 
 def launch_command(args: list[str]) -> int:
-    from offline_rl_core.errors import UserError
-    from offline_rl_core.launch import declared_arguments, find_launch_file, load_launch, parse_launch_arguments
+    from offline_rl_core.common.errors import UserError
+    from ros2_shim.launch_files import declared_arguments, find_launch_file, load_launch, parse_launch_arguments
 
     parser = argparse.ArgumentParser(prog="ros2 launch", usage=USAGE[7:],
                                      description="Run a launch file (YAML format: arg and node actions)")
@@ -63,7 +63,7 @@ def _log_dir() -> Path:
 
 
 def run_launch(nodes) -> int:
-    from offline_rl_core.launch import LaunchedProcesses
+    from offline_rl_core.pipelines.processes import LaunchedProcesses
 
     log_dir = _log_dir()
     print(f"[INFO] [launch]: All log files can be found below {log_dir}", flush=True)

@@ -1,0 +1,76 @@
+"""Writing whole datasets of transitions as rosbag2 bags (``offline-rl collect``).
+
+Written through rosbags' rosbag2 Writer (format version 9) into a staged directory and
+published atomically (see ``paths``): a bag appears complete or not at all. Message
+definitions come from the ROS 2 Kilted typestore, so the bag carries the definitions and
+RIHS01 hashes real ROS tools expect. Streams (the recorder) use ``recording.BagWriter``.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+from rosbags.rosbag2 import Writer
+
+from ...common.errors import UserError
+from ..transitions import LAYOUT_SLICES, TRANSITION_LAYOUT, TRANSITION_WIDTH, Transitions
+from .cdr import TRANSITION_MESSAGE_SIZE, TRANSITION_MSGTYPE, TRANSITION_TOPIC, encode_transition_blob
+from .metadata import ROSBAG2_VERSION, typestore
+from .paths import STORAGE_PLUGIN, StagedBag, resolve_target
+
+# Deterministic stamps make `offline-rl collect` bit-reproducible: transition i is stamped
+# TRANSITION_START_NS + i * TRANSITION_PERIOD_NS (2025-01-01T00:00:00Z, then 50 Hz).
+TRANSITION_START_NS = 1_735_689_600 * 10**9
+TRANSITION_PERIOD_NS = 20_000_000
+
+
+def _check_rows(path, rows: np.ndarray) -> None:
+    if rows.ndim != 2 or rows.shape[1] != TRANSITION_WIDTH:
+        raise UserError(f"{path}: expected ({TRANSITION_WIDTH},)-wide transition rows, got shape {rows.shape}")
+    if rows.shape[0] == 0:
+        raise UserError(f"{path}: no transitions to write")
+    bad = ~np.isfinite(rows)
+    if bad.any():
+        column = int(np.flatnonzero(bad.any(axis=0))[0])
+        raise UserError(f"{path}: {int(bad.any(axis=1).sum())} transition rows hold NaN or inf (first in field {field_of_column(column)!r}); not writing them")
+
+
+def field_of_column(column: int) -> str:
+    """The layout label of a column of the (N, 25) transition matrix."""
+    return next(label for label, _ in TRANSITION_LAYOUT if column < LAYOUT_SLICES[label].stop)
+
+
+def write_transitions(
+    path: str | os.PathLike,
+    transitions: Transitions | np.ndarray,
+    storage: str | None = None,
+    custom_data: dict[str, str] | None = None,
+) -> None:
+    """Write transitions as a rosbag2 bag with one ``/pusher/transition`` message per row.
+
+    ``path``: ``x.db3`` or ``x.mcap`` gives a single self-describing storage file, any other
+    path a bag directory whose storage is ``storage`` ('sqlite3', the default, or 'mcap').
+    An existing bag at ``path`` is replaced atomically; on any error it is left untouched and
+    nothing half-written remains. Stamps are TRANSITION_START_NS + i * 20 ms.
+    """
+    rows = transitions.to_rows() if isinstance(transitions, Transitions) else np.asarray(transitions, np.float32)
+    target = resolve_target(path, storage)
+    _check_rows(target.path, rows)
+    blob = encode_transition_blob(rows)
+    size = TRANSITION_MESSAGE_SIZE
+    staged = StagedBag(target, overwrite=True)
+    try:
+        writer = Writer(staged.bag_dir, version=ROSBAG2_VERSION, storage_plugin=STORAGE_PLUGIN[target.storage])
+        with writer:
+            for key, value in (custom_data or {}).items():
+                writer.set_custom_data(key, value)
+            conn = writer.add_connection(TRANSITION_TOPIC, TRANSITION_MSGTYPE, typestore=typestore())
+            write = writer.write
+            for i, offset in enumerate(range(0, len(blob), size)):
+                write(conn, TRANSITION_START_NS + i * TRANSITION_PERIOD_NS, blob[offset : offset + size])
+        staged.publish()
+    except OSError as exc:
+        raise UserError(f"{target.path}: cannot write the bag: {exc}") from exc
+    finally:
+        staged.discard()

@@ -1,0 +1,188 @@
+"""The sim node's protocol as a plain class: episodes, sim time, stepping, results (no ROS).
+
+``realtime``: ``tick()`` steps the arm with the latest command held (zero-order hold, as a
+motor driver does); the node calls it from a 50 Hz timer.
+``lockstep``: ``command(stamp, action, source)`` steps the arm only when ``stamp`` is the
+current state's, so data collection and evaluation run as fast as the loop allows and
+are reproducible; any other stamp answers an older or a republished state and is stale.
+
+Sim time: every state carries ``start_ns + tick * 20 ms``. In lockstep, step ``s`` of
+episode ``e`` is tick ``e * 100 + s`` (an episode owns 100 ticks however it ends), so a
+state's stamp says which episode and step it is; in realtime the tick counts physics
+steps. The node publishes it on /clock and stamps every message with it.
+
+Every state handed out is one a command applies to: the state after an episode's last
+step is not (it is the ``next_obs`` of the final transition); the next episode's first
+state follows the final transition.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..task.pusher_reach import ACT_DIM, CONTROL_HZ, MAX_STEPS, PusherReachEnv
+from ..data.transitions import LAYOUT_SLICES, SOURCE_POLICY, TRANSITION_WIDTH
+
+TICK_NS = 1_000_000_000 // CONTROL_HZ  # 20 ms
+TICKS_PER_EPISODE = MAX_STEPS  # lockstep: one tick per state an episode can have
+MODES = ("realtime", "lockstep")
+# builtin_interfaces/Time.sec is an int32: a later start wraps to negative stamps that every
+# reader refuses. A year short of 2**31 s (Jan 2038) leaves a run a year of stamps.
+MAX_START_TIME_S = 2**31 - 1 - 365 * 24 * 3600
+
+
+@dataclass
+class ArmState:
+    """One state of the arm, as the node publishes it."""
+
+    stamp_ns: int
+    position: np.ndarray  # rad (shoulder, elbow)
+    velocity: np.ndarray  # rad/s
+    torque: np.ndarray  # N·m applied by the motors in the last step
+    target: np.ndarray  # m (x, y, z)
+    fingertip: np.ndarray  # m: the fingertip the env's observation uses
+
+
+@dataclass
+class Step:
+    """What one step produced: the transition row, and the next state to publish (None
+    after an episode's last step: the next episode's first state is in ``new_episode``)."""
+
+    transition: np.ndarray  # float32[TRANSITION_WIDTH], the 25-float layout
+    next_state: ArmState | None
+    episode_over: bool
+    new_episode: ArmState | None = None  # the next episode's first state (None once finished)
+
+
+class SimLoop:
+    def __init__(self, mode: str = "realtime", seed: int = 0, episodes: int = 0, terminate_on_success: bool = False,
+                 start_ns: int = 0):
+        if mode not in MODES:
+            raise ValueError(f"mode must be one of {', '.join(MODES)}, got {mode!r}")
+        self.mode = mode
+        self.seed = seed
+        self.max_episodes = episodes  # 0: run until stopped
+        self.start_ns = int(start_ns)
+        self.env = PusherReachEnv(terminate_on_success=terminate_on_success)
+        self.episode = 0  # index of the current episode; it resets with seed + episode
+        self.ticks = 0  # realtime: physics steps so far
+        self.results: list[tuple[bool, float, float]] = []  # (success, final distance, return) per episode
+        self.ep_return = 0.0
+        self.obs: np.ndarray | None = None
+        self.held_action = np.zeros(ACT_DIM, np.float32)
+        self.held_source = SOURCE_POLICY
+        self.current: ArmState | None = None
+
+    # ------------------------------------------------------------ episodes
+    @property
+    def finished(self) -> bool:
+        return bool(self.max_episodes) and len(self.results) >= self.max_episodes
+
+    def start_episode(self) -> ArmState:
+        """Reset for the current episode; its first state."""
+        self.obs = self.env.reset(seed=self.seed + self.episode)
+        self.ep_return = 0.0
+        return self._snapshot()
+
+    def reset(self) -> ArmState:
+        """Abandon the episode and start the next (the reset service)."""
+        self.episode += 1
+        return self.start_episode()
+
+    def stamp_ns(self) -> int:
+        tick = self.episode * TICKS_PER_EPISODE + self.env.steps if self.mode == "lockstep" else self.ticks
+        return self.start_ns + tick * TICK_NS
+
+    def _snapshot(self) -> ArmState:
+        env = self.env
+        self.current = ArmState(self.stamp_ns(), env.qpos.copy(), env.qvel.copy(),
+                                # N·m at the joints: the motors' force times their gear (actuator_force
+                                # is in actuation units, the action itself)
+                                np.array(env.data.qfrc_actuator[:ACT_DIM], np.float64),
+                                np.array(env.target, np.float64), np.array(env.fingertip, np.float64))
+        return self.current
+
+    # ------------------------------------------------------------ stepping
+    def command(self, stamp_ns: int | None, action: np.ndarray, source: int) -> Step | None:
+        """A command for the state stamped ``stamp_ns`` (lockstep), or the one to hold (realtime)."""
+        if self.finished:
+            return None
+        if self.mode == "realtime":
+            self.held_action, self.held_source = action, source
+            return None
+        if stamp_ns != self.current.stamp_ns:
+            return None  # answers an older (or republished, already answered) state: stale
+        return self._step(action, source)
+
+    def tick(self) -> Step | None:
+        """Realtime: one step with the held command."""
+        if self.finished or self.mode != "realtime":
+            return None
+        self.ticks += 1
+        return self._step(self.held_action, self.held_source)
+
+    def _step(self, action: np.ndarray, source: int) -> Step:
+        obs, step_index = self.obs, self.env.steps
+        next_obs, reward, done, info = self.env.step(action)
+        row = np.empty(TRANSITION_WIDTH, np.float32)
+        row[LAYOUT_SLICES["obs"]] = obs
+        row[LAYOUT_SLICES["action"]] = action
+        row[LAYOUT_SLICES["reward"]] = reward
+        row[LAYOUT_SLICES["next_obs"]] = next_obs
+        row[LAYOUT_SLICES["terminated"]] = info["terminated"]
+        row[LAYOUT_SLICES["truncated"]] = info["truncated"]
+        row[LAYOUT_SLICES["success"]] = info["success"]
+        row[LAYOUT_SLICES["episode"]] = self.episode
+        row[LAYOUT_SLICES["step"]] = step_index
+        row[LAYOUT_SLICES["source"]] = source
+        self.ep_return += reward
+        self.obs = next_obs
+        if not done:
+            return Step(row, self._snapshot(), False)
+        self.results.append((bool(info["success"]), float(info["dist"]), self.ep_return))
+        self.episode += 1
+        return Step(row, None, True, None if self.finished else self.start_episode())
+
+    # ------------------------------------------------------------ results
+    def summary(self) -> dict:
+        n = len(self.results)
+        if n == 0:
+            return {"episodes": 0, "success_rate": 0.0, "mean_final_dist": None, "mean_return": None}
+        success, dist, ret = (np.array(col, np.float64) for col in zip(*self.results))
+        return {"episodes": n, "success_rate": float(success.mean()), "mean_final_dist": float(dist.mean()),
+                "mean_return": float(ret.mean())}
+
+
+class TickTiming:
+    """Realtime tick periods in running sums (a sim that runs for days keeps no list).
+
+    A missed step is a gap over 1.5 periods (a gap of k periods missed k - 1 steps).
+    """
+
+    def __init__(self, period_s: float = 1.0 / CONTROL_HZ):
+        self.period_ms = period_s * 1000.0
+        self.ticks = 0
+        self.last: float | None = None
+        self.sum_ms = self.sum_sq_ms = self.max_ms = 0.0
+        self.missed = 0
+
+    def tick(self, now_s: float) -> None:
+        if self.last is not None:
+            gap = (now_s - self.last) * 1000.0
+            self.sum_ms += gap
+            self.sum_sq_ms += gap * gap
+            self.max_ms = max(self.max_ms, gap)
+            self.missed += max(int(np.floor(gap / self.period_ms + 0.5)) - 1, 0)
+        self.last = now_s
+        self.ticks += 1
+
+    def report(self) -> str | None:
+        gaps = self.ticks - 1
+        if gaps < 2:
+            return None
+        mean = self.sum_ms / gaps
+        std = float(np.sqrt(max(self.sum_sq_ms / gaps - mean * mean, 0.0)))
+        return (f"{self.ticks} ticks, period mean {mean:.3f} ms, std {std:.3f} ms, "
+                f"max {self.max_ms:.3f} ms, missed steps {self.missed}")

@@ -1,0 +1,406 @@
+"""The HIL-SERL stage over ROS: ``offline-rl hil --online`` (``make hil-online``).
+
+On a private DDS domain, from ``pusher_bringup``'s ``online.launch.yaml``: the online
+learner (``ros2 run learner node``), the policy node acting on its weights (exploring;
+paced by the learner in lockstep), the corrections mux, the corrector (scripted stand-in,
+a person at the keyboard, or none), a passive recorder writing the whole session, and the
+sim. The run ends when the sim has stepped ``env_steps`` times; every process is stopped by
+its pid.
+
+The learning curve is scored afterwards from the weights snapshots the learner kept
+every ``eval_every`` environment steps (deterministic policy, no corrector, held-out reset
+seeds): success without intervention against environment steps and against the
+learner's wall time, with the intervention rate and the critic's values of each window.
+``DIR/summary.json`` and ``DIR/online.png`` hold them. ``in_process`` runs the same stage
+in one process without ROS (``online_loop``): the reference the ROS run is measured
+against, and the fast way to run ablations.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from ..common.atomic import write_json_atomic
+from ..common.errors import UserError
+from ..common.output_paths import remove_if_empty
+from ..evaluation.rollouts import evaluate_policy
+from ..runs.online_loop import EVAL_SEED, TRAIN_SEED_BASE, steps_to
+from ..serving.policy import load_checkpoint, load_policy
+from ..evaluation.stats import wilson_ci
+from ..data.transitions import SOURCE_HUMAN
+
+DEFAULT_BAG = "bags/mix.db3"
+THRESHOLDS = (0.5, 0.8, 0.9, 0.95)
+EPISODE_STEPS = 100
+MAX_LEARNER_RESTARTS = 3
+REALTIME_THREAD_PRIORITY = 50  # as ros2_control's controller manager
+RECORDER_GRACE_S = 20.0  # after the sim's last episode, for the recorder to write it and end
+
+
+@dataclass
+class OnlineHilConfig:
+    out: str = "runs/hil-online"
+    env_steps: int = 20_000
+    seed: int = 0
+    prior: str | None = None  # a checkpoint; None: trained as prior_algo says (or reused)
+    no_prior: bool = False  # the learner starts from scratch
+    prior_algo: str = "auto"  # auto: the best prior (README, "The best prior"); awac: the chapter's
+    prior_steps: int = 8000  # of an AWAC prior
+    bags: list[str] = field(default_factory=lambda: [DEFAULT_BAG])
+    corrector: str = "scripted"  # scripted | keyboard | none
+    mode: str = "lockstep"  # lockstep (paced, reproducible) | realtime (50 Hz)
+    utd: int = 2
+    publish_every: int = 50
+    eval_every: int = 2500
+    eval_episodes: int = 100
+    eval_seed: int = EVAL_SEED
+    in_process: bool = False
+    timeout: float = 4 * 3600.0
+
+    def validate(self) -> None:
+        if self.env_steps < EPISODE_STEPS or self.env_steps % EPISODE_STEPS:
+            raise UserError(f"--env-steps must be a positive multiple of {EPISODE_STEPS} (whole episodes), "
+                            f"got {self.env_steps}")
+        for name in ("utd", "publish_every", "eval_every", "eval_episodes"):
+            if int(getattr(self, name)) < 1:
+                raise UserError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
+        if self.eval_every % self.publish_every:
+            raise UserError(f"--eval-every ({self.eval_every}) must be a multiple of --publish-every "
+                            f"({self.publish_every})")
+        if self.corrector not in ("scripted", "keyboard", "none"):
+            raise UserError(f"--corrector must be scripted, keyboard or none, got {self.corrector!r}")
+        if self.mode not in ("lockstep", "realtime"):
+            raise UserError(f"--mode must be lockstep or realtime, got {self.mode!r}")
+        if self.corrector == "keyboard" and (self.mode != "realtime" or self.in_process):
+            raise UserError("--corrector keyboard needs --mode realtime over ROS (a person acts in real time)")
+        if self.corrector == "keyboard" and not sys.stdin.isatty():
+            raise UserError("--corrector keyboard needs a terminal on stdin")
+        if self.prior_algo not in ("auto", "awac"):
+            raise UserError(f"--prior-algo must be auto or awac, got {self.prior_algo!r}")
+        if self.prior and self.no_prior:
+            raise UserError("--prior and --no-prior contradict each other")
+        for bag in self.bags:
+            if not Path(bag).exists():
+                from .hil import no_such_bag
+
+                raise no_such_bag(bag)
+        if self.prior and not Path(self.prior).exists():
+            raise UserError(f"{self.prior}: no such checkpoint")
+
+
+def run_hil_online(cfg: OnlineHilConfig, log: Callable[[str], None] = lambda s: print(s, file=sys.stderr,
+                                                                                           flush=True)) -> dict:
+    cfg.validate()
+    out = Path(cfg.out)
+    created = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)
+    from .hil import HilConfig, Loop, _main_thread, _raise_interrupt, resolve_prior
+
+    loop = Loop(HilConfig(out=str(out), seed=cfg.seed, bags=cfg.bags), log)
+    previous = signal.signal(signal.SIGTERM, _raise_interrupt) if _main_thread() else None
+    t0 = time.monotonic()
+    try:
+        prior_path, prior_from = (None, "none") if cfg.no_prior else resolve_prior(
+            loop, cfg.prior, cfg.bags, cfg.seed, cfg.prior_steps, out, log, cfg.prior_algo)
+        if cfg.in_process:
+            result = _in_process(cfg, prior_path, log)
+        else:
+            result = _over_ros(cfg, loop, prior_path, out, log)
+    except BaseException:
+        remove_if_empty(out, created)  # a run that failed before writing anything leaves no directory
+        raise
+    finally:
+        loop.stop_all()
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+    summary = _summary(cfg, result, prior_path, prior_from, time.monotonic() - t0)
+    write_json_atomic(out / "summary.json", summary)
+    plot_online(summary, out / "online.png")
+    final = summary["curve"][-1]
+    log(f"hil online: success without intervention {summary['curve'][0]['success']:.2f} -> {final['success']:.2f} "
+        f"[{final['ci'][0]:.2f}, {final['ci'][1]:.2f}] after {final['env_steps']} environment steps; "
+        + ", ".join(f"{t:g} at {summary['to'][str(t)]['env_steps']} steps" if summary['to'][str(t)] else f"{t:g} not reached"
+                    for t in THRESHOLDS)
+        + f"; {summary['wall_seconds']:.0f} s; wrote {out / 'summary.json'} and {out / 'online.png'}")
+    return summary
+
+
+# ------------------------------------------------------------------------ in one process
+def _in_process(cfg: OnlineHilConfig, prior_path: Path | None, log) -> dict:
+    from ..learners.config import TrainConfig
+    from ..learners.online import OnlineSettings
+    from ..runs.online_loop import OnlineRunConfig, run_online
+    from ..runs.training_run import load_bags
+
+    offline, _ = load_bags(cfg.bags)
+    prior = load_checkpoint(prior_path) if prior_path else None
+    run = run_online(offline, prior, OnlineRunConfig(
+        env_steps=cfg.env_steps, seed=cfg.seed, corrections=cfg.corrector != "none", eval_every=cfg.eval_every,
+        eval_episodes=cfg.eval_episodes, eval_seed=cfg.eval_seed,
+        settings=OnlineSettings(utd=cfg.utd, publish_every=cfg.publish_every), train=TrainConfig(algo="sac")),
+        log=log)
+    return {"curve": run["curve"], "counts": run["counts"], "learner_seconds": run["wall_s"], "where": "in process"}
+
+
+# ------------------------------------------------------------------------ over ROS
+def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, log) -> dict:
+    learner_dir = out / "learner"
+    for stale in (learner_dir / "snapshots").glob("policy_*.pt"):
+        stale.unlink()
+    (learner_dir / "progress.jsonl").unlink(missing_ok=True)
+    episodes = cfg.env_steps // EPISODE_STEPS
+    lockstep = cfg.mode == "lockstep"
+    arguments = {
+        "bag": cfg.bags[0], "prior": prior_path or "", "out": out,
+        # until the learner's first weights, the policy serves the prior (or the learner's initial weights)
+        "checkpoint": prior_path or learner_dir / "policy.pt",
+        "mode": cfg.mode, "paced_every": cfg.publish_every if lockstep else 0, "publish_every": cfg.publish_every,
+        "utd": cfg.utd, "seed": cfg.seed, "learner_nice": 0 if lockstep else 10,
+        # realtime: the nodes that answer the arm go first (where the user may use SCHED_FIFO)
+        "thread_priority": 0 if lockstep else REALTIME_THREAD_PRIORITY, "reset_seed": TRAIN_SEED_BASE + 10000 * cfg.seed, "episodes": episodes,
+        "snapshot_every": cfg.eval_every, "corrector": cfg.corrector,
+        # a person's corrector runs in the foreground, on this terminal (below)
+        "with_corrector": "true" if cfg.corrector == "scripted" else "false",
+    }
+    if len(cfg.bags) > 1:
+        raise UserError("--online takes one offline bag (merge several with offline-rl dataset first)")
+    log(f"hil online: {cfg.env_steps} environment steps ({episodes} episodes, {cfg.mode}) with the "
+        f"{cfg.corrector} corrector, learner utd {cfg.utd}, weights every {cfg.publish_every} steps -> {out} "
+        f"(ROS_DOMAIN_ID {loop.env['ROS_DOMAIN_ID']})")
+    ready = {"learner": "learning from", "policy": "serving", "recorder": "recording"}
+    if lockstep:
+        ready["mux"] = "mux lockstep"
+    launched = loop.launch("online.launch.yaml", arguments, out / "logs", ready=ready, timeout=120.0)
+    person = _keyboard_corrector(loop, log) if cfg.corrector == "keyboard" else None
+    started = time.monotonic()
+    shown, restarts, sim_done = 0, 0, 0.0
+    log(f"hil online: learner pid {launched['learner'].pid}")
+    while launched.finished() is None:
+        if time.monotonic() - started > cfg.timeout:
+            raise UserError(f"the session did not finish within {cfg.timeout:.0f} s; see {out / 'logs'}")
+        if not launched["learner"].running() and restarts < MAX_LEARNER_RESTARTS:
+            restarts += 1
+            _restart_learner(cfg, loop, launched, learner_dir, out, restarts, log)
+        for name in ("learner", "policy", "sim"):
+            proc = launched[name]
+            if proc.running() or launched.finished() is not None:
+                continue
+            if name == "sim" and proc.poll() == 0:
+                # the sim ran its episodes: the recorder ends once it has written the last one
+                sim_done = sim_done or time.monotonic()
+                if time.monotonic() - sim_done < RECORDER_GRACE_S:
+                    continue
+                raise UserError(f"the sim ran its {episodes} episodes but the recorder did not end within "
+                                f"{RECORDER_GRACE_S:.0f} s; see {out / 'logs' / 'recorder.log'}")
+            raise UserError(f"the {name} node stopped (exit {proc.poll()}); see {proc.log_path}:\n"
+                            + "\n".join(proc.output().rstrip().splitlines()[-12:]))
+        if person is not None and person.poll() is not None:
+            log("hil online: the person quit the keyboard corrector; ending the session")
+            break
+        progress = _last_progress(learner_dir / "progress.jsonl")
+        if progress and progress["trained_through"] >= shown + cfg.env_steps // 20:
+            shown = progress["trained_through"]
+            log(f"  {shown:>6}/{cfg.env_steps} environment steps  weights v{progress['weights_version']}  "
+                f"{progress['updates']} updates  {progress.get('human', 0)} taken over  "
+                f"{time.monotonic() - started:6.0f} s  "
+                f"critic loss {progress.get('critic_loss', float('nan')):.4f}  "
+                f"Q {progress.get('q_policy', float('nan')):+.3f}")
+        time.sleep(0.5)
+    ended = launched.finished()
+    rc = 0 if ended is None else ended.poll()
+    wall = time.monotonic() - started
+    if ended is not None and rc == 0:
+        _wait_for_the_learner(cfg, launched, learner_dir, out / "session.db3", log)
+    loop.stop_all()  # the learner saves its resume point and final weights on the way out
+    if person is not None:
+        _stop(person)
+    if rc != 0:
+        raise UserError(f"the recorder failed (exit {rc}); see {out / 'logs' / 'recorder.log'}")
+    log(f"hil online: session done in {wall:.0f} s; scoring the learner's snapshots on {cfg.eval_episodes} "
+        f"held-out resets each")
+    from ..data.bag import read_transitions
+
+    session = read_transitions(out / "session.db3")
+    curve = _score_snapshots(cfg, learner_dir, session)
+    human = session.source == SOURCE_HUMAN
+    counts = {"steps": len(session), "human": int(human.sum()),
+              "takeovers": int(np.sum(human[1:] & ~human[:-1] & (session.episode[1:] == session.episode[:-1]))),
+              "episodes": int(len(np.unique(session.episode)))}
+    counts["learner_restarts"] = restarts
+    return {"curve": curve, "counts": counts, "learner_seconds": round(wall, 2), "where": "over ROS"}
+
+
+def _wait_for_the_learner(cfg, launched, learner_dir: Path, session_bag: Path, log, timeout: float = 300.0) -> None:
+    """The session is recorded: let the learner cut the version that holds its last whole
+    ``publish_every`` transitions before it is stopped (a restarted learner can be behind),
+    so the final weights are those of a learner that never stopped."""
+    from ..data.bag import read_transitions
+
+    recorded = len(read_transitions(session_bag))
+    last = recorded - recorded % cfg.publish_every
+    deadline = time.monotonic() + timeout
+    while launched["learner"].running() and time.monotonic() < deadline:
+        progress = _last_progress(learner_dir / "progress.jsonl")
+        if progress and progress["trained_through"] >= last:
+            return
+        time.sleep(0.2)
+    log(f"hil online: the learner had not trained through the session's {last} transitions when stopped")
+
+
+def _restart_learner(cfg, loop, launched, learner_dir: Path, out: Path, attempt: int, log) -> None:
+    """The learner died: start it again from its last resume point. The session waits for
+    it (the paced policy node holds the next state); what arrived while it was down is read
+    back from the session bag, once the recorder has flushed it."""
+    from ..data.bag import read_transitions
+    from .processes import RosProcess
+
+    dead = launched["learner"]
+    saved = _last_progress(learner_dir / "progress.jsonl") or {"trained_through": 0}
+    log(f"hil online: the learner stopped (exit {dead.poll()}); restarting it from its resume point "
+        f"(attempt {attempt} of {MAX_LEARNER_RESTARTS})")
+    # in lockstep the sim stops at the state that needs the next version: wait until the
+    # recorder has flushed every transition before it (it flushes at least once a second)
+    needed = saved["trained_through"] + cfg.publish_every if cfg.mode == "lockstep" else 0
+    deadline = time.monotonic() + 30.0
+    while needed and time.monotonic() < deadline:
+        try:
+            if len(read_transitions(out / "session.db3")) >= needed:
+                break
+        except UserError:
+            pass  # not readable yet
+        time.sleep(0.2)
+    node = next(n for n in launched.nodes if n.label == "learner")
+    node.params["resume"] = True
+    proc = RosProcess(node.command(), loop.env, out / "logs" / f"learner.restart{attempt}.log", name="learner")
+    loop.procs.append(proc)
+    launched.processes["learner"] = proc
+    proc.start()
+    if not proc.wait_for_output("learning from", 120.0):
+        raise UserError(f"the restarted learner did not start; see {proc.log_path}:\n"
+                        + "\n".join(proc.output().rstrip().splitlines()[-12:]))
+    log(f"hil online: learner pid {proc.pid} resumed")
+
+
+def _keyboard_corrector(loop, log):
+    """A person's corrector, in the foreground on this terminal (its keys, its display);
+    stopped by its pid with the rest."""
+    import subprocess
+
+    from ros2_shim.ament_index import ros2_run
+
+    log("hil online: you are the corrector: take over with the keys below, space hands back, q quits")
+    return subprocess.Popen(ros2_run("corrections", "corrector", "--mode", "keyboard", "--ros-args", "-r",
+                                     "__node:=corrector"), env=loop.env)
+
+
+def _stop(proc) -> None:
+    import subprocess
+
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
+        if proc.poll() is not None:
+            return
+        proc.send_signal(sig)
+        try:
+            proc.wait(timeout=5.0)
+        except subprocess.TimeoutExpired:
+            continue
+
+
+def _last_progress(path: Path) -> dict | None:
+    try:
+        lines = path.read_text().splitlines()
+        return json.loads(lines[-1]) if lines else None
+    except (OSError, ValueError):
+        return None
+
+
+def _score_snapshots(cfg: OnlineHilConfig, learner_dir: Path, session) -> list[dict]:
+    """The learning curve: each kept snapshot scored on the held-out resets, with the
+    intervention rate of the ``session`` transitions (the recording) before it."""
+    human = session.source == SOURCE_HUMAN
+    progress = {}
+    for line in (learner_dir / "progress.jsonl").read_text().splitlines():
+        row = json.loads(line)
+        progress[row["trained_through"]] = row
+    curve = []
+    snapshots = sorted((learner_dir / "snapshots").glob("policy_*.pt"))
+    if not snapshots:
+        raise UserError(f"{learner_dir / 'snapshots'}: the learner kept no snapshots")
+    previous = 0
+    for path in snapshots:
+        ckpt = load_checkpoint(path)
+        n = int(ckpt.get("trained_through", 0))
+        ev = evaluate_policy(load_policy(path), cfg.eval_episodes, cfg.eval_seed)
+        lo, hi = wilson_ci(ev["successes"], ev["episodes"])
+        window = human[previous:n]
+        p = progress.get(n, {})
+        curve.append({"env_steps": n, "wall_s": float(ckpt.get("wall_s", 0.0)), "updates": int(ckpt.get("updates", 0)),
+                      "weights_version": int(ckpt.get("weights_version", 0)), "success": ev["success_rate"],
+                      "successes": ev["successes"], "ci": [round(lo, 4), round(hi, 4)],
+                      "final_dist": ev["mean_final_dist"],
+                      "intervention_rate": round(float(window.mean()), 4) if len(window) else 0.0,
+                      **{k: p[k] for k in ("critic_loss", "policy_loss", "q_policy", "log_std") if k in p}})
+        previous = n
+    return curve
+
+
+# ------------------------------------------------------------------------ results
+def _summary(cfg: OnlineHilConfig, result: dict, prior_path, prior_from: str, wall: float) -> dict:
+    curve = result["curve"]
+    final = curve[-1]
+    return {
+        "where": result["where"],
+        "curve": curve,
+        "to": {str(t): steps_to(curve, t) for t in THRESHOLDS},
+        "final_success": final["success"],
+        "final_ci": final["ci"],
+        "final_dist": final["final_dist"],
+        "prior_success": curve[0]["success"],
+        "counts": result["counts"],
+        "intervention_rate": round(result["counts"]["human"] / max(result["counts"]["steps"], 1), 4),
+        "prior": None if prior_path is None else str(prior_path),
+        "prior_from": prior_from,
+        "config": asdict(cfg),
+        "learner_wall_seconds": result["learner_seconds"],
+        "wall_seconds": round(wall, 1),
+    }
+
+
+def plot_online(summary: dict, path: Path) -> None:
+    from ..runs.plots import _save_atomic, plt
+
+    curve = summary["curve"]
+    steps = [p["env_steps"] for p in curve]
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
+    ax = axes[0]
+    ax.plot(steps, [p["success"] for p in curve], "o-", label="success without intervention")
+    ax.fill_between(steps, [p["ci"][0] for p in curve], [p["ci"][1] for p in curve], alpha=0.2)
+    ax.plot(steps, [p["intervention_rate"] for p in curve], "s--", label="intervention rate (window)")
+    ax.set_xlabel("environment steps")
+    ax.set_ylim(0, 1.02)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="best")
+    ax = axes[1]
+    ax.plot([p["wall_s"] for p in curve], [p["success"] for p in curve], "o-")
+    ax.set_xlabel("learner wall time (s)")
+    ax.set_ylabel("success without intervention")
+    ax.set_ylim(0, 1.02)
+    ax.grid(alpha=0.3)
+    ax = axes[2]
+    if any("q_policy" in p for p in curve):
+        ax.plot(steps, [p.get("q_policy", np.nan) for p in curve], "o-", label="mean Q(s, pi(s)) of a batch")
+        ax.plot(steps, [p.get("critic_loss", np.nan) for p in curve], "s--", label="critic loss")
+        ax.legend(fontsize=8)
+    ax.set_xlabel("environment steps")
+    ax.grid(alpha=0.3)
+    fig.suptitle(f"HIL-SERL online stage ({summary['where']}, seed {summary['config']['seed']}, "
+                 f"corrector {summary['config']['corrector']}, prior {summary['prior_from']})")
+    _save_atomic(fig, path)

@@ -1,0 +1,224 @@
+"""One training run from bags to files: what `offline-rl train` and the trainer node do.
+
+Reads one or more rosbag2 bags, trains one learner, evaluates it on held-out
+resets, and writes ``DIR/policy.pt`` (atomic), ``DIR/metrics.json`` and
+``DIR/training_curve.png``. Everything is validated before anything is written, so a
+bad bag or flag leaves the output directory as it was.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from dataclasses import fields
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from ..common import seeds
+from ..common.seeds import seed_arg
+from ..data.bag import read_transitions
+from ..common.errors import UserError
+from ..common.atomic import write_json_atomic
+from ..common.output_paths import check_output_dir
+from ..evaluation.rollouts import evaluate_policy
+from ..learners import ALGORITHMS, Progress, TrainConfig, train
+from ..learners.config import CHOICES
+from ..learners.resume import ResumePoints
+from .plots import plot_training_curve
+from .prior import plan_training
+from ..serving.policy import load_checkpoint, save_checkpoint
+from ..data.raw_topics import transitions_from_topics
+from ..data.transitions import SOURCE_NAMES, Transitions
+
+DEFAULT_EVAL_SEED = seeds.HELD_OUT
+_CONFIG_FIELDS = {f.name for f in fields(TrainConfig)}
+
+
+def add_train_arguments(parser: argparse.ArgumentParser) -> None:
+    """The flags of `offline-rl train` and `ros2 run trainer node`: TrainConfig's fields."""
+    d = TrainConfig()
+    parser.add_argument("--bag", action="append", required=True, metavar="PATH",
+                        help="rosbag2 bag (directory, .db3 or .mcap) with /pusher/transition; repeat to merge bags")
+    parser.add_argument("--from-topics", metavar="SPEC",
+                        help="build the transitions from each bag's raw robot topics as this YAML spec says "
+                             "(see `offline-rl dataset --help`, e.g. bags/pusher_topics.yaml)")
+    parser.add_argument("--algo", choices=ALGORITHMS + ("auto",), default=d.algo,
+                        help="learner; auto: chosen from what the bag holds, trained for --budget-s "
+                             "(README, 'The best prior') (default: %(default)s)")
+    parser.add_argument("--steps", type=int, default=None,
+                        help=f"gradient steps (default: {d.steps}, or what --budget-s allows)")
+    parser.add_argument("--budget-s", type=float, default=None, metavar="S",
+                        help="train for about S seconds: converted to steps before training from the learner's step "
+                             "rate on this machine (measured once, cached), and recorded in metrics.json; "
+                             "--algo auto's default is the chapter's AWAC loop time on this machine")
+    parser.add_argument("--seed", type=seed_arg, default=0, help="seed of init and batch sampling (default: %(default)s)")
+    parser.add_argument("--out", metavar="DIR",
+                        help="output directory for policy.pt, metrics.json, training_curve.png (default: runs/ALGO-seedS)")
+    parser.add_argument("--eval-episodes", type=int, default=100,
+                        help="held-out rollouts after training, 0 to skip (default: %(default)s)")
+    parser.add_argument("--eval-seed", type=seed_arg, default=DEFAULT_EVAL_SEED,
+                        help="first reset seed of the evaluation rollouts (default: %(default)s)")
+    parser.add_argument("--init", metavar="CHECKPOINT", help="warm-start policy (and critics if stored) from a checkpoint")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue from DIR/resume.pt, the resume point a killed run left (same result, same bytes)")
+    parser.add_argument("--resume-every", type=float, default=1.0, metavar="S",
+                        help="seconds between resume points (default: %(default)s)")
+    groups = {"run": parser, "hyper-parameters": parser.add_argument_group("hyper-parameters (defaults are the chapter's)")}
+    for f in fields(TrainConfig):
+        if f.name in ("algo", "steps"):
+            continue  # above, with their own choices and help
+        flag, default = "--" + f.name.replace("_", "-"), getattr(d, f.name)
+        options = dict(default=default, help=f.metadata["help"] + (" (default: %(default)s)" if default is not None else ""))
+        if isinstance(default, bool):
+            options["action"] = argparse.BooleanOptionalAction
+        elif f.name in CHOICES:
+            options["choices"] = CHOICES[f.name]
+        else:
+            options["type"] = type(default) if default is not None else (f.metadata.get("kind") or float)
+        groups[f.metadata["group"]].add_argument(flag, **options)
+
+
+def config_from_args(args: argparse.Namespace) -> TrainConfig:
+    """The flags as a TrainConfig; for ``--algo auto`` the learner is a placeholder until
+    ``prior.plan_training`` has seen the bag."""
+    values = {k: v for k, v in vars(args).items() if k in _CONFIG_FIELDS}
+    if values.get("steps") is None:
+        values.pop("steps", None)
+    if values.get("algo") == "auto":
+        values["algo"] = TrainConfig.algo
+    try:
+        return TrainConfig(**values)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+
+
+def load_bags(paths: list[str], from_topics: str | None = None) -> tuple[Transitions, list[dict]]:
+    """Read and merge bags; episode ids are offset so they stay unique per bag.
+    ``from_topics``: a raw-topic spec; the transitions are built from each bag's raw topics."""
+    parts, summary, offset = [], [], 0
+    for path in paths:
+        joined = transitions_from_topics(path, from_topics) if from_topics else None
+        data = joined[0] if joined else read_transitions(path)
+        data.episode = data.episode - data.episode.min() + offset
+        offset = int(data.episode.max()) + 1
+        parts.append(data)
+        counts = {SOURCE_NAMES.get(int(s), str(s)): int(n) for s, n in zip(*np.unique(data.source, return_counts=True))}
+        summary.append({"path": str(path), "transitions": len(data), "sources": counts,
+                        **({"from_topics": joined[1].as_dict()} if joined else {})})
+    return (parts[0] if len(parts) == 1 else Transitions.concatenate(parts)), summary
+
+
+def console_progress(stream=None) -> Callable[[Progress], None]:
+    """Progress lines on ``stream`` (default: sys.stderr as it is when a line is printed)."""
+    def report(p: Progress) -> None:
+        rate = p.step / p.elapsed_s if p.elapsed_s > 0 else 0.0
+        eta = (p.total - p.step) / rate if rate > 0 else 0.0
+        losses = "  ".join(f"{k} {v:.4g}" for k, v in p.scalars.items())
+        print(f"  step {p.step:>6}/{p.total}  {rate:6.0f} steps/s  eta {eta:5.0f}s  {losses}", file=stream or sys.stderr, flush=True)
+    return report
+
+
+def run_training(
+    bags: list[str],
+    cfg: TrainConfig,
+    seed: int,
+    out_dir: str | os.PathLike,
+    eval_episodes: int = 100,
+    eval_seed: int = DEFAULT_EVAL_SEED,
+    init: str | None = None,
+    progress: Callable[[Progress], None] | None = None,
+    log: Callable[[str], None] = lambda s: print(s, file=sys.stderr),
+    resume: bool = False,
+    resume_every: float = 1.0,
+    from_topics: str | None = None,
+    auto: bool = False,
+    budget_s: float | None = None,
+    steps: int | None = None,
+) -> Path:
+    """Train ``cfg`` on the bags and write the run's files to ``out_dir``. ``auto``: the
+    learner is the one ``prior.plan_training`` picks for the bag; ``auto`` or ``budget_s``:
+    as many steps as the budget allows, unless ``steps`` is given (then ``steps``)."""
+    out = check_output_dir(out_dir, "--out")
+    if eval_episodes < 0:
+        raise UserError(f"--eval-episodes must be >= 0, got {eval_episodes}")
+    data, bag_summary = load_bags(bags, from_topics)
+    cfg, plan = plan_training(data, cfg, auto, budget_s, steps, log)
+    init_ckpt = None
+    if init:
+        init_ckpt = load_checkpoint(init)
+        if int(init_ckpt["obs_dim"]) != data.obs.shape[1] or int(init_ckpt["act_dim"]) != data.action.shape[1]:
+            raise UserError(f"{init}: checkpoint dims ({init_ckpt['obs_dim']}, {init_ckpt['act_dim']}) do not match "
+                            f"the bag's ({data.obs.shape[1]}, {data.action.shape[1]})")
+        if int(init_ckpt["hidden"]) != cfg.hidden:
+            raise UserError(f"{init}: checkpoint hidden size {init_ckpt['hidden']} differs from --hidden {cfg.hidden}")
+    if resume_every <= 0:
+        raise UserError(f"--resume-every must be > 0, got {resume_every}")
+    points = ResumePoints(out / "resume.pt", resume_every, resume)
+    if resume:
+        log(f"resuming from {points.path}" if points.path.exists() else f"no resume point at {points.path}; starting")
+    log(f"training {cfg.algo} on {len(data)} transitions from {len(bags)} bag(s), {cfg.steps} steps, seed {seed}")
+    result = train(data, cfg, seed, progress=progress, init=init_ckpt, resume=points)  # UserError: a bad resume point
+    _check_finite(result.checkpoint, cfg, points)
+
+    metrics: dict = {
+        "algorithm": cfg.algo,
+        "seed": seed,
+        "steps": cfg.steps,
+        "transitions": len(data),
+        "bags": bag_summary,
+        "dataset_hash": result.checkpoint["dataset_hash"],
+        "config": cfg.to_dict(),
+        "init": str(init) if init else None,
+        "final_losses": {k: round(float(v[-1]), 6) for k, v in result.history.items() if k != "step"},
+        "mean_abs_q": None if result.mean_abs_q is None else round(result.mean_abs_q, 6),
+    }
+    if plan is not None:
+        metrics["plan"] = plan  # what --algo auto / --budget-s decided, and from what
+    if eval_episodes:
+        log(f"evaluating on {eval_episodes} held-out rollouts (reset seeds {eval_seed}..{eval_seed + eval_episodes - 1})")
+        metrics["eval"] = evaluate_policy(result.policy, eval_episodes, eval_seed)
+    result.checkpoint["metrics"] = metrics
+    out.mkdir(parents=True, exist_ok=True)
+    save_checkpoint(out / "policy.pt", result.checkpoint)
+    write_json_atomic(out / "metrics.json", metrics)
+    plot_training_curve(result.history, out / "training_curve.png", title=f"{cfg.algo} seed {seed}")
+    points.done()  # the run is complete: its resume point is spent
+    return out
+
+
+def _check_finite(checkpoint: dict, cfg: TrainConfig, points: ResumePoints) -> None:
+    """Refuse to write weights the loader would refuse: a diverged run keeps the previous
+    checkpoint (and its spent resume point goes; resuming would diverge again)."""
+    bad = [name for name, tensor in checkpoint["policy_state"].items() if not bool(torch.isfinite(tensor).all())]
+    if bad:
+        points.done()
+        raise UserError(f"{cfg.algo} diverged: policy weight '{bad[0]}' is not finite after {cfg.steps} steps; "
+                        f"nothing written (try a smaller --lr or --beta)")
+
+
+def default_out_dir(algo: str, seed: int) -> str:
+    return f"runs/{algo}-seed{seed}"
+
+
+def run_training_from_args(args: argparse.Namespace, progress: Callable[[Progress], None] | None = None) -> Path:
+    cfg = config_from_args(args)
+    out = args.out or default_out_dir(args.algo, args.seed)
+    return run_training(args.bag, cfg, args.seed, out, args.eval_episodes, args.eval_seed, args.init,
+                        progress=progress or console_progress(), resume=args.resume, resume_every=args.resume_every,
+                        from_topics=args.from_topics, auto=args.algo == "auto", budget_s=args.budget_s,
+                        steps=args.steps)
+
+
+def summary_line(out: Path) -> str:
+    metrics = json.loads((out / "metrics.json").read_text())
+    line = f"wrote {out / 'policy.pt'}"
+    ev = metrics.get("eval")
+    if ev:
+        line += (f"  success {ev['success_rate']:.2f} [{ev['wilson_ci_lo']:.2f}, {ev['wilson_ci_hi']:.2f}]"
+                 f"  mean final dist {ev['mean_final_dist']:.4f} m over {ev['episodes']} rollouts")
+    return line
