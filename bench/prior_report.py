@@ -5,7 +5,7 @@ Two measurements on the REPORT data (datasets of seeds 0, 1, 2 = ``offline-rl co
 the chapter's five suites of twenty), each appended to the JSON file record by record so
 an interrupted run resumes:
 
-``musthold``: per seed, the chapter's AWAC loop (``benchmarks/reference_chapter.py``,
+``musthold``: per seed, the chapter's AWAC loop (``runs/chapter_loop.py``,
 8000 steps) timed in this process with one torch thread and with torch's default, then
 ``offline-rl train --algo auto`` with its default budget timed as a whole command (start-up,
 bag, training, evaluation, files). The run must finish within the faster chapter loop.

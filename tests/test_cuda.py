@@ -64,7 +64,8 @@ def test_gpu_training_follows_the_cpu(data):
 
 @cuda
 def test_a_gpu_checkpoint_serves_on_the_cpu(data, tmp_path):
-    from offline_rl_core.serving.policy import load_policy, save_checkpoint
+    from offline_rl_core.serving.checkpoint import save_checkpoint
+    from offline_rl_core.serving.policy import load_policy
 
     result = train_seeds(data, TrainConfig(algo="bc", steps=20, log_every=10, device="cuda"), [0])[0]
     assert all(v.device.type == "cpu" for v in result.checkpoint["policy_state"].values())

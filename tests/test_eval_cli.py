@@ -8,7 +8,8 @@ import torch
 
 from offline_rl_core.commands.cli import main
 from offline_rl_core.serving.policy import policy_sequential
-from offline_rl_core.serving.policy import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, load_policy, save_checkpoint
+from offline_rl_core.serving.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, save_checkpoint
+from offline_rl_core.serving.policy import load_policy
 
 
 def make_checkpoint(path, hidden=32, obs_dim=8, act_dim=2):

@@ -11,7 +11,8 @@ from offline_rl_core.evaluation.rollouts import (
     mujoco_timers_off, rollout,
 )
 from offline_rl_core.serving.policy import policy_sequential
-from offline_rl_core.serving.policy import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, LoadedPolicy
+from offline_rl_core.serving.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION
+from offline_rl_core.serving.policy import LoadedPolicy
 
 FIELDS = ("seeds", "success", "final_dist", "returns", "lengths")
 

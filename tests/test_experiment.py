@@ -14,7 +14,8 @@ import pytest
 import torch
 
 from offline_rl_core.commands.cli import main
-from offline_rl_core.runs.experiment import METRIC_KEYS, ExperimentConfig, eval_reset_seeds, run_experiment
+from offline_rl_core.common.seeds import eval_reset_seeds
+from offline_rl_core.runs.experiment import METRIC_KEYS, ExperimentConfig, run_experiment
 
 
 @pytest.fixture(autouse=True)

@@ -21,7 +21,8 @@ from offline_rl_core.learners.data import (
 )
 from offline_rl_core.learners.iql import IQL
 from offline_rl_core.learners.naive import NaiveMaxQ
-from offline_rl_core.serving.policy import load_checkpoint, load_policy, save_checkpoint
+from offline_rl_core.serving.checkpoint import load_checkpoint, save_checkpoint
+from offline_rl_core.serving.policy import load_policy
 from offline_rl_core.data.transitions import SOURCE_HUMAN, SOURCE_POLICY
 
 OBS, ACT, H = 3, 2, 4

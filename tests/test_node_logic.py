@@ -110,8 +110,9 @@ def test_a_checkpoint_whose_biases_or_normalisation_do_not_fit_is_refused_at_loa
     import torch
 
     from offline_rl_core.common.errors import UserError
-    from offline_rl_core.nodes.learner_service import policy_from_weights_message
-    from offline_rl_core.serving.policy import checkpoint_to_bytes, load_policy, save_checkpoint
+    from offline_rl_core.serving.weights import policy_from_weights_message
+    from offline_rl_core.serving.checkpoint import checkpoint_to_bytes, save_checkpoint
+    from offline_rl_core.serving.policy import load_policy
 
     good = _checkpoint()
     state = good["policy_state"]

@@ -115,7 +115,7 @@ def test_in_process_stage_is_reproducible_and_learns_from_corrections(offline, p
 
 # ---------------------------------------------------------------- the learner node's logic
 def _service(tmp_path, bag, prior_path, name, **kw):
-    from offline_rl_core.nodes.learner_service import LearnerService, LearnerServiceConfig
+    from offline_rl_core.serving.weights import LearnerService, LearnerServiceConfig
 
     cfg = LearnerServiceConfig(bags=[str(bag)], out=str(tmp_path / name), prior=str(prior_path), seed=5,
                                settings=OnlineSettings(publish_every=10), train=TrainConfig(algo="sac", **SMALL), **kw)
@@ -125,7 +125,7 @@ def _service(tmp_path, bag, prior_path, name, **kw):
 @pytest.fixture(scope="module")
 def files(tmp_path_factory, offline, prior):
     from offline_rl_core.data.bag import write_transitions
-    from offline_rl_core.serving.policy import save_checkpoint
+    from offline_rl_core.serving.checkpoint import save_checkpoint
 
     d = tmp_path_factory.mktemp("online")
     write_transitions(d / "offline.db3", offline)
@@ -162,7 +162,7 @@ def test_bad_live_transitions_are_counted_and_never_trained_on(tmp_path, files):
 
 def test_a_prior_that_does_not_fit_the_learner_is_one_clear_line(tmp_path, files, prior):
     from offline_rl_core.common.errors import UserError
-    from offline_rl_core.serving.policy import save_checkpoint
+    from offline_rl_core.serving.checkpoint import save_checkpoint
 
     d, _ = files
     bad_bias = {**prior, "policy_state": {**prior["policy_state"], "4.bias": torch.zeros(7)}}
@@ -181,7 +181,7 @@ def test_a_prior_that_does_not_fit_the_learner_is_one_clear_line(tmp_path, files
 
 def test_weights_messages_round_trip_and_snapshots_are_kept(tmp_path, files):
     from offline_rl_core.data.bag.cdr import encode_transition_rows
-    from offline_rl_core.nodes.learner_service import decode_weights, encode_weights
+    from offline_rl_core.serving.weights import decode_weights, encode_weights
 
     d, stream = files
     service = _service(tmp_path, d / "offline.db3", d / "prior.pt", "w", snapshot_every=20)

@@ -176,8 +176,9 @@ def test_policy_node_survives_fuzzed_states_targets_fingertips_and_weights(spawn
     from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String, UInt8MultiArray
 
     from offline_rl_core.task.pusher_reach import observation_from_joints
-    from offline_rl_core.nodes.learner_service import encode_weights
-    from offline_rl_core.serving.policy import load_checkpoint, load_policy
+    from offline_rl_core.serving.weights import encode_weights
+    from offline_rl_core.serving.checkpoint import load_checkpoint
+    from offline_rl_core.serving.policy import load_policy
 
     served = tmp_path / "policy.pt"
     shutil.copy(checkpoints["a"], served)
@@ -678,7 +679,8 @@ def test_a_broken_checkpoint_swapped_in_under_load_leaves_the_old_policy_serving
     from std_msgs.msg import String
 
     from offline_rl_core.task.pusher_reach import observation_from_joints
-    from offline_rl_core.serving.policy import load_checkpoint, load_policy
+    from offline_rl_core.serving.checkpoint import load_checkpoint
+    from offline_rl_core.serving.policy import load_policy
 
     served = tmp_path / "policy.pt"
     shutil.copy(checkpoints["a"], served)

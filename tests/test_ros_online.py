@@ -24,7 +24,7 @@ def prior(tmp_path_factory):
     require_ros()
     from offline_rl_core.data.bag import read_transitions
     from offline_rl_core.learners import TrainConfig, train
-    from offline_rl_core.serving.policy import save_checkpoint
+    from offline_rl_core.serving.checkpoint import save_checkpoint
 
     path = tmp_path_factory.mktemp("prior") / "policy.pt"
     result = train(read_transitions(REPO / "bags" / "mix.db3"), TrainConfig(algo="awac", steps=100), seed=0)
@@ -38,7 +38,7 @@ def reference(prior):
     from offline_rl_core.data.bag import read_transitions
     from offline_rl_core.learners.online import OnlineSettings
     from offline_rl_core.runs.online_loop import OnlineRunConfig, run_online
-    from offline_rl_core.serving.policy import load_checkpoint
+    from offline_rl_core.serving.checkpoint import load_checkpoint
 
     return run_online(read_transitions(REPO / "bags" / "mix.db3"), load_checkpoint(prior),
                       OnlineRunConfig(env_steps=300, seed=0, eval_every=150, eval_episodes=4,

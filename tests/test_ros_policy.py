@@ -15,7 +15,8 @@ import torch
 from offline_rl_core.data.bag import write_transitions
 from offline_rl_core.data.collect import collect_transitions
 from offline_rl_core.task.pusher_reach import observation_from_joints
-from offline_rl_core.serving.policy import checkpoint_to_bytes, load_policy, save_checkpoint
+from offline_rl_core.serving.checkpoint import checkpoint_to_bytes, save_checkpoint
+from offline_rl_core.serving.policy import load_policy
 
 from ros_helpers import REPO, probe_node, require_ros, ros2, ros_env, spawn  # noqa: F401 - fixtures
 

@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from ..data.transitions import Transitions
+from ..learners.config import TrainConfig
 
 D3RLPY_VERSION = "2.8.1"
 
@@ -59,7 +60,8 @@ def mdp_dataset(data: Transitions):
     )
 
 
-def make_algo(algo: str, hidden: int, batch_size: int, lr: float = 3e-4, beta: float = 0.3, device: str = "cpu"):
+def make_algo(algo: str, hidden: int, batch_size: int, lr: float = TrainConfig.lr, beta: float = TrainConfig.beta,
+              device: str = "cpu"):
     """d3rlpy's AWAC (twin critics, lam = the chapter's beta) or deterministic BC, with
     ``hidden x hidden`` ReLU encoders like ours."""
     d3rlpy = _import_quietly()

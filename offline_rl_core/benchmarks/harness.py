@@ -17,6 +17,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable
 
+from ..learners.config import TrainConfig
+
 GROUPS = ("train", "decode", "eval", "serve", "record", "online")
 
 
@@ -28,12 +30,12 @@ class BenchSettings:
     # training throughput: gradient steps per timed run, and interleaved repeats
     train_steps: int = 1000
     train_repeats: int = 3
-    hidden: int = 256
-    batch_size: int = 256
+    hidden: int = TrainConfig.hidden
+    batch_size: int = TrainConfig.batch_size
     episodes: int = 200  # the chapter's dataset
     # `offline-rl experiment --seeds 0 1 2` against three chapter runs
     experiment_seeds: tuple[int, ...] = (0, 1, 2)
-    experiment_steps: int = 8000
+    experiment_steps: int = TrainConfig.steps
     experiment_eval: tuple[int, int] = (5, 20)  # suites x episodes per arm and seed (the chapter's)
     # bag decoding
     decode_repeats: int = 5

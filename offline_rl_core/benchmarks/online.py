@@ -30,11 +30,9 @@ def realtime_figures(s: BenchSettings, tmp: Path, log=print) -> list:
     import os
 
     from ..data.bag import read_transitions
-    from ros2_shim.launch_files import find_launch_file, load_launch
-
     from ..pipelines.processes import LaunchedProcesses
     from ..learners import TrainConfig, train
-    from ..serving.policy import save_checkpoint
+    from ..serving.checkpoint import save_checkpoint
     from ..pipelines.hil_online import REALTIME_THREAD_PRIORITY
     from ..pipelines.processes import isolated_ros_env
 
@@ -44,12 +42,11 @@ def realtime_figures(s: BenchSettings, tmp: Path, log=print) -> list:
     save_checkpoint(prior, train(read_transitions(bag), TrainConfig(algo="awac", steps=steps), seed=0).checkpoint)
     seconds = s.realtime_seconds
     episodes = int(seconds * CONTROL_HZ / 100) + 20  # the sim outlasts the probe
-    nodes = load_launch(find_launch_file("pusher_bringup", "online.launch.yaml"), {
-        "bag": str(bag), "prior": str(prior), "checkpoint": str(prior), "out": str(tmp / "online"), "mode": "realtime",
-        "paced_every": "0", "publish_every": str(REALTIME_PUBLISH_EVERY), "episodes": str(episodes),
-        "snapshot_every": "0", "learner_nice": "10", "thread_priority": str(REALTIME_THREAD_PRIORITY)})
+    arguments = {"bag": bag, "prior": prior, "checkpoint": prior, "out": tmp / "online", "mode": "realtime",
+                 "paced_every": 0, "publish_every": REALTIME_PUBLISH_EVERY, "episodes": episodes,
+                 "snapshot_every": 0, "learner_nice": 10, "thread_priority": REALTIME_THREAD_PRIORITY}
     env = isolated_ros_env(domain_id=int(os.environ["ROS_DOMAIN_ID"]))  # the probe's domain (isolate() chose it)
-    with LaunchedProcesses(nodes, env, tmp / "logs") as launched:
+    with LaunchedProcesses.of("pusher_bringup", "online.launch.yaml", arguments, env, tmp / "logs") as launched:
         launched.start(ready={"learner": "learning from", "policy": "serving", "recorder": "recording"}, timeout=120)
         trace = run_probe(["online-actor", seconds], timeout=seconds + 120)
     states = {stamp: t for stamp, t in trace["states"]}

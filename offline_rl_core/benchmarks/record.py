@@ -16,7 +16,7 @@ import numpy as np
 
 from ..task.pusher_reach import CONTROL_HZ, MAX_STEPS
 from .harness import BenchSettings, figure, pending
-from .ros_procs import NodeProcess, isolate, ros2_command, ros_missing, run_probe
+from .ros_procs import bench_node, isolate, ros2_command, ros_missing, run_probe
 
 
 def lockstep_figures(s: BenchSettings, tmp: Path, log=print) -> list:
@@ -27,18 +27,18 @@ def lockstep_figures(s: BenchSettings, tmp: Path, log=print) -> list:
     episodes = s.record_episodes
     out = tmp / "rec.db3"
     t0 = time.perf_counter()
-    with NodeProcess([ros2, "run", "sim", "node", "--ros-args", "-p", "mode:=lockstep", "-p", "seed:=0"],
+    with bench_node([ros2, "run", "sim", "node", "--ros-args", "-p", "mode:=lockstep", "-p", "seed:=0"],
                      tmp / "sim_lockstep.log") as sim:
-        with NodeProcess([ros2, "run", "recorder", "node", "--out", str(out), "--episodes", str(episodes),
+        with bench_node([ros2, "run", "recorder", "node", "--out", str(out), "--episodes", str(episodes),
                           "--expert-frac", "0.3", "--seed", "0"], tmp / "recorder.log") as rec:
             rc = rec.wait(timeout=max(60.0, episodes * MAX_STEPS / 200.0))
             if rc is None:
-                raise RuntimeError(f"recorder did not finish {episodes} episodes; log: {rec.log_tail()}")
+                raise RuntimeError(f"recorder did not finish {episodes} episodes; log: {rec.output()[-600:]}")
             if rc != 0:
-                raise RuntimeError(f"recorder exit {rc}; log: {rec.log_tail()}")
+                raise RuntimeError(f"recorder exit {rc}; log: {rec.output()[-600:]}")
         wall = time.perf_counter() - t0
         if sim.proc.poll() is not None and sim.proc.returncode not in (0, None):
-            log(f"  sim exited {sim.proc.returncode}: {sim.log_tail(300)}")
+            log(f"  sim exited {sim.proc.returncode}: {sim.output()[-300:]}")
     rows = len(read_transitions(out))
     steady = _steady_rate(out)
     t1 = time.perf_counter()
@@ -75,12 +75,12 @@ def realtime_figures(s: BenchSettings, tmp: Path, log=print) -> list:
     ros2 = ros2_command()
     seconds = s.realtime_seconds
     period_ms = 1000.0 / CONTROL_HZ
-    with NodeProcess([ros2, "run", "sim", "node", "--ros-args", "-p", "mode:=realtime", "-p", "seed:=0"],
+    with bench_node([ros2, "run", "sim", "node", "--ros-args", "-p", "mode:=realtime", "-p", "seed:=0"],
                      tmp / "sim_realtime.log") as sim:
         try:
             stamps = run_probe(["realtime-stamps", seconds], timeout=seconds + 90)
         except RuntimeError as exc:
-            raise RuntimeError(f"{exc}; sim log: {sim.log_tail()}") from exc
+            raise RuntimeError(f"{exc}; sim log: {sim.output()[-600:]}") from exc
     st = np.array(stamps, dtype=np.int64)
     if st.size < 3:
         raise RuntimeError("too few states received from the realtime sim")

@@ -63,15 +63,10 @@ def isolate() -> int:
     return _DOMAIN[0]
 
 
-class NodeProcess(RosProcess):
-    """A ``RosProcess`` on the bench's domain, started at once and stopped by its pid on exit."""
-
-    def __init__(self, argv: list[str], log_path: Path):
-        super().__init__(argv, isolated_ros_env(isolate()), log_path)
-        self.start()
-
-    def log_tail(self, chars: int = 600) -> str:
-        return self.output()[-chars:]
+def bench_node(argv: list[str], log_path: Path) -> RosProcess:
+    """A node process on the bench's domain, started at once (stopped by its pid on leaving
+    its ``with`` block, as every ``RosProcess``)."""
+    return RosProcess(argv, isolated_ros_env(isolate()), log_path).start()
 
 
 def wait_until(predicate, timeout_s: float, spin=None, step_s: float = 0.05) -> bool:

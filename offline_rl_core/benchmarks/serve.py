@@ -11,10 +11,11 @@ import numpy as np
 import torch
 
 from ..learners import TrainConfig, train_seeds
-from ..serving.policy import LoadedPolicy, save_checkpoint
+from ..serving.checkpoint import save_checkpoint
+from ..serving.policy import LoadedPolicy
 from ..runs import chapter_loop as chapter
 from .harness import BenchSettings, figure, pending, percentile
-from .ros_procs import PROBES, NodeProcess, isolate, ros2_command, ros_missing, run_probe
+from .ros_procs import PROBES, bench_node, isolate, ros2_command, ros_missing, run_probe
 
 
 def trained_checkpoint(s: BenchSettings) -> dict:
@@ -106,11 +107,11 @@ def dds_figures(s: BenchSettings, checkpoint: dict, log=print) -> list:
         results = {}
         for label, argv in (("echo", [sys.executable, str(PROBES), "echo"]),
                             ("policy", [ros2_command(), "run", "policy", "node", "--checkpoint", str(ckpt)])):
-            with NodeProcess(argv, tmp / f"{label}.log") as proc:
+            with bench_node(argv, tmp / f"{label}.log") as proc:
                 try:
                     results[label] = _round_trip(s.dds_messages, s.dds_rate_hz, log)
                 except Exception as exc:
-                    raise RuntimeError(f"{label}: {exc}; node log: {proc.log_tail()}") from exc
+                    raise RuntimeError(f"{label}: {exc}; node log: {proc.output()[-600:]}") from exc
         log("  DDS round trip: " + "; ".join(f"{k} p50 {v['p50_ms']:.3f} p99 {v['p99_ms']:.3f} ms lost {v['lost']}"
                                              for k, v in results.items()))
     pol, echo = results["policy"], results["echo"]

@@ -24,3 +24,8 @@ def seed_arg(text: str) -> int:
     if not 0 <= value <= MAX_SEED:
         raise argparse.ArgumentTypeError(f"expected a whole number from 0 to {MAX_SEED}, got {value}")
     return value
+
+
+def eval_reset_seeds(seed: int, n_seeds: int, eval_episodes: int) -> list[int]:
+    """The held-out reset seeds of one experiment seed, suite by suite (the chapter's rule)."""
+    return [HELD_OUT + seed + s * eval_episodes + e for s in range(n_seeds) for e in range(eval_episodes)]

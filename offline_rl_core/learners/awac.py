@@ -9,16 +9,11 @@ from __future__ import annotations
 
 import torch
 
-from .base import Learner, TwinCritic, per_member_mean, regression_error
+from .base import CriticLearner, per_member_mean, regression_error
 
 
-class AWAC(Learner):
+class AWAC(CriticLearner):
     name = "awac"
-    uses_critic = True
-
-    def __init__(self, cfg, members, generators, obs_dim, act_dim):
-        super().__init__(cfg, members, generators, obs_dim, act_dim)
-        self.critic = TwinCritic(cfg, members, generators, obs_dim, act_dim)
 
     def critic_update(self, batch) -> torch.Tensor:
         with torch.no_grad():
@@ -41,13 +36,3 @@ class AWAC(Learner):
         self.step_policy(policy_loss)
         self.critic.polyak()
         return {"critic_loss": critic_loss / 2, "policy_loss": policy_loss.detach()}
-
-    def mean_abs_q(self, data):
-        return self.critic.mean_abs_q(data)
-
-    def learner_state(self, m):
-        return self.critic.state(m)
-
-    def load_learner_state(self, m, state):
-        if "critic1" in state:
-            self.critic.load_state(m, state)

@@ -72,6 +72,27 @@ class Learner:
         pass
 
 
+class CriticLearner(Learner):
+    """A learner with a twin Q critic (AWAC, IQL, SAC, naive): the critic is built after the
+    policy, reports the Break-It |Q|, and is saved and restored with the learner's state."""
+
+    uses_critic = True
+
+    def __init__(self, cfg: TrainConfig, members: int, generators: list[torch.Generator], obs_dim: int, act_dim: int):
+        super().__init__(cfg, members, generators, obs_dim, act_dim)
+        self.critic = TwinCritic(cfg, members, generators, obs_dim, act_dim)
+
+    def mean_abs_q(self, data: MemberData) -> list[float]:
+        return self.critic.mean_abs_q(data)
+
+    def learner_state(self, m: int) -> dict:
+        return self.critic.state(m)
+
+    def load_learner_state(self, m: int, state: dict) -> None:
+        if "critic1" in state:  # a BC checkpoint's learner state has no critic
+            self.critic.load_state(m, state)
+
+
 def regression_error(pred: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
     """Per-sample squared error, averaged over action dims: (M, B, 1)."""
     return (pred - action).pow(2).mean(-1, keepdim=True)

@@ -11,16 +11,14 @@ from __future__ import annotations
 
 import torch
 
-from .base import Learner, TwinCritic, make_adam, make_network, per_member_mean, regression_error
+from .base import CriticLearner, make_adam, make_network, per_member_mean, regression_error
 
 
-class IQL(Learner):
+class IQL(CriticLearner):
     name = "iql"
-    uses_critic = True
 
     def __init__(self, cfg, members, generators, obs_dim, act_dim):
         super().__init__(cfg, members, generators, obs_dim, act_dim)
-        self.critic = TwinCritic(cfg, members, generators, obs_dim, act_dim)
         self.value = make_network(cfg, members, obs_dim, 1, generators)
         self.value_opt = make_adam(self.value.parameters(), cfg.lr, cfg.device)
 
@@ -48,14 +46,10 @@ class IQL(Learner):
         self.critic.polyak()
         return {"critic_loss": critic_loss / 2, "value_loss": value_loss.detach(), "policy_loss": policy_loss.detach()}
 
-    def mean_abs_q(self, data):
-        return self.critic.mean_abs_q(data)
-
     def learner_state(self, m):
-        return {**self.critic.state(m), "value": self.value.member_state(m)}
+        return {**super().learner_state(m), "value": self.value.member_state(m)}
 
     def load_learner_state(self, m, state):
-        if "critic1" in state:
-            self.critic.load_state(m, state)
+        super().load_learner_state(m, state)
         if "value" in state:
             self.value.load_member_state(m, state["value"])

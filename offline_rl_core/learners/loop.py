@@ -17,7 +17,8 @@ import numpy as np
 import torch
 
 from ..common.errors import UserError
-from ..serving.policy import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, LoadedPolicy
+from ..serving.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION
+from ..serving.policy import LoadedPolicy
 from ..data.transitions import Transitions
 from .awac import AWAC
 from .bc import BC

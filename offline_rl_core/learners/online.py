@@ -24,7 +24,7 @@ from dataclasses import asdict, dataclass
 
 import torch
 
-from ..serving.policy import CHECKPOINT_FORMAT, CHECKPOINT_VERSION
+from ..serving.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION
 from ..data.transitions import Transitions
 from .config import TrainConfig
 from .data import MemberData

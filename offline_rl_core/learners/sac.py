@@ -20,18 +20,16 @@ import math
 
 import torch
 
-from .base import Learner, TwinCritic, make_adam, per_member_mean
+from .base import CriticLearner, make_adam, per_member_mean
 from .config import LOG_STD_MAX, LOG_STD_MIN
 
 
-class SAC(Learner):
+class SAC(CriticLearner):
     name = "sac"
-    uses_critic = True
     policy_tanh = False  # the network outputs the Gaussian's mean before the squashing
 
     def __init__(self, cfg, members, generators, obs_dim, act_dim):
         super().__init__(cfg, members, generators, obs_dim, act_dim)
-        self.critic = TwinCritic(cfg, members, generators, obs_dim, act_dim)
         self.log_std = torch.nn.Parameter(torch.full((members, 1, act_dim), float(cfg.init_log_std), device=cfg.device))
         self.policy_opt = make_adam([*self.policy.parameters(), self.log_std], cfg.lr, cfg.device)
         self.log_alpha = torch.nn.Parameter(torch.full((members, 1, 1), math.log(cfg.alpha), device=cfg.device))
@@ -86,16 +84,12 @@ class SAC(Learner):
         return {"critic_loss": critic_loss / 2, "policy_loss": policy_loss.detach(), "alpha": alpha.flatten(),
                 "log_std": self.log_std.detach().mean((1, 2)), "q_policy": q.detach().mean((1, 2))}
 
-    def mean_abs_q(self, data):
-        return self.critic.mean_abs_q(data)
-
     def learner_state(self, m):
-        return {**self.critic.state(m), "log_std": self.log_std[m, 0].detach().clone().cpu(),
+        return {**super().learner_state(m), "log_std": self.log_std[m, 0].detach().clone().cpu(),
                 "log_alpha": self.log_alpha[m, 0, 0].detach().clone().cpu()}
 
     def load_learner_state(self, m, state):
-        if "critic1" in state:
-            self.critic.load_state(m, state)
+        super().load_learner_state(m, state)
         with torch.no_grad():
             if "log_std" in state:
                 self.log_std[m, 0].copy_(state["log_std"])

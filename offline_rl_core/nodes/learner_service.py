@@ -4,7 +4,7 @@ weights versions, save, resume.
 The node (``ros2 run learner node``) only moves messages: each raw ``/pusher/transition``
 goes to :meth:`LearnerService.receive`, a timer calls :meth:`LearnerService.work`, and
 every weights version it returns is published for the acting policy node
-(:func:`encode_weights`). Files under ``out``:
+(``serving.weights.encode_weights``). Files under ``out``:
 
 - ``policy.pt``: the latest weights version, a checkpoint any tool loads (atomic);
 - ``learner_state.pt``: everything needed to resume (networks, optimisers, generators,
@@ -38,13 +38,10 @@ from ..learners.config import TrainConfig
 from ..learners.online import OnlineLearner, OnlineSettings, PriorMismatch
 from .joint_messages import VALUE_LIMIT
 from ..common.output_paths import check_output_dir
-from ..serving.policy import (
-    LoadedPolicy, checkpoint_from_bytes, checkpoint_to_bytes, load_checkpoint, policy_for_task, save_checkpoint,
-)
+from ..serving.checkpoint import load_checkpoint, save_checkpoint
+from ..serving.policy import policy_for_task
 from ..common.rejections import Rejection, RejectionCounter
 from ..data.transitions import LAYOUT_SLICES, SOURCE_NAMES, Transitions
-
-WEIGHTS_LABEL = "pusher-rl/weights"  # the weights message's layout label: what its bytes are
 
 
 @dataclass
@@ -88,35 +85,6 @@ def check_row(row: np.ndarray) -> Rejection | None:
 def _count(value: float) -> bool:
     """Whether a float32 field holds a count (a whole number from 0 up, exact in float32)."""
     return 0.0 <= value < 2.0**24 and value == int(value)
-
-
-def encode_weights(checkpoint: dict) -> bytes:
-    """A weights version as the bytes of a ``std_msgs/UInt8MultiArray`` (a checkpoint,
-    ``torch.save`` format, loaded back with ``weights_only``)."""
-    return checkpoint_to_bytes(serving_part(checkpoint))
-
-
-def serving_part(checkpoint: dict) -> dict:
-    """What acting needs: the policy, its exploration std, dims and provenance."""
-    keep = ("format", "version", "algorithm", "obs_dim", "act_dim", "hidden", "policy_state", "obs_mean", "obs_std",
-            "exploration_log_std", "weights_version", "trained_through", "updates", "seed", "cut_unix")
-    return {k: checkpoint[k] for k in keep if k in checkpoint}
-
-
-def decode_weights(data: bytes, source: str = "weights message") -> dict:
-    return checkpoint_from_bytes(data, source)
-
-
-def policy_from_weights_message(label: str, data: bytes, source: str) -> tuple[LoadedPolicy | None, Rejection | None]:
-    """The policy a weights message carries (its layout label and bytes), or (None, why not)."""
-    if label != WEIGHTS_LABEL:
-        return None, Rejection("bad layout", f"layout label {label[:40]!r}, expected {WEIGHTS_LABEL!r}")
-    try:
-        return policy_for_task(decode_weights(data, source), source), None
-    except UserError as exc:
-        return None, Rejection("bad weights", str(exc))
-    except Exception as exc:  # noqa: BLE001 - a validated checkpoint with odd field types; keep serving
-        return None, Rejection("bad weights", f"{source}: {type(exc).__name__}: {str(exc)[:120]}")
 
 
 class LearnerService:

@@ -28,8 +28,8 @@ from pathlib import Path
 from ..common import seeds
 from ..common.errors import UserError
 from ..common.atomic import write_json_atomic
+from ..learners.config import TrainConfig
 from ros2_shim.ament_index import ros2_run, venv_bin
-from ros2_shim.launch_files import find_launch_file, load_launch
 
 from .processes import LaunchedProcesses, RosProcess, isolated_ros_env
 from ..evaluation.stats import newcombe_diff_ci
@@ -80,9 +80,8 @@ def run_demo(out: Path, bag: Path, steps: int, record_episodes: int, seed: int) 
     if recorded.exists():
         recorded.unlink()
     say(f"\n[1/4] recording {record_episodes} episodes over ROS: sim (lockstep) + recorder -> {recorded}")
-    record = load_launch(find_launch_file("pusher_bringup", "record.launch.yaml"),
-                         {"out": str(recorded), "episodes": str(record_episodes), "expert_frac": "0.3", "seed": str(seed)})
-    with LaunchedProcesses(record, env, logs / "record").start() as launched:
+    record = {"out": recorded, "episodes": record_episodes, "expert_frac": 0.3, "seed": seed}
+    with LaunchedProcesses.of("pusher_bringup", "record.launch.yaml", record, env, logs / "record").start() as launched:
         if launched.wait(timeout=300) != 0:
             raise UserError(f"the recorder node failed; see {launched['recorder'].log_path}")
     info = subprocess.run([ros2, "bag", "info", str(recorded)], env=env, capture_output=True, text=True, timeout=60)
@@ -119,10 +118,9 @@ def run_demo(out: Path, bag: Path, steps: int, record_episodes: int, seed: int) 
         f"({EVAL_SEED + seed}..{EVAL_SEED + seed + EVAL_EPISODES - 1})")
     if closed_loop.exists():
         closed_loop.unlink()
-    serve = load_launch(find_launch_file("pusher_bringup", "serve.launch.yaml"),
-                        {"checkpoint": str(out / "awac" / "policy.pt"), "seed": str(EVAL_SEED + seed),
-                         "episodes": str(EVAL_EPISODES), "summary": str(closed_loop)})
-    with LaunchedProcesses(serve, env, logs / "serve").start() as launched:
+    serve = {"checkpoint": out / "awac" / "policy.pt", "seed": EVAL_SEED + seed, "episodes": EVAL_EPISODES,
+             "summary": closed_loop}
+    with LaunchedProcesses.of("pusher_bringup", "serve.launch.yaml", serve, env, logs / "serve").start() as launched:
         if launched.wait(timeout=600) != 0:
             raise UserError(f"the closed-loop sim failed; see {launched['sim'].log_path}")
     if not closed_loop.exists():
@@ -162,7 +160,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m offline_rl_core.pipelines.demo", description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default="runs/demo", help="output directory (default: %(default)s)")
     parser.add_argument("--bag", default="bags/mix.db3", help="training bag (default: %(default)s)")
-    parser.add_argument("--steps", type=int, default=8000, help="gradient steps per learner (default: the chapter's 8000)")
+    parser.add_argument("--steps", type=int, default=TrainConfig.steps,
+                        help="gradient steps per learner (default: the chapter's, %(default)s)")
     parser.add_argument("--record-episodes", type=int, default=10, help="episodes to record over ROS (default: %(default)s)")
     parser.add_argument("--seed", type=seeds.seed_arg, default=0)
     args = parser.parse_args(argv)

@@ -26,12 +26,12 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import signal
 import sys
 import time
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 import numpy as np
 
@@ -39,11 +39,13 @@ from ..common import seeds
 from ..common.atomic import atomic_path, write_json_atomic
 from ..data.bag import read_transitions
 from ..common.errors import UserError
+from ..common.interrupts import sigterm_as_interrupt
 from ..common.output_paths import remove_if_empty
 from ..evaluation.rollouts import evaluate_policy
-from ..serving.policy import load_checkpoint, load_policy
+from ..learners.config import TrainConfig
+from ..serving.checkpoint import load_checkpoint
+from ..serving.policy import load_policy
 from ros2_shim.ament_index import ros2_run
-from ros2_shim.launch_files import find_launch_file, load_launch
 
 from .processes import LaunchedProcesses, RosProcess, isolated_ros_env
 from ..evaluation.stats import newcombe_diff_ci, wilson_ci
@@ -75,7 +77,7 @@ class HilConfig:
     bags: list[str] = field(default_factory=lambda: [DEFAULT_BAG])
     seed: int = 0
     algo: str = "awac"
-    prior_steps: int = 8000
+    prior_steps: int = TrainConfig.steps
     steps: int = 3000  # retraining steps per round
     correction_ratio: float = 0.5
     # AWAC temperature of the retraining (the prior keeps the chapter's 0.3): sharper
@@ -132,8 +134,7 @@ class Loop:
     def launch(self, file_name: str, arguments: dict, log_dir: Path, ready: dict[str, str] | None = None,
                timeout: float = 60.0) -> LaunchedProcesses:
         """Start the nodes of one of pusher_bringup's launch files, in order, as processes of this loop."""
-        nodes = load_launch(find_launch_file("pusher_bringup", file_name), {k: str(v) for k, v in arguments.items()})
-        launched = LaunchedProcesses(nodes, self.env, log_dir)
+        launched = LaunchedProcesses.of("pusher_bringup", file_name, arguments, self.env, log_dir)
         self.procs.extend(launched.processes.values())  # stopped by stop_all, whatever happens
         return launched.start(ready=ready, timeout=timeout)
 
@@ -367,13 +368,9 @@ def plot_rounds(rows: list[dict], final: dict, path: Path) -> None:
 def run_hil(cfg: HilConfig, log: Callable[[str], None] = lambda s: print(s, file=sys.stderr, flush=True)) -> dict:
     cfg.validate()
     out = Path(cfg.out)
-    created = not out.exists()
-    out.mkdir(parents=True, exist_ok=True)
     t0 = time.monotonic()
     loop = Loop(cfg, log)
-    # SIGTERM stops the children too (Ctrl-C arrives as KeyboardInterrupt).
-    previous = signal.signal(signal.SIGTERM, _raise_interrupt) if _main_thread() else None
-    try:
+    with hil_session(out, loop):
         log(f"hil: {cfg.rounds} rounds x {cfg.episodes} episodes -> {out} (ROS_DOMAIN_ID {loop.env['ROS_DOMAIN_ID']})")
         prior_path, prior_from = resolve_prior(loop, cfg.prior, cfg.bags, cfg.seed, cfg.prior_steps, out, log)
         served = out / "policy.pt"
@@ -436,20 +433,20 @@ def run_hil(cfg: HilConfig, log: Callable[[str], None] = lambda s: print(s, file
             f"intervention rate {rows[0]['intervention_rate']:.3f} -> {rows[-1]['intervention_rate']:.3f}; "
             f"{summary['wall_seconds']:.0f} s; wrote {out / 'summary.json'} and {out / 'rounds.png'}")
         return summary
-    except BaseException:
-        remove_if_empty(out, created)  # a run that failed before writing anything leaves no directory
-        raise
-    finally:
-        loop.stop_all()
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
 
 
-def _raise_interrupt(signum, frame):
-    raise KeyboardInterrupt
-
-
-def _main_thread() -> bool:
-    import threading
-
-    return threading.current_thread() is threading.main_thread()
+@contextmanager
+def hil_session(out: Path, loop: "Loop") -> Iterator[None]:
+    """What every HIL run shares around its work: SIGTERM stops it as Ctrl-C does, every
+    process ``loop`` started is stopped by its pid, and a run that fails before writing
+    anything leaves no output directory behind."""
+    created = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)
+    with sigterm_as_interrupt():
+        try:
+            yield
+        except BaseException:
+            remove_if_empty(out, created)
+            raise
+        finally:
+            loop.stop_all()

@@ -30,10 +30,10 @@ import numpy as np
 
 from ..common.atomic import write_json_atomic
 from ..common.errors import UserError
-from ..common.output_paths import remove_if_empty
 from ..evaluation.rollouts import evaluate_policy
 from ..runs.online_loop import EVAL_SEED, TRAIN_SEED_BASE, steps_to
-from ..serving.policy import load_checkpoint, load_policy
+from ..serving.checkpoint import load_checkpoint
+from ..serving.policy import load_policy
 from ..evaluation.stats import wilson_ci
 from ..data.transitions import SOURCE_HUMAN
 
@@ -100,27 +100,17 @@ def run_hil_online(cfg: OnlineHilConfig, log: Callable[[str], None] = lambda s: 
                                                                                            flush=True)) -> dict:
     cfg.validate()
     out = Path(cfg.out)
-    created = not out.exists()
-    out.mkdir(parents=True, exist_ok=True)
-    from .hil import HilConfig, Loop, _main_thread, _raise_interrupt, resolve_prior
+    from .hil import HilConfig, Loop, hil_session, resolve_prior
 
     loop = Loop(HilConfig(out=str(out), seed=cfg.seed, bags=cfg.bags), log)
-    previous = signal.signal(signal.SIGTERM, _raise_interrupt) if _main_thread() else None
     t0 = time.monotonic()
-    try:
+    with hil_session(out, loop):
         prior_path, prior_from = (None, "none") if cfg.no_prior else resolve_prior(
             loop, cfg.prior, cfg.bags, cfg.seed, cfg.prior_steps, out, log, cfg.prior_algo)
         if cfg.in_process:
             result = _in_process(cfg, prior_path, log)
         else:
             result = _over_ros(cfg, loop, prior_path, out, log)
-    except BaseException:
-        remove_if_empty(out, created)  # a run that failed before writing anything leaves no directory
-        raise
-    finally:
-        loop.stop_all()
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
     summary = _summary(cfg, result, prior_path, prior_from, time.monotonic() - t0)
     write_json_atomic(out / "summary.json", summary)
     plot_online(summary, out / "online.png")

@@ -156,9 +156,10 @@ class RosProcess:
 
 
 class LaunchedProcesses:
-    """The processes of a launch file's nodes (``ros2_shim.launch_files.LaunchNode``), each logged to ``log_dir/<name>.log``, stopped by pid.
+    """The processes of a launch file's nodes (``ros2_shim.launch_files.LaunchNode``), each
+    logged to ``log_dir/<name>.log``, stopped by pid.
 
-        with LaunchedProcesses(load_launch(path, args), env, log_dir) as launched:
+        with LaunchedProcesses.of("pusher_bringup", "serve.launch.yaml", args, env, log_dir) as launched:
             launched.start(ready={"mux": "mux lockstep"})   # in file order, waiting where asked
             launched.wait(timeout=300)                      # until the on_exit: shutdown node ends
     Leaving the block stops every process still running, last started first.
@@ -172,6 +173,15 @@ class LaunchedProcesses:
             if label in self.processes:
                 raise UserError(f"two nodes named {label!r} in one launch")
             self.processes[label] = RosProcess(node.command(), env, Path(log_dir) / f"{label}.log", cwd=cwd, name=label)
+
+    @classmethod
+    def of(cls, package: str, file_name: str, arguments: dict, env: dict, log_dir: str | Path) -> "LaunchedProcesses":
+        """The nodes of ``package``'s launch file ``file_name`` with ``arguments`` (values
+        given as text, as on a ``ros2 launch`` command line)."""
+        from ros2_shim.launch_files import find_launch_file, load_launch
+
+        nodes = load_launch(find_launch_file(package, file_name), {k: str(v) for k, v in arguments.items()})
+        return cls(nodes, env, log_dir)
 
     def __getitem__(self, label: str) -> RosProcess:
         return self.processes[label]

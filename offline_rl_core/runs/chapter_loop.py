@@ -19,6 +19,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..data.transitions import Transitions
+from ..learners.config import TrainConfig
 
 
 class Policy(nn.Module):
@@ -43,14 +44,16 @@ class Critic(nn.Module):
 
 @dataclass
 class ChapterSettings:
-    steps: int = 8000
-    batch_size: int = 256
-    hidden: int = 256
-    lr: float = 3e-4
-    gamma: float = 0.99
-    tau: float = 0.005
-    beta: float = 0.3
-    weight_clip: float = 20.0
+    """The chapter's hyper-parameters: ``TrainConfig``'s defaults, where they are written once."""
+
+    steps: int = TrainConfig.steps
+    batch_size: int = TrainConfig.batch_size
+    hidden: int = TrainConfig.hidden
+    lr: float = TrainConfig.lr
+    gamma: float = TrainConfig.gamma
+    tau: float = TrainConfig.tau
+    beta: float = TrainConfig.beta
+    weight_clip: float = TrainConfig.weight_clip
 
 
 def dataset_tensors(data: Transitions, device: str = "cpu") -> dict[str, torch.Tensor]:
@@ -162,7 +165,7 @@ def run_chapter_experiment(episodes: int, expert_frac: float, seed: int, s: Chap
     a time. Returns the pooled success rates (for a sanity check; timing is the point)."""
     from ..data.collect import collect_transitions
     from ..evaluation.rollouts import rollout
-    from .experiment import eval_reset_seeds
+    from ..common.seeds import eval_reset_seeds
 
     torch.manual_seed(seed)
     data = dataset_tensors(collect_transitions(episodes, expert_frac, seed))

@@ -29,10 +29,9 @@ from ..learners import Progress, TrainConfig
 from .parallel import TrainJob, run_jobs
 from ..learners.resume import ResumePoints
 from ..common.machine import available_cores
-from ..serving.policy import save_checkpoint
+from ..serving.checkpoint import save_checkpoint
 from ..evaluation.stats import excludes_zero, newcombe_diff_ci, wilson_ci
 
-EVAL_SEED_BASE = seeds.HELD_OUT
 
 METRIC_KEYS = tuple(sorted((
     "beta", "bc_mean_final_dist", "bc_success_rate", "diff_ci_hi", "diff_ci_lo", "episodes", "expert_frac",
@@ -49,10 +48,10 @@ class ExperimentConfig:
     algo: str = "awac"  # the offline learner compared against BC ('naive' = Break-It, 'auto' = prior.py's choice)
     expert_frac: float = 0.3
     episodes: int = 200
-    steps: int = 8000
-    batch_size: int = 256
-    hidden: int = 256
-    beta: float = 0.3
+    steps: int = TrainConfig.steps  # the chapter's hyper-parameters are TrainConfig's defaults
+    batch_size: int = TrainConfig.batch_size
+    hidden: int = TrainConfig.hidden
+    beta: float = TrainConfig.beta
     n_seeds: int = 5  # evaluation suites
     eval_episodes: int = 20  # episodes per suite
     smoke: bool = False
@@ -101,11 +100,6 @@ class ExperimentConfig:
         # the smoke run, which keeps its fixed small steps
         fixed = self.steps if self.budget_s is None and (not auto or self.smoke) else None
         return plan_training(data, self.train_config(self.algo), auto, self.budget_s, fixed, log)
-
-
-def eval_reset_seeds(seed: int, n_seeds: int, eval_episodes: int) -> list[int]:
-    """The held-out reset seeds of one experiment seed, suite by suite."""
-    return [EVAL_SEED_BASE + seed + s * eval_episodes + e for s in range(n_seeds) for e in range(eval_episodes)]
 
 
 def seed_metrics(cfg: ExperimentConfig, seed: int, bc: RolloutResult, offline: RolloutResult, mean_abs_q,
@@ -195,7 +189,7 @@ def run_experiment(cfg: ExperimentConfig, out_dir: str | Path, log: Callable[[st
     trained = train_all(cfg, seeds, datasets, log, [p[0] for p in plans], resume_points)
     outcomes = []
     for m, s in enumerate(seeds):
-        reset_seeds = eval_reset_seeds(s, cfg.n_seeds, cfg.eval_episodes)
+        reset_seeds = seeds.eval_reset_seeds(s, cfg.n_seeds, cfg.eval_episodes)
         bc_res = trained["bc"][m]
         off_res = trained["offline"][m]
         bc_roll = rollout(bc_res.policy.act, reset_seeds)

@@ -30,6 +30,7 @@ from ..data.transitions import Transitions
 from ..learners.config import TrainConfig
 from ..learners.loop import Progress, TrainResult, train_seeds
 from ..learners.resume import ResumePoints
+from ..common.interrupts import sigterm_as_interrupt
 from ..common.machine import available_cores
 from ..learners.stepper import set_default_threads
 
@@ -121,10 +122,6 @@ def _messages(conn):
             return
 
 
-def _raise_interrupt(signum, frame):
-    raise KeyboardInterrupt
-
-
 def run_jobs(jobs: list[TrainJob], workers: int,
              progress_for: Callable[[TrainJob], Callable[[Progress], None]] | None = None) -> list[list[TrainResult]]:
     """Train every job; results in job order. ``workers`` <= 1 trains them one after
@@ -144,9 +141,6 @@ def run_jobs(jobs: list[TrainJob], workers: int,
     waiting = list(reversed(range(len(jobs))))  # popped from the end: the heaviest jobs start first
     running: dict[_Worker, int] = {}  # the index of the job each busy worker trains
     pool = []
-    # SIGTERM stops the workers too, as Ctrl-C does (a SIGKILL leaves it to _exit_with_parent)
-    main_thread = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGTERM, _raise_interrupt) if main_thread else None
 
     def hand_out(worker: _Worker) -> None:
         if waiting:
@@ -156,42 +150,42 @@ def run_jobs(jobs: list[TrainJob], workers: int,
             with contextlib.suppress(OSError):  # a dead worker: found by the loop below
                 worker.conn.send(job)
 
-    try:
-        for _ in range(workers):
-            conn, child_conn = ctx.Pipe()
-            process = ctx.Process(target=_worker, args=(child_conn, os.getpid(), jobs_state, cores), daemon=True)
-            process.start()
-            child_conn.close()
-            pool.append(_Worker(process, conn))
-            hand_out(pool[-1])
-        while running:
-            # wakes on a message or on a worker's death, whichever comes first
-            multiprocessing.connection.wait([w.conn for w in running] + [w.process.sentinel for w in running])
-            for worker, index in list(running.items()):
-                for kind, value in _messages(worker.conn):
-                    if kind == "progress":
-                        if reporters[index] is not None:
-                            reporters[index](value)
-                    elif kind == "error":
-                        raise value  # now, not after the other runs finish
-                    else:
-                        results[index] = value
-                        del running[worker]
-                        hand_out(worker)
-                        break
-                if running.get(worker) == index and not worker.process.is_alive():
-                    raise RunFailed(f"{worker.process.name} died ({_how_it_ended(worker.process.exitcode)})")
-        for worker in pool:
-            with contextlib.suppress(OSError):
-                worker.conn.send(None)  # no more jobs: the worker returns
-    except BaseException:
-        for worker in pool:
-            worker.process.terminate()  # stop the other runs now, not when they finish
-        raise
-    finally:
-        for worker in pool:
-            worker.process.join()
-            worker.conn.close()
-        if main_thread:
-            signal.signal(signal.SIGTERM, previous)
+    # SIGTERM stops the workers too, as Ctrl-C does (a SIGKILL leaves it to _exit_with_parent)
+    with sigterm_as_interrupt():
+        try:
+            for _ in range(workers):
+                conn, child_conn = ctx.Pipe()
+                process = ctx.Process(target=_worker, args=(child_conn, os.getpid(), jobs_state, cores), daemon=True)
+                process.start()
+                child_conn.close()
+                pool.append(_Worker(process, conn))
+                hand_out(pool[-1])
+            while running:
+                # wakes on a message or on a worker's death, whichever comes first
+                multiprocessing.connection.wait([w.conn for w in running] + [w.process.sentinel for w in running])
+                for worker, index in list(running.items()):
+                    for kind, value in _messages(worker.conn):
+                        if kind == "progress":
+                            if reporters[index] is not None:
+                                reporters[index](value)
+                        elif kind == "error":
+                            raise value  # now, not after the other runs finish
+                        else:
+                            results[index] = value
+                            del running[worker]
+                            hand_out(worker)
+                            break
+                    if running.get(worker) == index and not worker.process.is_alive():
+                        raise RunFailed(f"{worker.process.name} died ({_how_it_ended(worker.process.exitcode)})")
+            for worker in pool:
+                with contextlib.suppress(OSError):
+                    worker.conn.send(None)  # no more jobs: the worker returns
+        except BaseException:
+            for worker in pool:
+                worker.process.terminate()  # stop the other runs now, not when they finish
+            raise
+        finally:
+            for worker in pool:
+                worker.process.join()
+                worker.conn.close()
     return results

@@ -19,7 +19,7 @@ The time (``plan_training``) becomes a step count before training starts, from t
 learner's step rate on this machine (``step_rate``: measured once, then cached like the
 kernel choice), so a run is reproducible: the steps are recorded in metrics.json, and the
 same seed and steps give the same bytes. The default budget is the wall time of the
-chapter's own AWAC loop (8000 steps, ``benchmarks/reference_chapter.py``) on this
+chapter's own AWAC loop (8000 steps, ``runs/chapter_loop.py``) on this
 machine, measured the same way.
 """
 

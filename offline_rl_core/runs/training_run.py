@@ -31,7 +31,7 @@ from ..learners.config import CHOICES
 from ..learners.resume import ResumePoints
 from .plots import plot_training_curve
 from .prior import plan_training
-from ..serving.policy import load_checkpoint, save_checkpoint
+from ..serving.checkpoint import load_checkpoint, save_checkpoint
 from ..data.raw_topics import transitions_from_topics
 from ..data.transitions import SOURCE_NAMES, Transitions
 

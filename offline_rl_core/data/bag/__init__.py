@@ -13,37 +13,45 @@ Paths: ``x.db3`` / ``x.mcap`` is a single self-describing storage file, any othe
 directory with metadata.yaml (see ``paths``).
 """
 
-from .cdr import (
-    TRANSITION_CDR_HEADER, TRANSITION_MESSAGE_SIZE, TRANSITION_MSGTYPE, TRANSITION_TOPIC, TransitionDecodeError,
-    decode_transition_payloads, encode_transition_rows, transition_ends_episode, transition_layout_msg_fields,
-)
-from .info import BagInfo, bag_info
-from .reader import open_bag, read_transition_rows, read_transitions, topic_payloads
-from .metadata import typestore
-from .recording import BagWriter
-from .repair import repair_bag
-from .writer import TRANSITION_PERIOD_NS, TRANSITION_START_NS, write_transitions
+from __future__ import annotations
 
-__all__ = [
-    "TRANSITION_CDR_HEADER",
-    "TRANSITION_MESSAGE_SIZE",
-    "TRANSITION_MSGTYPE",
-    "TRANSITION_PERIOD_NS",
-    "TRANSITION_START_NS",
-    "TRANSITION_TOPIC",
-    "BagInfo",
-    "BagWriter",
-    "TransitionDecodeError",
-    "bag_info",
-    "decode_transition_payloads",
-    "encode_transition_rows",
-    "open_bag",
-    "read_transition_rows",
-    "read_transitions",
-    "repair_bag",
-    "topic_payloads",
-    "transition_ends_episode",
-    "transition_layout_msg_fields",
-    "typestore",
-    "write_transitions",
-]
+import importlib
+
+# public name -> the module that defines it; loaded on first use, so a node that needs
+# only the CDR codec (the sim) does not load the readers, writers and their storages
+_EXPORTS = {
+    "BagInfo": "info",
+    "BagWriter": "recording",
+    "TRANSITION_CDR_HEADER": "cdr",
+    "TRANSITION_MESSAGE_SIZE": "cdr",
+    "TRANSITION_MSGTYPE": "cdr",
+    "TRANSITION_PERIOD_NS": "writer",
+    "TRANSITION_START_NS": "writer",
+    "TRANSITION_TOPIC": "cdr",
+    "TransitionDecodeError": "cdr",
+    "bag_info": "info",
+    "decode_transition_payloads": "cdr",
+    "encode_transition_rows": "cdr",
+    "open_bag": "reader",
+    "read_transition_rows": "reader",
+    "read_transitions": "reader",
+    "repair_bag": "repair",
+    "topic_payloads": "reader",
+    "transition_ends_episode": "cdr",
+    "transition_layout_msg_fields": "cdr",
+    "typestore": "metadata",
+    "write_transitions": "writer",
+}
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        value = getattr(importlib.import_module(f".{_EXPORTS[name]}", __name__), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_EXPORTS))

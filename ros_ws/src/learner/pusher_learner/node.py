@@ -31,7 +31,8 @@ from std_msgs.msg import Float32MultiArray, MultiArrayDimension, UInt8MultiArray
 
 from offline_rl_core.learners.config import TrainConfig
 from offline_rl_core.learners.online import OnlineSettings
-from offline_rl_core.nodes.learner_service import WEIGHTS_LABEL, LearnerService, LearnerServiceConfig, encode_weights
+from offline_rl_core.nodes.learner_service import LearnerService, LearnerServiceConfig
+from offline_rl_core.serving.weights import WEIGHTS_LABEL, encode_weights
 from pusher_common.node_main import run_node
 from pusher_common.params import Param, Settings
 from pusher_common.status import NodeStatus

@@ -46,9 +46,10 @@ from offline_rl_core.serving.actor import Actor  # noqa: E402
 from offline_rl_core.task.pusher_reach import JOINT_NAMES, observation_from_joints  # noqa: E402
 from offline_rl_core.common.errors import UserError  # noqa: E402
 from offline_rl_core.nodes.joint_messages import joints_from_state, point_xy, torques_from_action  # noqa: E402
-from offline_rl_core.nodes.learner_service import policy_from_weights_message  # noqa: E402
+from offline_rl_core.serving.weights import policy_from_weights_message  # noqa: E402
 from offline_rl_core.nodes.pairing import Paired, StatePairing, check_stamp  # noqa: E402
-from offline_rl_core.serving.policy import LoadedPolicy, checkpoint_file, load_policy  # noqa: E402
+from offline_rl_core.serving.checkpoint import checkpoint_file
+from offline_rl_core.serving.policy import LoadedPolicy, load_policy
 from offline_rl_core.common.rejections import Rejection  # noqa: E402
 from pusher_common.node_main import run_node  # noqa: E402
 from pusher_common.params import Param, Settings  # noqa: E402

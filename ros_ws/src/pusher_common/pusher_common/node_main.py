@@ -38,6 +38,7 @@ from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
 from offline_rl_core.common.errors import UserError, caused_by_interrupt
+from offline_rl_core.common.interrupts import raise_keyboard_interrupt
 
 from .params import Param, add_flags, overrides_from_flags
 
@@ -85,7 +86,7 @@ def run_node(
         # Python's own handler, also where the shell started this with SIGINT ignored (a
         # background job of a script): Ctrl-C interrupts the work as a KeyboardInterrupt.
         previous_int = signal.signal(signal.SIGINT, signal.default_int_handler)
-        previous_term = signal.signal(signal.SIGTERM, _interrupt)
+        previous_term = signal.signal(signal.SIGTERM, raise_keyboard_interrupt)
     else:
         rclpy.init(args=argv)
     node = None
@@ -120,10 +121,6 @@ def run_node(
                 close()
             node.destroy_node()
         rclpy.try_shutdown()
-
-
-def _interrupt(signum, frame):
-    raise KeyboardInterrupt
 
 
 def _rcl_reason(exc: Exception) -> str:

@@ -38,7 +38,7 @@ from std_msgs.msg import Float32MultiArray, Float64MultiArray
 from std_srvs.srv import Trigger
 
 from offline_rl_core.common.atomic import atomic_path
-from offline_rl_core.data.bag import encode_transition_rows
+from offline_rl_core.data.bag.cdr import encode_transition_rows
 from offline_rl_core.task.pusher_reach import CONTROL_HZ, JOINT_NAMES
 from offline_rl_core.nodes.joint_messages import action_from_effort, action_from_torques
 from offline_rl_core.nodes.pairing import check_answer_stamp, check_stamp

@@ -1,0 +1,28 @@
+"""SIGTERM as Ctrl-C: a process stopped by ``kill`` or a process manager cleans up exactly
+as one stopped at the terminal (its ``finally`` blocks stop its children, close its files)."""
+
+from __future__ import annotations
+
+import signal
+import threading
+from contextlib import contextmanager
+from typing import Iterator
+
+
+def raise_keyboard_interrupt(signum, frame) -> None:
+    """A signal handler that turns the signal into KeyboardInterrupt."""
+    raise KeyboardInterrupt
+
+
+@contextmanager
+def sigterm_as_interrupt() -> Iterator[None]:
+    """Within the block, SIGTERM raises KeyboardInterrupt; the previous handler comes back
+    after it. Only the main thread can set handlers: elsewhere nothing changes."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, raise_keyboard_interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
