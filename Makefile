@@ -18,7 +18,7 @@ help:
 	@echo "make hil-demo  the corrections loop: serve, correct, record, retrain, reload"
 	@echo "make hil-online the HIL-SERL stage: the online learner fine-tunes the prior while the policy node acts"
 
-# The C++ AWAC step (offline_rl_core/csrc) compiles once into torch's extension cache;
+# The C++ step replayer of the speed layer (offline_rl_core/fast/csrc) compiles once into torch's extension cache;
 # later runs only check it (about a second). Without a compiler the Python step runs.
 setup: $(STAMP)
 	@$(PY) -m offline_rl_core.fast.graph_runner || echo "(recorded training steps replay in Python)"

@@ -58,7 +58,7 @@ def test_fuzzed_commands_are_refused_or_clipped_into_the_action_range():
 def test_fuzzed_transitions_are_refused_for_their_reason_and_good_ones_kept():
     from offline_rl_core.data.bag.cdr import TransitionDecodeError, decode_transition_payloads
     from offline_rl_core.data.collect import collect_transitions
-    from offline_rl_core.serving.weights import check_row
+    from offline_rl_core.nodes.learner_service import check_row
 
     rows = collect_transitions(2, 0.5, 0).to_rows()
     rng = np.random.default_rng(3)

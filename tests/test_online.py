@@ -115,7 +115,7 @@ def test_in_process_stage_is_reproducible_and_learns_from_corrections(offline, p
 
 # ---------------------------------------------------------------- the learner node's logic
 def _service(tmp_path, bag, prior_path, name, **kw):
-    from offline_rl_core.serving.weights import LearnerService, LearnerServiceConfig
+    from offline_rl_core.nodes.learner_service import LearnerService, LearnerServiceConfig
 
     cfg = LearnerServiceConfig(bags=[str(bag)], out=str(tmp_path / name), prior=str(prior_path), seed=5,
                                settings=OnlineSettings(publish_every=10), train=TrainConfig(algo="sac", **SMALL), **kw)
