@@ -20,12 +20,11 @@ from rosbags.rosbag2.storage_mcap import McapReader
 from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
 
 from ...common.errors import UserError
-from ..transitions import Transitions
-from .cdr import TRANSITION_MSGTYPE, TRANSITION_TOPIC, TransitionDecodeError, decode_transition_payloads
+from ..transitions import Layout, Transitions
+from .cdr import TRANSITION_MSGTYPE, TRANSITION_TOPIC, TransitionDecodeError, decode_transitions
 from .paths import SUFFIX_STORAGE
 from .storage_mcap import has_footer, summary_problem
 from .storage_sqlite import SQLITE_MAGIC, MessageDigest, WalSqlite3Reader, stored_digest, wal_path
-from .writer import field_of_column
 
 RECORD_HINT = "record one with `offline-rl collect` or `ros2 run recorder node`"
 
@@ -216,8 +215,8 @@ def topic_payloads(reader: Reader, topic: str) -> list[bytes]:
     return [p for block in topic_payload_chunks(reader, topic) for p in block]
 
 
-def _finite_problem(path: Path, bad_rows: int, total: int, bad_columns: set[int]) -> UserError:
-    fields = list(dict.fromkeys(field_of_column(int(c)) for c in sorted(bad_columns)))
+def _finite_problem(path: Path, bad_rows: int, total: int, bad_columns: set[int], layout: Layout) -> UserError:
+    fields = list(dict.fromkeys(layout.field_of_column(int(c)) for c in sorted(bad_columns)))
     return UserError(
         f"{path}: {bad_rows} of {total} {TRANSITION_TOPIC} rows hold NaN or inf "
         f"(in field{'s' if len(fields) > 1 else ''} {', '.join(fields)})"
@@ -249,37 +248,43 @@ def _transition_connections(reader: Reader, path: Path) -> list:
 
 
 def _decode_into(reader: Reader, path: Path, put) -> int:
-    """Decode /pusher/transition block by block, handing each (k, 25) block to
-    ``put(start, rows)``; checks layout and finiteness; returns the row count."""
+    """Decode /pusher/transition block by block, handing each (k, width) block and its
+    layout to ``put(start, rows, layout)``; checks that every block has one layout, and
+    finiteness; returns the row count."""
     topic = _transition_connections(reader, path)[0].topic
     total, bad_rows, bad_columns = 0, 0, set()
+    layout = None
     for payloads in topic_payload_chunks(reader, topic):
         try:
-            rows = decode_transition_payloads(payloads)
+            rows, block_layout = decode_transitions(payloads)
         except TransitionDecodeError as exc:
             raise UserError(f"{path}: {topic}: {exc}") from exc
+        if layout is not None and block_layout != layout:
+            raise UserError(f"{path}: {topic}: messages of two layouts: [{layout.describe()}] and "
+                            f"[{block_layout.describe()}]")
+        layout = block_layout
         bad = ~np.isfinite(rows)
         if bad.any():
             bad_rows += int(bad.any(axis=1).sum())
             bad_columns.update(np.flatnonzero(bad.any(axis=0)).tolist())
-        put(total, rows)
+        put(total, rows, layout)
         total += len(rows)
     if total == 0:
         raise UserError(f"{path}: {topic} has no messages; {RECORD_HINT}")
     if bad_rows:
-        raise _finite_problem(path, bad_rows, total, bad_columns)
+        raise _finite_problem(path, bad_rows, total, bad_columns, layout)
     return total
 
 
 def transition_rows_from_reader(reader: Reader, path: Path) -> np.ndarray:
-    """The (N, 25) float32 transition rows of an open bag, checked; UserError otherwise."""
+    """The (N, width) float32 transition rows of an open bag, checked; UserError otherwise."""
     blocks: list[np.ndarray] = []
-    _decode_into(reader, path, lambda start, rows: blocks.append(rows))
+    _decode_into(reader, path, lambda start, rows, layout: blocks.append(rows))
     return np.concatenate(blocks)
 
 
 def read_transition_rows(path: str | os.PathLike) -> np.ndarray:
-    """The (N, 25) float32 rows of ``/pusher/transition`` in a bag, in timestamp order."""
+    """The (N, width) float32 rows of ``/pusher/transition`` in a bag, in timestamp order."""
     with open_bag(path) as reader:
         return transition_rows_from_reader(reader, Path(path))
 
@@ -295,10 +300,13 @@ def read_transitions(path: str | os.PathLike) -> Transitions:
     path = Path(path)
     with open_bag(path) as reader:
         expected = sum(c.msgcount for c in _transition_connections(reader, path))
-        out = Transitions.empty(expected)
+        out: Transitions | None = None  # allocated once the first block says the layout
         blocks: list[np.ndarray] = []  # only if the index under-counted
 
-        def put(start: int, rows: np.ndarray) -> None:
+        def put(start: int, rows: np.ndarray, layout: Layout) -> None:
+            nonlocal out
+            if out is None:
+                out = Transitions.empty(expected, layout)
             fit = max(0, min(len(rows), expected - start))
             if fit:
                 out.fill_rows(start, rows[:fit])
@@ -307,5 +315,5 @@ def read_transitions(path: str | os.PathLike) -> Transitions:
 
         total = _decode_into(reader, path, put)
     if blocks:  # more messages than the metadata said: append the extra rows
-        return Transitions.concatenate([out, Transitions.from_rows(np.concatenate(blocks))])
+        return Transitions.concatenate([out, Transitions.from_rows(np.concatenate(blocks), out.layout)])
     return out if total == expected else out.select(slice(0, total))

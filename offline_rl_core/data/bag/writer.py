@@ -14,8 +14,8 @@ import numpy as np
 from rosbags.rosbag2 import Writer
 
 from ...common.errors import UserError
-from ..transitions import LAYOUT_SLICES, TRANSITION_LAYOUT, TRANSITION_WIDTH, Transitions
-from .cdr import TRANSITION_MESSAGE_SIZE, TRANSITION_MSGTYPE, TRANSITION_TOPIC, encode_transition_blob
+from ..transitions import PUSHER_LAYOUT, Layout, Transitions
+from .cdr import TRANSITION_MSGTYPE, TRANSITION_TOPIC, encode_transition_blob, message_size
 from .metadata import ROSBAG2_VERSION, typestore
 from .paths import STORAGE_PLUGIN, StagedBag, resolve_target
 
@@ -25,20 +25,16 @@ TRANSITION_START_NS = 1_735_689_600 * 10**9
 TRANSITION_PERIOD_NS = 20_000_000
 
 
-def _check_rows(path, rows: np.ndarray) -> None:
-    if rows.ndim != 2 or rows.shape[1] != TRANSITION_WIDTH:
-        raise UserError(f"{path}: expected ({TRANSITION_WIDTH},)-wide transition rows, got shape {rows.shape}")
+def _check_rows(path, rows: np.ndarray, layout: Layout) -> None:
+    if rows.ndim != 2 or rows.shape[1] != layout.width:
+        raise UserError(f"{path}: expected ({layout.width},)-wide transition rows, got shape {rows.shape}")
     if rows.shape[0] == 0:
         raise UserError(f"{path}: no transitions to write")
     bad = ~np.isfinite(rows)
     if bad.any():
         column = int(np.flatnonzero(bad.any(axis=0))[0])
-        raise UserError(f"{path}: {int(bad.any(axis=1).sum())} transition rows hold NaN or inf (first in field {field_of_column(column)!r}); not writing them")
-
-
-def field_of_column(column: int) -> str:
-    """The layout label of a column of the (N, 25) transition matrix."""
-    return next(label for label, _ in TRANSITION_LAYOUT if column < LAYOUT_SLICES[label].stop)
+        raise UserError(f"{path}: {int(bad.any(axis=1).sum())} transition rows hold NaN or inf "
+                        f"(first in field {layout.field_of_column(column)!r}); not writing them")
 
 
 def write_transitions(
@@ -54,11 +50,14 @@ def write_transitions(
     An existing bag at ``path`` is replaced atomically; on any error it is left untouched and
     nothing half-written remains. Stamps are TRANSITION_START_NS + i * 20 ms.
     """
-    rows = transitions.to_rows() if isinstance(transitions, Transitions) else np.asarray(transitions, np.float32)
+    if isinstance(transitions, Transitions):
+        rows, layout = transitions.to_rows(), transitions.layout
+    else:
+        rows, layout = np.asarray(transitions, np.float32), PUSHER_LAYOUT
     target = resolve_target(path, storage)
-    _check_rows(target.path, rows)
-    blob = encode_transition_blob(rows)
-    size = TRANSITION_MESSAGE_SIZE
+    _check_rows(target.path, rows, layout)
+    blob = encode_transition_blob(rows, layout)
+    size = message_size(layout)
     staged = StagedBag(target, overwrite=True)
     try:
         writer = Writer(staged.bag_dir, version=ROSBAG2_VERSION, storage_plugin=STORAGE_PLUGIN[target.storage])
