@@ -188,9 +188,14 @@ def test_a_truncated_scanned_file_is_repaired_to_a_prefix(tmp_path, capsys):
         assert repair_bag(path) == []
 
 
-FUZZ = {name: write_mcap(Path(tempfile.mkdtemp(prefix="layout_fuzz.")) / f"{name}.mcap", MESSAGES[:60],
-                         chunk_size=1500, enable_data_crcs=True, **LAYOUTS[name]).read_bytes()
-        for name in ("default", NO_SUMMARY)}
+def _fuzz_bytes(layout: str) -> bytes:
+    """A small file of the layout, chunk and data-section CRCs on: what damage can be caught."""
+    with tempfile.TemporaryDirectory() as tmp:
+        return write_mcap(Path(tmp) / "f.mcap", MESSAGES[:60], chunk_size=1500, enable_data_crcs=True,
+                          **LAYOUTS[layout]).read_bytes()
+
+
+FUZZ = {name: _fuzz_bytes(name) for name in ("default", NO_SUMMARY)}
 
 
 @FAST
