@@ -2,7 +2,7 @@
 
 Only ``/pusher/transition`` is read; other topics are ignored and need no definitions. Raw
 CDR payloads are fetched without deserializing (for sqlite3 storage, one SQL query on the
-``messages`` table) and decoded together by ``decode_transition_payloads``.
+``messages`` table) and decoded together by ``decode_transitions``.
 """
 
 from __future__ import annotations
