@@ -82,3 +82,16 @@ def test_pusher7_in_lockstep_takes_controller_commands_and_publishes_its_task(sp
         assert node.spin_until(lambda: statuses[-1]["messages"].get("effort_controller/commands") == 2, 20)
         assert statuses[-1]["rejected"] == {"wrong length": 1}
     assert sim.stop() == 0
+
+
+@pytest.mark.parametrize("task, error", [
+    ("/nowhere/arm.yaml", "sim: error: unknown task '/nowhere/arm.yaml': expected a built-in task"),
+    ("{nosim}", "has no sim section: no simulator hosts it"),
+])
+def test_a_task_the_sim_cannot_host_is_one_line_and_exit_2(spawn, tmp_path, task, error):
+    nosim = tmp_path / "nosim.yaml"
+    nosim.write_text(load_task("pusher7_reach").path.read_text().split("\nsim:")[0])
+    sim = spawn(ros2("run", "sim", "node", "--ros-args", "-p", f"task:={task.format(nosim=nosim)}"), "sim")
+    assert sim.wait(timeout=60) == 2
+    lines = sim.output().strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("sim: error: ") and error in lines[0], lines

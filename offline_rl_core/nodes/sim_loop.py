@@ -32,7 +32,7 @@ from ..common.rejections import Rejection
 from ..data.transitions import Layout, SOURCE_POLICY
 from ..task.envs import make_env
 from ..task.pusher_reach import CONTROL_HZ, MAX_STEPS
-from ..task.spec import TaskSpec, load_task
+from ..task.spec import JOINT_STATE, TaskSpec, load_task
 
 TICK_NS = 1_000_000_000 // CONTROL_HZ  # pusher_reach's 20 ms (a task's own: SimLoop.tick_ns)
 TICKS_PER_EPISODE = MAX_STEPS  # lockstep: one tick per state an episode can have
@@ -117,7 +117,7 @@ class SimLoop:
 
     def _snapshot(self) -> ArmState:
         env = self.env
-        cartesian = self.task.goal.type != "sensor_msgs/msg/JointState"
+        cartesian = self.task.goal.type != JOINT_STATE
         self.current = ArmState(self.stamp_ns(), np.array(env.joint_positions, np.float64),
                                 np.array(env.joint_velocities, np.float64),
                                 np.array(env.joint_efforts, np.float64),
@@ -154,11 +154,11 @@ class SimLoop:
             return None, None
         if self.stamped_commands:
             return None, Rejection("unpaired", "a command without a stamp, while commands with stamps answer "
-                                                  "the states (lockstep pairs those exactly)")
+                                               "the states (lockstep pairs those exactly)")
         if not self.answerable:
             return None, Rejection("unpaired", "a command without a stamp, but the current state is already "
-                                                  "answered or not yet published (lockstep takes the first after "
-                                                  "each state)")
+                                               "answered or not yet published (lockstep takes the first after "
+                                               "each state)")
         return self._step(action, source), None
 
     def tick(self) -> Step | None:

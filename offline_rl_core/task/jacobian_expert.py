@@ -54,8 +54,8 @@ class ReachExpert:
             self.point = self.index.points[name]
             self.rows = [AXES.index(a) for a in task.point(name).axes]
             rng = np.random.Generator(np.random.PCG64(0))  # fixed: the same restarts everywhere
-            self.restarts = [(self.low + self.high) / 2.0] + [rng.uniform(self.low, self.high)
-                                                             for _ in range(self.gains.restarts)]
+            middle = (self.low + self.high) / 2.0
+            self.restarts = [middle] + [rng.uniform(self.low, self.high) for _ in range(self.gains.restarts)]
             self._jacp = np.zeros((3, model.nv))
             self._eye = np.eye(len(self.rows)) * self.gains.damping ** 2
         else:

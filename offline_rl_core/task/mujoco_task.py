@@ -233,8 +233,9 @@ class ArmIndex:
             if task.goal.type == JOINT_STATE else None
 
     def _actuator(self, model, joint_id: int, name: str) -> int:
+        on_joint = int(mujoco.mjtTrn.mjTRN_JOINT)
         for a in range(model.nu):
-            if int(model.actuator_trntype[a]) == int(mujoco.mjtTrn.mjTRN_JOINT) and model.actuator_trnid[a, 0] == joint_id:
+            if int(model.actuator_trntype[a]) == on_joint and model.actuator_trnid[a, 0] == joint_id:
                 return a
         raise UserError(f"{self.task.source_file()}: field robot.command.joints: no actuator of the sim's model "
                         f"drives joint {name!r}")
@@ -337,7 +338,8 @@ class MujocoTaskEnv:
         skip = self.settings.frame_skip or round(task.control_period / timestep)
         if skip < 1 or abs(skip * timestep - task.control_period) > 1e-9:
             raise UserError(f"{task.source_file()}: field sim.frame_skip: {skip} physics steps of the model's "
-                            f"{timestep:g} s are {skip * timestep:g} s, but control_period is {task.control_period:g} s")
+                            f"{timestep:g} s are {skip * timestep:g} s, but control_period is "
+                            f"{task.control_period:g} s")
         self.frame_skip = skip
         self.data = mujoco.MjData(self.model)
         self._scratch = mujoco.MjData(self.model)  # the reset sampler's poses
@@ -403,7 +405,7 @@ class MujocoTaskEnv:
                     position[self.index.goal_axes] = goal
             else:
                 pose = self._free_pose(rng, "goal")
-                vectors = self._pose_vectors(pose)
+                self._pose_vectors(pose)  # the point at that pose, in the scratch data
                 if self.index.goal_joints is not None:
                     goal, position = pose[self.index.goal_joints], np.zeros(3)
                 else:

@@ -158,13 +158,10 @@ class PusherSim(Node):
         for code, name in SOURCE_NAMES.items():
             topic = f"pusher/command/{name}"
             self.create_subscription(JointState, topic, lambda m, c=code, t=topic: self.on_command(m, c, t), 10)
-        self.controller_topics = []
-        if task.name != DEFAULT_TASK or s.effort_topic:
-            if task.name != DEFAULT_TASK:
-                self.controller_topics.append((task.command.topic, task.command.type))
-            if s.effort_topic and self.resolve(s.effort_topic) not in {self.resolve(t) for t, _ in
-                                                                          self.controller_topics}:
-                self.controller_topics.append((s.effort_topic, FLOAT64_MULTI_ARRAY))
+        # the controller's topics: the task's (pusher_reach's only through effort_topic), and effort_topic
+        self.controller_topics = [] if task.name == DEFAULT_TASK else [(task.command.topic, task.command.type)]
+        if s.effort_topic and self.resolve(s.effort_topic) not in {self.resolve(t) for t, _ in self.controller_topics}:
+            self.controller_topics.append((s.effort_topic, FLOAT64_MULTI_ARRAY))
         for topic, kind in self.controller_topics:
             if kind == JOINT_STATE:
                 self.create_subscription(JointState, topic, lambda m, t=topic: self.on_controller_state(m, t), 10)
@@ -298,7 +295,7 @@ class PusherSim(Node):
                                   "pusher/command/<expert|random|policy|human> instead", once=True)
 
     def on_controller(self, msg: Float64MultiArray, topic: str) -> None:
-        """The task's controller command (Float64MultiArray: no header, no names)."""
+        """Take the task's controller command (Float64MultiArray: no header, no names)."""
         self.status.took(topic)
         if self.finished.done():
             return
@@ -311,7 +308,7 @@ class PusherSim(Node):
         self.publish_step(step)
 
     def on_controller_state(self, msg: JointState, topic: str) -> None:
-        """A JointState command: the interface's field, named; stamped, so lockstep pairs it by stamp."""
+        """Take a JointState command: the interface's field, named; stamped, so lockstep pairs it by stamp."""
         self.status.took(topic)
         if self.finished.done():
             return
@@ -368,7 +365,7 @@ class PusherSim(Node):
 
 
 def fill_point(msg, xyz) -> None:
-    """A PointStamped's point, or a PoseStamped's position (orientation: identity)."""
+    """Set a PointStamped's point, or a PoseStamped's position (orientation: identity)."""
     where = msg.pose.position if isinstance(msg, PoseStamped) else msg.point
     where.x, where.y, where.z = (float(v) for v in xyz)
     if isinstance(msg, PoseStamped):
