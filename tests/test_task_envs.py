@@ -102,15 +102,16 @@ ARM_XML = """
 """
 
 
-def velocity_arm(tmp_path, actuators: str, gains: str = "") -> MujocoTaskEnv:
-    """A task file of a 3-joint velocity-controlled arm, its model beside it, a joint-space goal."""
+def velocity_arm(tmp_path, actuators: str, gains: str = "", interface: str = "velocity") -> MujocoTaskEnv:
+    """A task file of a 3-joint arm (velocity-controlled unless ``interface`` says otherwise), its
+    model beside it, a joint-space goal."""
     (tmp_path / "arm.xml").write_text(ARM_XML.format(actuators=actuators))
     (tmp_path / "arm.yaml").write_text(textwrap.dedent(f"""\
         name: velocity_arm
         control_period: 0.02
         robot:
           state: {{joints: [j3, j1, j2]}}
-          command: {{interface: velocity, joints: [j1, j2, j3], scale: 2.0}}
+          command: {{interface: {interface}, joints: [j1, j2, j3], scale: 2.0}}
         goal: {{type: sensor_msgs/JointState}}
         points: {{tip: {{kinematics: "site:tip"}}}}
         observation: [{{positions: [j1, j2, j3]}}, {{velocities: [j1, j2, j3]}}, {{difference: [goal, joints]}}]
@@ -209,3 +210,20 @@ def test_realtime_holds_a_headerless_command_until_the_next():
     rows = [loop.tick().transition for _ in range(3)]
     at = loop.layout.slices["action"]
     assert all(np.array_equal(row[at], action) for row in rows) and loop.current.stamp_ns == 3 * loop.tick_ns
+
+
+@pytest.mark.parametrize("actuators, gains", [
+    # MuJoCo's own position actuators: ctrl is the commanded position
+    ('<position joint="j1" kp="2" kv="0.3"/><position joint="j2" kp="2" kv="0.3"/>'
+     '<position joint="j3" kp="2" kv="0.3"/>', ""),
+    # motors: the PD stand-in
+    ('<motor joint="j1"/><motor joint="j2"/><motor joint="j3"/>', ", gains: {kp: 2.0, kd: 0.3}"),
+])
+def test_a_position_interface_holds_the_commanded_pose(tmp_path, actuators, gains):
+    env = velocity_arm(tmp_path, actuators, gains, interface="position")
+    env.reset(1)
+    target = np.array([0.3, -0.4, 0.2], np.float32)  # rad = 2 * action, command-joint order
+    for _ in range(200):
+        env.step(target)
+    pose = dict(zip(["j3", "j1", "j2"], env.joint_positions))
+    assert [pose["j1"], pose["j2"], pose["j3"]] == pytest.approx(2 * target, abs=0.01)
