@@ -71,3 +71,20 @@ def test_export_onnx_matches_numpy_policy(tmp_path, capsys):
 def test_export_onnx_missing_checkpoint(tmp_path, capsys):
     assert main(["export-onnx", "--checkpoint", str(tmp_path / "x.pt"), "--out", str(tmp_path / "x.onnx")]) == 2
     one_error_line(capsys)
+
+
+def test_eval_on_another_task_the_expert_and_a_checkpoint_of_its_size(tmp_path, capsys):
+    out = tmp_path / "expert.json"
+    assert main(["eval", "--task", "pusher7_reach", "--expert", "--episodes", "2", "--json", str(out)]) == 0
+    assert "the task's scripted expert" in capsys.readouterr().out
+    result = json.loads(out.read_text())
+    assert result["task"] == "pusher7_reach" and result["successes"] == 2 and result["wilson_ci_lo"] > 0
+    assert result["mean_final_dist"] < 0.05 and result["algorithm"] == "expert"
+    # a pusher-reach checkpoint is refused on it, naming both sizes; one of its own sizes rolls out
+    assert main(["eval", "--task", "pusher7_reach", "--checkpoint", str(make_checkpoint(tmp_path / "p.pt")),
+                 "--episodes", "1"]) == 2
+    assert "obs_dim=8, act_dim=2; task pusher7_reach needs obs_dim=17, act_dim=7" in one_error_line(capsys)
+    ckpt = make_checkpoint(tmp_path / "p7.pt", obs_dim=17, act_dim=7)
+    assert main(["eval", "--task", "pusher7_reach", "--checkpoint", str(ckpt), "--episodes", "1", "--json",
+                 str(out)]) == 0
+    assert json.loads(out.read_text())["episodes"] == 1

@@ -8,6 +8,8 @@ from ..common.errors import RunFailed, UserError
 from ..common.output_paths import check_output_dir
 from ..common.seeds import seed_arg
 from ..runs.experiment import ExperimentConfig, format_table, run_experiment, summary_rows, verdict
+from ..task.envs import make_env
+from ..task.spec import BUILTIN_DIR, load_task
 
 OFFLINE_ALGOS = ("awac", "iql", "filtered_bc", "naive", "auto")
 
@@ -42,6 +44,9 @@ def register(subparsers) -> None:
     p.add_argument("--workers", type=int, default=None, metavar="N",
                    help="training processes, one (learner, seed) run each; results do not depend on it "
                         "(default: one per CPU core; smoke: 1)")
+    p.add_argument("--task", default=None, metavar="NAME_OR_FILE",
+                   help="the task whose dataset is collected and on which both learners are evaluated: a built-in "
+                        "task or a task file with a sim section (default: pusher_reach, the chapter's)")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
     p.add_argument("--resume", action="store_true",
                    help="continue a killed experiment (same flags) from the resume points its training jobs left, "
@@ -62,6 +67,11 @@ def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
         raise UserError(f"--expert-frac must be in [0, 1], got {args.expert_frac}")
     overrides = {"seeds": seeds, "algo": algo, "expert_frac": args.expert_frac, "deterministic": args.deterministic,
                  "budget_s": args.budget_s}
+    if args.task is not None:
+        task = load_task(args.task)
+        make_env(task)  # a task no sim hosts: said before anything runs
+        # a file by its path, so worker processes and a --resume read the same task
+        overrides["task"] = str(task.path.resolve()) if task.path and task.path.parent != BUILTIN_DIR else task.name
     if args.budget_s is not None and not args.budget_s > 0:
         raise UserError(f"--budget-s must be > 0 seconds, got {args.budget_s}")
     if args.workers is not None:

@@ -24,6 +24,7 @@ REASONS = (
     "bad stamp",        # not a valid time (negative, or nanoseconds >= 1 s)
     "stale stamp",      # older than what the node already acts on
     "future stamp",     # a jump ahead that nothing confirmed
+    "unpaired",         # a command without a stamp that answers no state (lockstep)
     "bad layout",       # a multi-array whose layout is not the one expected
     "unknown source",   # a transition's source code is none of the known ones
     "bad weights",      # a weights message that is not a loadable policy for this task

@@ -24,21 +24,28 @@ VALUE_LIMIT = 1e4
 _ARM = ", ".join(JOINT_NAMES)
 
 
-def _joint_index(names, n_values: int, what: str) -> tuple[list[int] | None, Rejection | None]:
-    """Where shoulder and elbow are among ``n_values`` values named ``names``."""
+def _joint_index(names, n_values: int, what: str, joints=JOINT_NAMES) -> tuple[list[int] | None, Rejection | None]:
+    """Where ``joints`` (default: shoulder and elbow) are among ``n_values`` values named ``names``."""
     names = list(names)
+    arm = _ARM if joints is JOINT_NAMES else _listed(joints)
     if not names:
-        if n_values != ACT_DIM:
+        if n_values != len(joints):
             return None, Rejection("wrong length",
-                                   f"{n_values} {what} without joint names, expected {ACT_DIM} ({_ARM})")
-        return list(range(ACT_DIM)), None
+                                   f"{n_values} {what} without joint names, expected {len(joints)} ({arm})")
+        return list(range(len(joints))), None
     if len(names) != n_values:
         return None, Rejection("wrong length", f"{len(names)} joint names but {n_values} {what}")
     if len(set(names)) != len(names):
         return None, Rejection("duplicate joints", f"a joint is named twice in {_shown(names)}")
-    if not set(JOINT_NAMES) <= set(names):
-        return None, Rejection("unknown joints", f"joint names {_shown(names)} lack {_ARM}")
-    return [names.index(j) for j in JOINT_NAMES], None
+    if not set(joints) <= set(names):
+        return None, Rejection("unknown joints", f"joint names {_shown(names)} lack {arm}")
+    return [names.index(j) for j in joints], None
+
+
+def _listed(joints) -> str:
+    """A task's joints for a log line: all of a short list, else the first few and a count."""
+    joints = list(joints)
+    return ", ".join(joints) if len(joints) <= 4 else f"{', '.join(joints[:3])}, ... ({len(joints)} joints)"
 
 
 def _shown(names: list) -> str:
@@ -55,16 +62,19 @@ def _bad_values(values: np.ndarray, what: str) -> Rejection | None:
     return None
 
 
-def action_from_effort(names, effort, allow_empty: bool = False) -> tuple[np.ndarray | None, Rejection | None]:
+def action_from_effort(names, effort, allow_empty: bool = False,
+                       joints=JOINT_NAMES) -> tuple[np.ndarray | None, Rejection | None]:
     """A command's action in [-1, 1] (float32, clipped), or (None, why it is ignored).
 
-    An empty effort is (None, None) where ``allow_empty`` (a teleop *yield*).
+    ``joints``: the action's joints, in order (a task's ``command.joints``; default the
+    pusher's). An empty effort is (None, None) where ``allow_empty`` (a teleop *yield*).
     """
     if len(effort) == 0 and allow_empty:
         return None, None
-    if len(effort) != ACT_DIM:
-        return None, Rejection("wrong length", f"effort has {len(effort)} values, expected {ACT_DIM} ({_ARM})")
-    index, problem = _joint_index(names, len(effort), "efforts")
+    if len(effort) != len(joints):
+        arm = _ARM if joints is JOINT_NAMES else _listed(joints)
+        return None, Rejection("wrong length", f"effort has {len(effort)} values, expected {len(joints)} ({arm})")
+    index, problem = _joint_index(names, len(effort), "efforts", joints)
     if problem:
         return None, problem
     action = np.array(effort, dtype=np.float64)[index]
@@ -116,3 +126,26 @@ def action_from_torques(torques) -> tuple[np.ndarray | None, Rejection | None]:
     if not np.all(np.isfinite(torques)):
         return None, Rejection("non-finite", "torques are not finite")
     return np.clip(torques / actuator_gear(), -1.0, 1.0).astype(np.float32), None
+
+
+def action_from_command(task, values, names=()) -> tuple[np.ndarray | None, Rejection | None]:
+    """A controller's command as the action: ``(command - offset) / scale``, float32, clipped
+    to [-1, 1] (the controller's limits), or (None, why it is refused).
+
+    ``values``: in the task's units (``command.interface``), in ``command.joints`` order, as a
+    forward_command_controller takes them (a Float64MultiArray), or named by ``names`` (a
+    JointState command). A command of another length is refused, never cut or padded.
+    """
+    joints = task.command.joints
+    values = np.asarray(values, np.float64).reshape(-1)
+    if not len(names) and values.size != len(joints):
+        return None, Rejection("wrong length", f"{values.size} values, expected {len(joints)} "
+                                               f"({_listed(joints)}, the controller's joints)")
+    index, problem = _joint_index(names, values.size, "values", joints)
+    if problem:
+        return None, problem
+    values = values[index]
+    if not np.all(np.isfinite(values)):
+        return None, Rejection("non-finite", "command is not finite")
+    action = (values - np.asarray(task.command.offset)) / np.asarray(task.command.scale)
+    return np.clip(action, -1.0, 1.0).astype(np.float32), None

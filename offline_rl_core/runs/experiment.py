@@ -1,6 +1,7 @@
 """The chapter's experiment: BC vs an offline learner on the same fixed dataset.
 
-Per seed: collect the dataset (``collect_transitions(episodes, expert_frac, seed)``),
+Per seed: collect the dataset of the task (``collect_transitions(episodes, expert_frac, seed,
+task=...)``; pusher_reach unless ``ExperimentConfig.task`` names another),
 train BC and the offline learner, roll both out on the same 100 pooled held-out
 episodes (``n_seeds`` suites x ``eval_episodes``, reset seed
 ``500000 + seed + s * eval_episodes + e``), and score the gap with Newcombe's
@@ -25,13 +26,14 @@ from ..data.collect import collect_transitions
 from ..common import seeds
 from ..common.seeds import eval_reset_seeds
 from ..common.atomic import write_json_atomic, write_text_atomic
-from ..evaluation.rollouts import RolloutResult, format_rate, round6, rollout
+from ..evaluation.rollouts import RolloutResult, format_rate, round6, rollout_task
 from ..learners import Progress, TrainConfig
 from .parallel import TrainJob, run_jobs
 from ..learners.resume import ResumePoints
 from ..common.machine import available_cores
 from ..serving.checkpoint import save_checkpoint
 from ..evaluation.stats import excludes_zero, newcombe_diff_ci, wilson_ci
+from ..task.spec import DEFAULT_TASK, load_task
 
 
 METRIC_KEYS = tuple(sorted((
@@ -61,6 +63,7 @@ class ExperimentConfig:
     # the offline learner's training time, as steps from its measured rate (prior.py);
     # None: ``steps`` (for 'auto': the chapter's AWAC loop time on this machine)
     budget_s: float | None = None
+    task: str = DEFAULT_TASK  # the task collected from and evaluated on (a built-in name or a task file)
 
     @classmethod
     def smoke_settings(cls, **overrides) -> "ExperimentConfig":
@@ -129,6 +132,9 @@ def seed_metrics(cfg: ExperimentConfig, seed: int, bc: RolloutResult, offline: R
     }
     if tuple(sorted(metrics)) != METRIC_KEYS:
         raise AssertionError(f"metrics keys drifted from the chapter's: {sorted(metrics)}")
+    task = load_task(cfg.task)
+    if task.name != DEFAULT_TASK:  # pusher_reach's metrics stay the chapter's, byte for byte
+        metrics.update(task=task.name, task_digest=task.digest)
     return metrics
 
 
@@ -170,8 +176,9 @@ def run_experiment(cfg: ExperimentConfig, out_dir: str | Path, log: Callable[[st
 
     t0 = time.perf_counter()
     datasets = []
+    task = load_task(cfg.task)
     for s in seeds:
-        data = collect_transitions(cfg.episodes, cfg.expert_frac, s)
+        data = collect_transitions(cfg.episodes, cfg.expert_frac, s, task=task)
         datasets.append(data)
         log(f"seed {s}: collected {cfg.episodes} episodes ({len(data)} transitions, expert_frac {cfg.expert_frac})")
     log(f"collection took {time.perf_counter() - t0:.1f}s")
@@ -193,8 +200,8 @@ def run_experiment(cfg: ExperimentConfig, out_dir: str | Path, log: Callable[[st
         reset_seeds = eval_reset_seeds(s, cfg.n_seeds, cfg.eval_episodes)
         bc_res = trained["bc"][m]
         off_res = trained["offline"][m]
-        bc_roll = rollout(bc_res.policy.act, reset_seeds)
-        off_roll = rollout(off_res.policy.act, reset_seeds)
+        bc_roll = rollout_task(task, bc_res.policy.act, reset_seeds)
+        off_roll = rollout_task(task, off_res.policy.act, reset_seeds)
         offline_cfg, plan = plans[m]
         metrics = seed_metrics(cfg, s, bc_roll, off_roll, off_res.mean_abs_q, offline_cfg.steps)
         d = seed_dirs[s]

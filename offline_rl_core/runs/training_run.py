@@ -34,6 +34,8 @@ from .prior import plan_training
 from ..serving.checkpoint import load_checkpoint, save_checkpoint
 from ..data.raw_topics import transitions_from_topics
 from ..data.transitions import SOURCE_NAMES, Transitions
+from ..data.task_record import task_of_bag
+from ..task.spec import load_task
 
 DEFAULT_EVAL_SEED = seeds.HELD_OUT
 _CONFIG_FIELDS = {f.name for f in fields(TrainConfig)}
@@ -139,10 +141,13 @@ def run_training(
     auto: bool = False,
     budget_s: float | None = None,
     steps: int | None = None,
+    eval_task=None,
 ) -> Path:
     """Train ``cfg`` on the bags and write the run's files to ``out_dir``. ``auto``: the
     learner is the one ``prior.plan_training`` picks for the bag; ``auto`` or ``budget_s``:
-    as many steps as the budget allows, unless ``steps`` is given (then ``steps``)."""
+    as many steps as the budget allows, unless ``steps`` is given (then ``steps``).
+    ``eval_task``: the task the held-out rollouts run on (default: the one the first bag
+    records, else pusher_reach); one no sim hosts is not rolled out."""
     out = check_output_dir(out_dir, "--out")
     if eval_episodes < 0:
         raise UserError(f"--eval-episodes must be >= 0, got {eval_episodes}")
@@ -179,9 +184,12 @@ def run_training(
     }
     if plan is not None:
         metrics["plan"] = plan  # what --algo auto / --budget-s decided, and from what
-    if eval_episodes:
+    task = load_task(eval_task) if eval_task is not None else task_of_bag(bags[0]) if eval_episodes else None
+    if eval_episodes and not task.sim:
+        log(f"no held-out rollouts: no sim hosts task {task.name}")
+    elif eval_episodes:
         log(f"evaluating on {eval_episodes} held-out rollouts (reset seeds {eval_seed}..{eval_seed + eval_episodes - 1})")
-        metrics["eval"] = evaluate_policy(result.policy, eval_episodes, eval_seed)
+        metrics["eval"] = evaluate_policy(result.policy, eval_episodes, eval_seed, task=task)
     result.checkpoint["metrics"] = metrics
     out.mkdir(parents=True, exist_ok=True)
     save_checkpoint(out / "policy.pt", result.checkpoint)

@@ -27,6 +27,7 @@ import json
 import math
 import os
 from dataclasses import asdict, dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 from ..common.errors import UserError
@@ -209,7 +210,7 @@ class TaskSpec:
         out.pop("path")
         return json.loads(json.dumps(out))
 
-    @property
+    @cached_property  # a frozen spec: computed once (every env step of a task asks for its expert by it)
     def digest(self) -> str:
         text = json.dumps(self.describe(), sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(text.encode()).hexdigest()[:16]
@@ -551,6 +552,10 @@ class _Reader:
         if not isinstance(doc, dict):
             raise self.error("sim", "a mapping (env, model, ...)", doc)
         return json.loads(json.dumps(doc))  # plain values; the env that reads it checks its fields
+
+
+# The field checks, for the readers of sections this module leaves opaque (``sim``: task.mujoco_task).
+FieldReader = _Reader
 
 
 def _replace(spec: TaskSpec, **changes) -> TaskSpec:

@@ -17,7 +17,7 @@ from rosbags.rosbag2.storage_mcap import McapReader
 from ...common.errors import UserError
 from ..transitions import SOURCE_NAMES, Transitions
 from .cdr import TRANSITION_TOPIC
-from .reader import sqlite_storages, open_bag, transition_rows_from_reader, transition_topic
+from .reader import sqlite_storages, open_bag, transition_rows_and_layout, transition_topic
 from .storage_sqlite import WalSqlite3Reader
 
 _SERVICE_EVENT_SUFFIX = "/_service_event"
@@ -181,7 +181,7 @@ def bag_info(path: str | os.PathLike) -> BagInfo:
                 )
         if transition_topic(reader) is not None:
             try:
-                transitions = Transitions.from_rows(transition_rows_from_reader(reader, path))
+                transitions = Transitions.from_rows(*transition_rows_and_layout(reader, path))
             except UserError as exc:
                 info.transition_problem = str(exc).removeprefix(f"{path}: ")
             else:

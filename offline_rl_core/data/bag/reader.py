@@ -336,9 +336,15 @@ def _decode_into(reader: Reader, path: Path, put) -> int:
 
 def transition_rows_from_reader(reader: Reader, path: Path) -> np.ndarray:
     """The (N, width) float32 transition rows of an open bag, checked; UserError otherwise."""
+    return transition_rows_and_layout(reader, path)[0]
+
+
+def transition_rows_and_layout(reader: Reader, path: Path) -> tuple[np.ndarray, Layout]:
+    """The transition rows of an open bag and the layout they carry."""
     blocks: list[np.ndarray] = []
-    _decode_into(reader, path, lambda start, rows, layout: blocks.append(rows))
-    return np.concatenate(blocks)
+    layouts: list[Layout] = []
+    _decode_into(reader, path, lambda start, rows, layout: (blocks.append(rows), layouts.append(layout)))
+    return np.concatenate(blocks), layouts[0]
 
 
 def read_transition_rows(path: str | os.PathLike) -> np.ndarray:
