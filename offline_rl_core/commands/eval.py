@@ -32,7 +32,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--episodes must be >= 1, got {args.episodes}")
     if args.json:
         check_output_file(args.json, "--json")
-    policy = load_policy(args.checkpoint)
+    policy = load_policy(args.checkpoint, "pusher_reach")  # the rollouts run pusher_reach's env
     result = evaluate_policy(policy, args.episodes, args.seed, batched=not args.sequential, checkpoint=str(args.checkpoint))
     print(f"checkpoint      {args.checkpoint} ({policy.algorithm})")
     print(f"reset seeds     {args.seed}..{args.seed + args.episodes - 1}")
