@@ -273,3 +273,28 @@ def test_a_checkpoint_written_as_bytes_keeps_its_task(arm):
     ckpt = load_checkpoint(arm["checkpoint"])
     back = checkpoint_from_bytes(checkpoint_to_bytes(ckpt), "bytes")
     assert back["task"] == ckpt["task"] and torch.equal(back["policy_state"]["0.weight"], ckpt["policy_state"]["0.weight"])
+
+
+def test_hil_takes_the_task_and_refuses_what_it_cannot_evaluate(arm, tmp_path, capsys):
+    out = tmp_path / "hil"
+    assert cli.main(["hil", "--task", str(arm["task_file"]), "--bag", str(arm["bag"]), "--out", str(out)]) == 2
+    line = capsys.readouterr().err.strip().splitlines()[-1]
+    assert line.startswith(f"offline-rl: error: task test_arm7 ({arm['task_file']}): offline-rl hil evaluates on "
+                           "pusher_reach's env only"), line
+    assert not out.exists()  # nothing was written
+    # a prior of another task than the run's: one line naming both layouts
+    assert cli.main(["hil", "--online", "--bag", str(arm["pusher_bag"]), "--prior", str(arm["checkpoint"]),
+                     "--out", str(out)]) == 2
+    line = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "a checkpoint of task test_arm7" in line and "the task here is pusher_reach" in line, line
+
+
+def test_a_task_only_a_bag_records_reaches_the_nodes_as_a_file(arm, tmp_path):
+    from offline_rl_core.pipelines.hil import task_argument
+    from offline_rl_core.task.spec import task_from_dict
+
+    recorded = task_from_dict(arm["task"].describe(), tmp_path / "session.db3:/task_description")
+    path = task_argument(recorded, tmp_path)
+    assert load_task(path).digest == arm["task"].digest
+    assert task_argument(load_task(), tmp_path) == "pusher_reach"
+    assert task_argument(arm["task"], tmp_path) == str(arm["task_file"])

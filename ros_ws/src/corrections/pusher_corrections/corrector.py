@@ -131,6 +131,10 @@ class Corrector(Node):
         task = self.task = load_task(self.settings.task or None)  # UserError: one line naming the task
         self.builder = ObservationBuilder(task, kinematics_model(task))
         if self.mode == "scripted":
+            heard = [v for v in task.reward.distance if v in self.builder.topic_only]
+            if heard:  # this node hears no points: the rule's distance must come from the joints
+                raise UserError(f"{task.source_file()}: the scripted corrector computes reward.distance from the "
+                                f"joints, but point {heard[0]} has no kinematics it can compute")
             expert, distance = task_rule(task, self.builder.distance)  # UserError: no expert for the task
             try:
                 self.teleop = ScriptedCorrector(CorrectorParams(**values), expert, distance, task.reward.success_within)
