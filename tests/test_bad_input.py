@@ -166,7 +166,7 @@ def test_pairing_keeps_targets_by_stamp_so_strays_displace_nothing():
     assert done.state == "s2" and done.target_xy.tolist() == [0.3, 0.4]
     for stamp in range(1000, 1100):  # many strays: only the last KEEP are remembered
         p.on_target(stamp, (0.0, 0.0))
-    assert len(p.targets) <= 32
+    assert len(p.goal.by_stamp) <= 32
 
 
 # ------------------------------------------------------------------ counting and warning

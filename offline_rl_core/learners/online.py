@@ -24,7 +24,7 @@ from dataclasses import asdict, dataclass
 
 import torch
 
-from ..serving.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION
+from ..serving.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, task_field
 from ..data.transitions import Transitions
 from .config import TrainConfig
 from .data import MemberData
@@ -75,11 +75,16 @@ class OnlineLearner:
     """One learner (``cfg.algo``, SAC by default) trained on offline + live transitions."""
 
     def __init__(self, offline: Transitions, cfg: TrainConfig, settings: OnlineSettings, seed: int,
-                 prior: dict | None = None):
+                 prior: dict | None = None, task=None):
+        """``task`` (a ``TaskSpec``): the task of the data, recorded in every weights version."""
         if len(offline) == 0 and settings.offline_ratio > 0:
             raise ValueError("no offline transitions to sample from (set offline_ratio 0 to learn from scratch)")
         self.cfg, self.settings, self.seed = cfg, settings, int(seed)
         obs_dim, act_dim = offline.obs.shape[1], offline.action.shape[1]
+        if task is not None and (obs_dim, act_dim) != (task.obs_dim, task.act_dim):
+            raise ValueError(f"the offline data has obs {obs_dim}, action {act_dim}; task {task.name} has obs "
+                             f"{task.obs_dim}, action {task.act_dim}")
+        self.task = None if task is None else task_field(task)
         init_gen, sample_gen = seed_generators(seed)
         with torch_threads(intra_op_threads(cfg.threads)):
             self.learner = LEARNERS[cfg.algo](cfg, 1, [init_gen], obs_dim, act_dim)
@@ -175,6 +180,7 @@ class OnlineLearner:
             "online": asdict(self.settings),
             "seed": self.seed,
             "prior_algorithm": self.prior_algorithm,
+            **({"task": self.task} if self.task is not None else {}),
         }
 
     def n_online_at_version(self, version: int) -> int:

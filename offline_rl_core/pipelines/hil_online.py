@@ -55,6 +55,7 @@ class OnlineHilConfig:
     prior_algo: str = "auto"  # auto: the best prior (README, "The best prior"); awac: the chapter's
     prior_steps: int = 8000  # of an AWAC prior
     bags: list[str] = field(default_factory=lambda: [DEFAULT_BAG])
+    task: str | None = None  # a built-in task or a task file; None: the one the bags record, else pusher_reach
     corrector: str = "scripted"  # scripted | keyboard | none
     mode: str = "lockstep"  # lockstep (paced, reproducible) | realtime (50 Hz)
     utd: int = 2
@@ -100,11 +101,12 @@ def run_hil_online(cfg: OnlineHilConfig, log: Callable[[str], None] = lambda s: 
                                                                                            flush=True)) -> dict:
     cfg.validate()
     out = Path(cfg.out)
-    from .hil import HilConfig, Loop, hil_session, resolve_prior
+    from .hil import HilConfig, Loop, hil_session, resolve_prior, resolve_task
 
     loop = Loop(HilConfig(out=str(out), seed=cfg.seed, bags=cfg.bags), log)
     t0 = time.monotonic()
     with hil_session(out, loop):
+        resolve_task(loop, cfg.task, cfg.bags, cfg.prior, out)
         prior_path, prior_from = (None, "none") if cfg.no_prior else resolve_prior(
             loop, cfg.prior, cfg.bags, cfg.seed, cfg.prior_steps, out, log, cfg.prior_algo)
         if cfg.in_process:
@@ -149,7 +151,7 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
     episodes = cfg.env_steps // EPISODE_STEPS
     lockstep = cfg.mode == "lockstep"
     arguments = {
-        "bag": cfg.bags[0], "prior": prior_path or "", "out": out,
+        "bag": cfg.bags[0], "prior": prior_path or "", "out": out, "task": loop.task_arg,
         # until the learner's first weights, the policy serves the prior (or the learner's initial weights)
         "checkpoint": prior_path or learner_dir / "policy.pt",
         "mode": cfg.mode, "paced_every": cfg.publish_every if lockstep else 0, "publish_every": cfg.publish_every,

@@ -49,6 +49,8 @@ PARAMS = [
           kind=list),
     Param("prior", None, "checkpoint that initialises the actor (and the critic, when it holds one); "
           "unset: from scratch", read_only=True, flag="--prior", kind=str),
+    Param("task", "", "the task (a built-in name or a task file), recorded in every weights version; empty: the "
+          "prior's, else the one the bag records, else pusher_reach", read_only=True, flag="--task"),
     Param("out", "runs/online", "directory for policy.pt, learner_state.pt and progress.jsonl", read_only=True,
           flag="--out"),
     Param("seed", 0, "seed of initialisation, batches and the policy's noise", read_only=True, flag="--seed"),
@@ -95,7 +97,8 @@ class Learner(Node):
         settings = OnlineSettings(utd=s.utd, offline_ratio=s.offline_ratio, publish_every=s.publish_every,
                                   capacity=s.capacity)
         self.service = LearnerService(LearnerServiceConfig(
-            bags=list(s.bag), out=s.out, prior=s.prior or None, seed=s.seed, save_every=s.save_every, resume=s.resume,
+            bags=list(s.bag), out=s.out, prior=s.prior or None, task=s.task or None, seed=s.seed,
+            save_every=s.save_every, resume=s.resume,
             session_bag=s.session_bag or None, snapshot_every=s.snapshot_every, settings=settings, train=train),
             log=self.get_logger().info)
         self.weights_pub = self.create_publisher(UInt8MultiArray, "~/weights", WEIGHTS_QOS)
