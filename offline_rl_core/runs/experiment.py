@@ -23,7 +23,6 @@ from pathlib import Path
 from typing import Callable
 
 from ..data.collect import collect_transitions
-from ..common import seeds
 from ..common.seeds import eval_reset_seeds
 from ..common.atomic import write_json_atomic, write_text_atomic
 from ..evaluation.rollouts import RolloutResult, format_rate, round6, rollout_task
@@ -32,7 +31,7 @@ from .parallel import TrainJob, run_jobs
 from ..learners.resume import ResumePoints
 from ..common.machine import available_cores
 from ..serving.checkpoint import save_checkpoint
-from ..task.spec import TaskSpec, load_task
+from ..task.spec import TaskSpec
 from ..evaluation.stats import excludes_zero, newcombe_diff_ci, wilson_ci
 from ..task.spec import DEFAULT_TASK, load_task
 
@@ -195,8 +194,8 @@ def run_experiment(cfg: ExperimentConfig, out_dir: str | Path, log: Callable[[st
         return points[-1]
 
     plans = [cfg.offline_config(data, log) for data in datasets]
-    # the task collect_transitions collects (pusher_reach), recorded in bc.pt and offline.pt
-    trained = train_all(cfg, seeds, datasets, log, [p[0] for p in plans], resume_points, task=load_task())
+    # the task collected from, recorded in bc.pt and offline.pt
+    trained = train_all(cfg, seeds, datasets, log, [p[0] for p in plans], resume_points, task=task)
     outcomes = []
     for m, s in enumerate(seeds):
         reset_seeds = eval_reset_seeds(s, cfg.n_seeds, cfg.eval_episodes)
