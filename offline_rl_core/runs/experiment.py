@@ -23,6 +23,7 @@ from typing import Callable
 
 from ..data.collect import collect_transitions
 from ..common import seeds
+from ..common.seeds import eval_reset_seeds
 from ..common.atomic import write_json_atomic, write_text_atomic
 from ..evaluation.rollouts import RolloutResult, format_rate, round6, rollout
 from ..learners import Progress, TrainConfig
@@ -60,6 +61,9 @@ class ExperimentConfig:
     # the offline learner's training time, as steps from its measured rate (prior.py);
     # None: ``steps`` (for 'auto': the chapter's AWAC loop time on this machine)
     budget_s: float | None = None
+    # where the training jobs run: "local" (worker processes of this machine) or "ray"
+    # (Ray tasks on the cluster connected by ``ray_engine.connected``); same results
+    engine: str = "local"
 
     @classmethod
     def smoke_settings(cls, **overrides) -> "ExperimentConfig":
@@ -179,7 +183,8 @@ def run_experiment(cfg: ExperimentConfig, out_dir: str | Path, log: Callable[[st
 
     def resume_points(role: str, job_seeds: list[int]) -> ResumePoints:
         where = seed_dirs[job_seeds[0]] if len(job_seeds) == 1 else out_dir
-        points.append(ResumePoints(where / f"resume_{role}.pt", resume_every, resume))
+        # absolute: a Ray task writes it from a worker whose folder may not be this one
+        points.append(ResumePoints((where / f"resume_{role}.pt").absolute(), resume_every, resume))
         if resume:
             log(f"resuming from {points[-1].path}" if points[-1].path.exists() else
                 f"no resume point at {points[-1].path}; starting")
@@ -189,7 +194,7 @@ def run_experiment(cfg: ExperimentConfig, out_dir: str | Path, log: Callable[[st
     trained = train_all(cfg, seeds, datasets, log, [p[0] for p in plans], resume_points)
     outcomes = []
     for m, s in enumerate(seeds):
-        reset_seeds = seeds.eval_reset_seeds(s, cfg.n_seeds, cfg.eval_episodes)
+        reset_seeds = eval_reset_seeds(s, cfg.n_seeds, cfg.eval_episodes)
         bc_res = trained["bc"][m]
         off_res = trained["offline"][m]
         bc_roll = rollout(bc_res.policy.act, reset_seeds)
@@ -226,19 +231,25 @@ def train_all(cfg: ExperimentConfig, seeds: list[int], datasets: list, log: Call
     per_seed = {"offline": offline_cfgs, "bc": [cfg.train_config("bc")] * len(seeds)}
     roles = ("offline", "bc")  # the heavier learner first: it starts first
     workers = cfg.worker_count()
-    if workers == 1 and all(c == offline_cfgs[0] for c in offline_cfgs):
+    on_ray = cfg.engine == "ray"
+    if workers == 1 and not on_ray and all(c == offline_cfgs[0] for c in offline_cfgs):
         jobs = [TrainJob(per_seed[role][0].algo, datasets, per_seed[role][0], seeds, points(role, seeds))
                 for role in roles]
     else:
         jobs = [TrainJob(f"{per_seed[role][m].algo} s{s}", [datasets[m]], per_seed[role][m], [s], points(role, [s]))
                 for role in roles for m, s in enumerate(seeds)]
     workers = min(workers, len(jobs))
-    where = "together in this process" if workers == 1 else f"in {workers} worker processes"
+    where = "as Ray tasks" if on_ray else "together in this process" if workers == 1 else f"in {workers} worker processes"
     steps = sorted({c.steps for c in offline_cfgs})
     log(f"training {' / '.join(sorted({c.algo for c in offline_cfgs}))} ({' / '.join(map(str, steps))} steps) "
         f"and bc ({cfg.steps} steps), {len(seeds)} seed(s) {where}")
     t1 = time.perf_counter()
-    results = run_jobs(jobs, workers, progress_for=lambda job: _progress_printer(job.label, log))
+    if on_ray:
+        from .ray_engine import run_train_jobs
+
+        results = run_train_jobs(jobs, log)
+    else:
+        results = run_jobs(jobs, workers, progress_for=lambda job: _progress_printer(job.label, log))
     log(f"  training took {time.perf_counter() - t1:.1f}s")
     trained = {}
     per_role = len(jobs) // len(roles)

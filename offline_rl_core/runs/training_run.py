@@ -16,12 +16,11 @@ from dataclasses import fields
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
 import torch
 
 from ..common import seeds
 from ..common.seeds import seed_arg
-from ..data.bag import read_transitions
+from ..data.fleet import bag_summary, expand_bags, read_fleet
 from ..common.errors import UserError
 from ..common.atomic import write_json_atomic
 from ..common.output_paths import check_output_dir
@@ -33,7 +32,7 @@ from .plots import plot_training_curve
 from .prior import plan_training
 from ..serving.checkpoint import load_checkpoint, save_checkpoint
 from ..data.raw_topics import transitions_from_topics
-from ..data.transitions import SOURCE_NAMES, Transitions
+from ..data.transitions import Transitions
 
 DEFAULT_EVAL_SEED = seeds.HELD_OUT
 _CONFIG_FIELDS = {f.name for f in fields(TrainConfig)}
@@ -97,19 +96,22 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
         raise UserError(str(exc)) from None
 
 
-def load_bags(paths: list[str], from_topics: str | None = None) -> tuple[Transitions, list[dict]]:
-    """Read and merge bags; episode ids are offset so they stay unique per bag.
+def load_bags(paths: list[str], from_topics: str | None = None,
+              workers: int | None = None) -> tuple[Transitions, list[dict]]:
+    """Read and merge bags; episode ids are offset so they stay unique per bag. A path may
+    be a directory of bags or a glob (a fleet, ``data/fleet.py``): its bags are decoded in
+    ``workers`` processes (default: as many as pay for themselves).
     ``from_topics``: a raw-topic spec; the transitions are built from each bag's raw topics."""
+    paths = expand_bags(paths)
+    if not from_topics:
+        return read_fleet(paths, workers)
     parts, summary, offset = [], [], 0
     for path in paths:
-        joined = transitions_from_topics(path, from_topics) if from_topics else None
-        data = joined[0] if joined else read_transitions(path)
+        data, spec = transitions_from_topics(path, from_topics)
         data.episode = data.episode - data.episode.min() + offset
         offset = int(data.episode.max()) + 1
         parts.append(data)
-        counts = {SOURCE_NAMES.get(int(s), str(s)): int(n) for s, n in zip(*np.unique(data.source, return_counts=True))}
-        summary.append({"path": str(path), "transitions": len(data), "sources": counts,
-                        **({"from_topics": joined[1].as_dict()} if joined else {})})
+        summary.append({**bag_summary(path, data), "from_topics": spec.as_dict()})
     return (parts[0] if len(parts) == 1 else Transitions.concatenate(parts)), summary
 
 
@@ -139,14 +141,18 @@ def run_training(
     auto: bool = False,
     budget_s: float | None = None,
     steps: int | None = None,
+    dataset: tuple[Transitions, list[dict]] | None = None,
+    decode_workers: int | None = None,
 ) -> Path:
     """Train ``cfg`` on the bags and write the run's files to ``out_dir``. ``auto``: the
     learner is the one ``prior.plan_training`` picks for the bag; ``auto`` or ``budget_s``:
-    as many steps as the budget allows, unless ``steps`` is given (then ``steps``)."""
+    as many steps as the budget allows, unless ``steps`` is given (then ``steps``).
+    ``dataset``: the bags already read (``load_bags(bags)``'s result, e.g. handed to the run
+    by a sweep's engine); else they are read here, in ``decode_workers`` processes."""
     out = check_output_dir(out_dir, "--out")
     if eval_episodes < 0:
         raise UserError(f"--eval-episodes must be >= 0, got {eval_episodes}")
-    data, bag_summary = load_bags(bags, from_topics)
+    data, bags_read = dataset if dataset is not None else load_bags(bags, from_topics, decode_workers)
     cfg, plan = plan_training(data, cfg, auto, budget_s, steps, log)
     init_ckpt = None
     if init:
@@ -170,7 +176,7 @@ def run_training(
         "seed": seed,
         "steps": cfg.steps,
         "transitions": len(data),
-        "bags": bag_summary,
+        "bags": bags_read,
         "dataset_hash": result.checkpoint["dataset_hash"],
         "config": cfg.to_dict(),
         "init": str(init) if init else None,
