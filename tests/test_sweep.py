@@ -179,3 +179,10 @@ def test_without_ray_the_ray_engine_says_how_to_install_it(tmp_path):
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 2, proc.stderr
     assert proc.stderr.strip().count("\n") == 0 and "Ray is not installed" in proc.stderr and ".[ray]" in proc.stderr
+
+
+def test_the_shipped_example_spec_is_a_valid_sweep():
+    spec = load_sweep_spec(REPO / "bags" / "sweep.yaml")
+    assert spec.baseline == "bc" and len(spec.runs) == 15
+    assert spec.arms == ["bc", "filtered_bc filter_by=goal", "awac beta=0.3", "awac beta=1", "iql"]
+    assert {r.bags for r in spec.runs} == {(str(MIX),)}

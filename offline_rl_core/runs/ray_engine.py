@@ -34,6 +34,13 @@ START = "start one with `ray start --head` on the head machine and `ray start --
 CONNECT_TIMEOUT_S = 5.0
 
 
+def ray_missing() -> str | None:
+    """Why the Ray engine cannot run here (None: it can), without importing Ray."""
+    import importlib.util
+
+    return None if importlib.util.find_spec("ray") else f"Ray is not installed here; {INSTALL}"
+
+
 def import_ray():
     """The ray module, or a UserError saying how to install it."""
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # no report home from a lab's machines
@@ -61,11 +68,10 @@ def connected(address: str | None = None, num_cpus: int | None = None) -> Iterat
     `ray start` runs on this machine; HOST:PORT: its head), or, for None, a private Ray
     on this machine's loopback with ``num_cpus`` (default: this process's cores), shut
     down after. A Ray this process has already initialised (a test's) is used as it is."""
-    if address is None:
-        # a private cluster: on loopback, out of reach of (and not reaching) the network
-        # (Ray reads this when it is imported), with a token all the same (said, not warned)
-        if "ray" not in sys.modules:
-            os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
+    if address is None and "ray" not in sys.modules:
+        # a private cluster: on loopback, out of reach of (and not reaching) the network, with
+        # a token all the same (set, so not warned about); Ray reads both when it is imported
+        os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
         os.environ.setdefault("RAY_AUTH_MODE", "token")
     ray = import_ray()
     if ray.is_initialized():
