@@ -34,8 +34,10 @@ from ..common.machine import available_cores
 from .transitions import SOURCE_NAMES, Transitions
 
 BAG_SUFFIXES = (".db3", ".mcap")
-# Below this many bytes of bags, worker processes cost more to start than they save.
-PARALLEL_MIN_BYTES = 64 * 2**20
+# Below this many bytes of bags, worker processes cost more (their start, and each bag
+# pickled across) than they save: on a busy 2-core machine a fleet of hundreds of MB still
+# decoded faster in one process (bench/RESULTS.md, 'Sweeps and fleets').
+PARALLEL_MIN_BYTES = 2**30
 
 
 def expand_bags(specs: Iterable[str | os.PathLike], what: str = "--bag") -> list[str]:

@@ -86,6 +86,9 @@ def connected(address: str | None = None, num_cpus: int | None = None) -> Iterat
             ray.init(address=address, logging_level=logging.WARNING)
     except ConnectionError as exc:
         raise UserError(f"--address {address}: no Ray cluster found ({one_line(exc)[:160]}); {START}") from None
+    except RuntimeError as exc:  # Ray's own start failed (its GCS, its raylet)
+        where = f"the Ray cluster at {address}" if address else "a private Ray on this machine"
+        raise RunFailed(f"--engine ray: could not start or join {where}: {one_line(exc)[:300]}") from None
     try:
         yield ray
     finally:
@@ -173,21 +176,19 @@ class RayEngine:
 
     def run(self, runs: list[SweepRun], out: Path, on_result: Callable[[SweepRun, dict], None]) -> None:
         ray = self.ray
-        datasets: dict[tuple[str, ...], object] = {}  # bags -> the dataset's object ref, or its error
-        for bags in dict.fromkeys(r.bags for r in runs):
-            try:
-                datasets[bags] = ray.put(read_fleet_on_ray(list(bags), self.shared_bags))
-            except UserError as exc:  # a bad bag fails the runs that train on it, no others
-                datasets[bags] = exc
         task = ray.remote(_train_run).options(num_cpus=1, max_retries=1)
         pending = {}
-        for run in runs:
-            data = datasets[run.bags]
-            if isinstance(data, Exception):
-                on_result(run, result_row(run, error=one_line(data)))
-            else:
-                pending[task.remote(run, data)] = run
         try:
+            # bag set by bag set: its runs start while the next set is decoded
+            for bags in dict.fromkeys(r.bags for r in runs):
+                its_runs = [r for r in runs if r.bags == bags]
+                try:
+                    dataset = ray.put(read_fleet_on_ray(list(bags), self.shared_bags))
+                except Exception as exc:  # noqa: BLE001 - a bad bag fails the runs that train on it, no others
+                    for run in its_runs:
+                        on_result(run, result_row(run, error=one_line(exc)))
+                    continue
+                pending.update({task.remote(run, dataset): run for run in its_runs})
             while pending:
                 ready, _ = ray.wait(list(pending), num_returns=1)
                 run = pending.pop(ready[0])
