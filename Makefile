@@ -29,6 +29,12 @@ $(STAMP): pyproject.toml $(ROS_FILES) ros_ws/tools/ros_install.py
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PIP) install torch==2.13.0
 	$(PIP) install -e '.[ros,dev,onnx]'
+	@# Ray (the sweep's cluster engine) only where pip resolves it beside this torch; without it the
+	@# sweep runs on local worker processes and the Ray tests skip
+	@dry=$$($(PY) -m pip --disable-pip-version-check install --dry-run 'torch==2.13.0' -e '.[ray]' 2>&1) \
+	  && ! printf '%s\n' "$$dry" | grep -q '^Would install.* torch-[0-9]' \
+	  && $(PIP) install 'torch==2.13.0' -e '.[ray]' \
+	  || echo "setup: Ray not installed (pip could not install it beside torch 2.13.0); offline-rl sweep --engine ray is unavailable"
 	$(PY) ros_ws/tools/ros_install.py --venv $(VENV) $(ROS_PACKAGES)
 	@touch $(STAMP)
 

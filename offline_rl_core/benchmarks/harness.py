@@ -19,7 +19,7 @@ from typing import Callable
 
 from ..learners.config import TrainConfig
 
-GROUPS = ("train", "decode", "eval", "serve", "record", "online")
+GROUPS = ("train", "decode", "eval", "serve", "record", "online", "sweep", "fleet")
 
 
 @dataclass
@@ -51,6 +51,14 @@ class BenchSettings:
     # recording
     record_episodes: int = 200
     realtime_seconds: float = 60.0
+    # `offline-rl sweep` on Ray against local worker processes: a 12-run sweep, alternating rounds
+    sweep_runs: int = 12
+    sweep_steps: int = 3000
+    sweep_eval_episodes: int = 20
+    sweep_repeats: int = 2
+    # fleets of bags: bags of 20,000 transitions (bags/mix.db3), decoded in fresh processes
+    fleet_bag_counts: tuple[int, ...] = (1, 10, 100)
+    fleet_repeats: int = 3
     threads: int | None = None  # torch intra-op threads; None = auto (see ``choose_threads``)
     device: str = "cpu"  # where the training figures train: cpu, or cuda / cuda:N
     tiny: bool = False  # test settings: seconds, not minutes; figures meaningless
@@ -59,7 +67,8 @@ class BenchSettings:
     def quick_settings(cls) -> "BenchSettings":
         return cls(quick=True, train_steps=150, train_repeats=2, experiment_steps=300, decode_repeats=3,
                    large_bag_rows=400_000, large_bag_train_steps=50, eval_repeats=2, inference_calls=5000,
-                   dds_messages=1500, record_episodes=20, realtime_seconds=10.0)
+                   dds_messages=1500, record_episodes=20, realtime_seconds=10.0, sweep_steps=500, sweep_repeats=1,
+                   sweep_eval_episodes=10, fleet_repeats=2)
 
     @classmethod
     def tiny_settings(cls) -> "BenchSettings":
@@ -67,7 +76,8 @@ class BenchSettings:
         return cls(quick=True, tiny=True, train_steps=3, train_repeats=1, hidden=16, batch_size=16, episodes=4,
                    experiment_seeds=(0, 1), experiment_steps=3, experiment_eval=(1, 2), decode_repeats=1, large_bag_rows=2000,
                    large_bag_train_steps=2, eval_episodes=4, eval_repeats=1, inference_calls=50, dds_messages=20,
-                   dds_rate_hz=200.0, record_episodes=1, realtime_seconds=1.0)
+                   dds_rate_hz=200.0, record_episodes=1, realtime_seconds=1.0, sweep_runs=3, sweep_steps=3,
+                   sweep_eval_episodes=1, sweep_repeats=1, fleet_bag_counts=(1, 3), fleet_repeats=1)
 
 
 @dataclass
@@ -269,7 +279,7 @@ def run_bench(settings: BenchSettings, only: list[str] | None = None, log: Calla
            f" on a CPU with {' '.join(machine['cpu_isa_flags'])})" if machine["kernel_isa_limits"] else "")
         + f", load {machine['loadavg_start']})")
     modules = {"train": "train", "decode": "decode", "eval": "eval_rollouts", "serve": "serve", "record": "record",
-               "online": "online"}
+               "online": "online", "sweep": "sweep", "fleet": "fleet"}
     t0 = time.perf_counter()
     figures: list[Figure] = []
     for g in groups:

@@ -21,6 +21,7 @@ COMMAND_MODULES = (
     "train",
     "eval",
     "experiment",
+    "sweep",
     "export_onnx",
     "bench",
     "hil",

@@ -64,6 +64,9 @@ class ExperimentConfig:
     # None: ``steps`` (for 'auto': the chapter's AWAC loop time on this machine)
     budget_s: float | None = None
     task: str = DEFAULT_TASK  # the task collected from and evaluated on (a built-in name or a task file)
+    # where the training jobs run: "local" (worker processes of this machine) or "ray"
+    # (Ray tasks on the cluster connected by ``ray_engine.connected``); same results
+    engine: str = "local"
 
     @classmethod
     def smoke_settings(cls, **overrides) -> "ExperimentConfig":
@@ -187,7 +190,8 @@ def run_experiment(cfg: ExperimentConfig, out_dir: str | Path, log: Callable[[st
 
     def resume_points(role: str, job_seeds: list[int]) -> ResumePoints:
         where = seed_dirs[job_seeds[0]] if len(job_seeds) == 1 else out_dir
-        points.append(ResumePoints(where / f"resume_{role}.pt", resume_every, resume))
+        # absolute: a Ray task writes it from a worker whose folder may not be this one
+        points.append(ResumePoints((where / f"resume_{role}.pt").absolute(), resume_every, resume))
         if resume:
             log(f"resuming from {points[-1].path}" if points[-1].path.exists() else
                 f"no resume point at {points[-1].path}; starting")
@@ -237,7 +241,8 @@ def train_all(cfg: ExperimentConfig, seeds: list[int], datasets: list, log: Call
     per_seed = {"offline": offline_cfgs, "bc": [cfg.train_config("bc")] * len(seeds)}
     roles = ("offline", "bc")  # the heavier learner first: it starts first
     workers = cfg.worker_count()
-    if workers == 1 and all(c == offline_cfgs[0] for c in offline_cfgs):
+    on_ray = cfg.engine == "ray"
+    if workers == 1 and not on_ray and all(c == offline_cfgs[0] for c in offline_cfgs):
         jobs = [TrainJob(per_seed[role][0].algo, datasets, per_seed[role][0], seeds, points(role, seeds), task)
                 for role in roles]
     else:
@@ -245,12 +250,17 @@ def train_all(cfg: ExperimentConfig, seeds: list[int], datasets: list, log: Call
                          task)
                 for role in roles for m, s in enumerate(seeds)]
     workers = min(workers, len(jobs))
-    where = "together in this process" if workers == 1 else f"in {workers} worker processes"
+    where = "as Ray tasks" if on_ray else "together in this process" if workers == 1 else f"in {workers} worker processes"
     steps = sorted({c.steps for c in offline_cfgs})
     log(f"training {' / '.join(sorted({c.algo for c in offline_cfgs}))} ({' / '.join(map(str, steps))} steps) "
         f"and bc ({cfg.steps} steps), {len(seeds)} seed(s) {where}")
     t1 = time.perf_counter()
-    results = run_jobs(jobs, workers, progress_for=lambda job: _progress_printer(job.label, log))
+    if on_ray:
+        from .ray_engine import run_train_jobs
+
+        results = run_train_jobs(jobs, log)
+    else:
+        results = run_jobs(jobs, workers, progress_for=lambda job: _progress_printer(job.label, log))
     log(f"  training took {time.perf_counter() - t1:.1f}s")
     trained = {}
     per_role = len(jobs) // len(roles)

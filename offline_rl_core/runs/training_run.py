@@ -21,12 +21,11 @@ from dataclasses import fields
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
 import torch
 
 from ..common import seeds
 from ..common.seeds import seed_arg
-from ..data.bag import read_transitions
+from ..data.fleet import bag_summary, expand_bags, read_fleet
 from ..common.errors import UserError
 from ..common.atomic import write_json_atomic
 from ..common.output_paths import check_output_dir
@@ -39,7 +38,7 @@ from .prior import plan_training
 from ..serving.checkpoint import load_checkpoint, save_checkpoint
 from ..data.raw_topics import transitions_from_topics
 from ..data.task_record import check_layout_fits, task_of_bag
-from ..data.transitions import SOURCE_NAMES, Transitions
+from ..data.transitions import Transitions
 from ..serving.policy import policy_for_task
 from ..task.spec import DEFAULT_TASK, TaskSpec, load_task
 
@@ -109,8 +108,10 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
 
 
 def task_of_run(paths: list[str], given: str | os.PathLike | TaskSpec | None = None) -> TaskSpec:
-    """The task of a run on ``paths``: ``given`` (which every bag that records a task must
-    agree with), else the one they record (the same for all), else pusher_reach."""
+    """The task of a run on ``paths`` (bags, directories of bags or globs): ``given`` (which
+    every bag that records a task must agree with), else the one they record (the same for
+    all), else pusher_reach."""
+    paths = expand_bags(paths)
     tasks = [task_of_bag(path, given) for path in paths]
     for path, task in zip(paths[1:], tasks[1:]):
         if task.digest != tasks[0].digest:
@@ -119,23 +120,29 @@ def task_of_run(paths: list[str], given: str | os.PathLike | TaskSpec | None = N
     return tasks[0] if tasks else load_task(given)
 
 
-def load_bags(paths: list[str], from_topics: str | None = None,
-              task: TaskSpec | None = None) -> tuple[Transitions, list[dict]]:
-    """Read and merge bags; episode ids are offset so they stay unique per bag.
+def load_bags(paths: list[str], from_topics: str | None = None, task: TaskSpec | None = None,
+              workers: int | None = None) -> tuple[Transitions, list[dict]]:
+    """Read and merge bags; episode ids are offset so they stay unique per bag. A path may
+    be a directory of bags or a glob (a fleet, ``data/fleet.py``): its bags are decoded in
+    ``workers`` processes (default: as many as pay for themselves).
     ``from_topics``: a raw-topic spec; the transitions are built from each bag's raw topics.
-    ``task``: each bag's transitions must have its sizes (one line naming the bag otherwise)."""
+    ``task``: the transitions must have its sizes (one line naming the bag otherwise)."""
+    paths = expand_bags(paths)
+    if not from_topics:
+        data, summary = read_fleet(paths, workers)
+        if task is not None:
+            check_layout_fits(paths[0] if len(paths) == 1 else f"{len(paths)} bags ({paths[0]}, ...)",
+                              data.layout.obs_dim, data.layout.act_dim, task)
+        return data, summary
     parts, summary, offset = [], [], 0
     for path in paths:
-        joined = transitions_from_topics(path, from_topics) if from_topics else None
-        data = joined[0] if joined else read_transitions(path)
+        data, spec = transitions_from_topics(path, from_topics)
         if task is not None:
             check_layout_fits(path, data.layout.obs_dim, data.layout.act_dim, task)
         data.episode = data.episode - data.episode.min() + offset
         offset = int(data.episode.max()) + 1
         parts.append(data)
-        counts = {SOURCE_NAMES.get(int(s), str(s)): int(n) for s, n in zip(*np.unique(data.source, return_counts=True))}
-        summary.append({"path": str(path), "transitions": len(data), "sources": counts,
-                        **({"from_topics": joined[1].as_dict()} if joined else {})})
+        summary.append({**bag_summary(path, data), "from_topics": spec.as_dict()})
     return (parts[0] if len(parts) == 1 else Transitions.concatenate(parts)), summary
 
 
@@ -166,16 +173,24 @@ def run_training(
     budget_s: float | None = None,
     steps: int | None = None,
     task: str | os.PathLike | TaskSpec | None = None,
+    dataset: tuple[Transitions, list[dict]] | None = None,
+    decode_workers: int | None = None,
 ) -> Path:
     """Train ``cfg`` on the bags and write the run's files to ``out_dir``. ``auto``: the
     learner is the one ``prior.plan_training`` picks for the bag; ``auto`` or ``budget_s``:
     as many steps as the budget allows, unless ``steps`` is given (then ``steps``).
-    ``task``: the bags' task (default: the one they record, else pusher_reach)."""
+    ``task``: the bags' task (default: the one they record, else pusher_reach).
+    ``dataset``: the bags already read (``load_bags(bags)``'s result, e.g. handed to the run
+    by a sweep's engine); else they are read here, in ``decode_workers`` processes."""
     out = check_output_dir(out_dir, "--out")
     if eval_episodes < 0:
         raise UserError(f"--eval-episodes must be >= 0, got {eval_episodes}")
     task = task_of_run(bags, task)
-    data, bag_summary = load_bags(bags, from_topics, task)
+    if dataset is not None:
+        data, bags_read = dataset
+        check_layout_fits(bags[0], data.layout.obs_dim, data.layout.act_dim, task)
+    else:
+        data, bags_read = load_bags(bags, from_topics, task, decode_workers)
     cfg, plan = plan_training(data, cfg, auto, budget_s, steps, log)
     init_ckpt = None
     if init:
@@ -198,7 +213,7 @@ def run_training(
         "seed": seed,
         "steps": cfg.steps,
         "transitions": len(data),
-        "bags": bag_summary,
+        "bags": bags_read,
         "dataset_hash": result.checkpoint["dataset_hash"],
         "config": cfg.to_dict(),
         "init": str(init) if init else None,
