@@ -24,6 +24,8 @@ COMMAND_MODULES = (
     "export_onnx",
     "bench",
     "hil",
+    "weights_key",
+    "sros2",
 )
 
 
