@@ -261,7 +261,7 @@ def test_a_full_buffer_evicts_the_oldest_live_rows_and_keeps_the_offline_ones(of
         assert torch.equal(a.data.obs[0, slot], torch.from_numpy(rows.obs[k]))
     assert a.n_human == int((rows.source == SOURCE_HUMAN).sum())  # evicted ones counted too
     # update j samples transitions [j + 1 - capacity, j + 1): all still held
-    for bound in (5, 300, 400):
+    for bound in (a.n_evicted + 30, 300, 400):
         idx = a.sampler.next(bound)[0]
         online = [held[int(s)] for s in idx if int(s) >= len(offline)]
         assert online and all(max(0, bound - 30) <= k < bound for k in online), (bound, online)
