@@ -44,6 +44,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 from geometry_msgs.msg import PointStamped  # noqa: E402
 from rclpy.clock import Clock, ClockType  # noqa: E402
 from rclpy.node import Node  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from rclpy.serialization import deserialize_message  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
@@ -122,6 +123,7 @@ class PolicyServer(Node):
         self.actor = Actor(load_policy(self.path),  # UserError with one clear line if missing/broken
                            explore=self.settings.explore, seed=self.settings.seed,
                            paced_every=self.settings.paced_every)
+        self.reverting = None  # the checkpoint parameter being set back after a failed switch
         self.pairing = StatePairing()
         self.held: Paired | None = None  # a state waiting for the weights version it needs
         self.answered = 0
@@ -166,7 +168,7 @@ class PolicyServer(Node):
             self.actor.explore = bool(value)
         elif name == "poll_period":
             self.poll_timer.timer_period_ns = int(value * 1e9)
-        elif name == "checkpoint":
+        elif name == "checkpoint" and value != self.reverting:
             self.load_checkpoint(str(checkpoint_file(value)), switch=True)
 
     # -------------------------------------------------------------- checkpoint
@@ -234,6 +236,10 @@ class PolicyServer(Node):
             self.status.rejections.add(Rejection("bad checkpoint", str(policy)))
             self.get_logger().error(f"cannot {'load' if switch else 'reload'} {path}, still serving "
                                     f"{self.path}: {policy}")
+            if switch:  # the parameter says again what serves
+                self.reverting = self.path
+                self.set_parameters([Parameter("checkpoint", value=self.path)])
+                self.reverting = None
             return
         if switch:
             self.path, self.signature = path, signature
