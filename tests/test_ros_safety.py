@@ -182,6 +182,13 @@ def _sent_numbers(bag) -> list[int]:
                 for _, _, raw in reader.messages(conns)]
 
 
+def _flushed(bag) -> bool:
+    try:
+        return bool(_sent_numbers(bag))
+    except Exception:  # noqa: BLE001 - nothing flushed yet
+        return False
+
+
 def test_the_recorder_stops_cleanly_when_the_disk_fills(spawn, tmp_path, ros_env):
     """Free space below ``min_free_space`` (here: the minimum raised past what is free, as a
     filling disk does): the recording ends, the bag holds every message before the stop."""
@@ -237,10 +244,15 @@ def test_ctrl_c_and_a_second_one_never_crash_the_recorder_or_cut_its_bag(spawn, 
                 recorder = spawn(ros2("run", "recorder", "node", "--passive", "--topics", "notes", "--out", bag),
                                  f"recorder{run}")
                 assert recorder.wait_for_output("recording passively", 60), recorder.output()
-                assert node.spin_until(lambda: pub.get_subscription_count() > 0, 30), recorder.output()
-                for i in range(2000):  # pending in the writer when the signal comes
-                    pub.publish(String(data=str(i)))
-                node.spin_for(0.05)
+                i = 0
+                while not _flushed(bag):  # recording for real
+                    assert recorder.running() and i < 5000, recorder.output()
+                    if "subscribed to /notes" in recorder.output():
+                        pub.publish(String(data=str(i)))
+                        i += 1
+                    node.spin_for(0.02)
+                for j in range(2000):  # pending in the writer when the signal comes
+                    pub.publish(String(data=str(10**6 + j)))
                 recorder.proc.send_signal(signal.SIGINT)
                 if run % 2:
                     time.sleep(0.005 * run)  # the second Ctrl-C, into the close
@@ -248,8 +260,8 @@ def test_ctrl_c_and_a_second_one_never_crash_the_recorder_or_cut_its_bag(spawn, 
                 rc = recorder.wait(60)
                 assert rc == 0, f"run {run}: exit {rc}\n{recorder.output()[-3000:]}"
                 wrote = int(re.search(r"(\d+) messages\)", recorder.output()).group(1))
-                numbers = _sent_numbers(bag)
-                assert numbers == list(range(len(numbers))) and len(numbers) == wrote, run
+                numbers = _sent_numbers(bag)  # what it took, in order (DDS may drop some of a burst before)
+                assert len(numbers) == wrote > 0 and all(a < b for a, b in zip(numbers, numbers[1:])), run
     finally:
         busy.kill()
         busy.wait()
