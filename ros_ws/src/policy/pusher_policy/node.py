@@ -58,8 +58,8 @@ from offline_rl_core.nodes.background_loads import BackgroundLoads  # noqa: E402
 from offline_rl_core.serving.signing import load_verifier  # noqa: E402
 from offline_rl_core.serving.weights import MAX_MESSAGE_BYTES, policy_from_weights_message  # noqa: E402
 from offline_rl_core.nodes.pairing import Paired, StatePairing, check_stamp  # noqa: E402
-from offline_rl_core.serving.checkpoint import checkpoint_file, regular_file_problem
-from offline_rl_core.serving.policy import LoadedPolicy, load_policy
+from offline_rl_core.serving.checkpoint import checkpoint_file, regular_file_problem  # noqa: E402
+from offline_rl_core.serving.policy import LoadedPolicy, load_policy  # noqa: E402
 from offline_rl_core.common.rejections import Rejection  # noqa: E402
 from pusher_common.node_main import run_node  # noqa: E402
 from pusher_common.params import Param, Settings  # noqa: E402
@@ -158,7 +158,7 @@ class PolicyServer(Node):
 
     # -------------------------------------------------------------- parameters
     def check_parameter(self, name: str, value) -> str | None:
-        """A new checkpoint must name a regular file (the load itself runs on the worker)."""
+        """Refuse a new checkpoint that is not a regular file (the load itself runs on the worker)."""
         if name != "checkpoint":
             return None
         return regular_file_problem(checkpoint_file(value))
@@ -207,7 +207,7 @@ class PolicyServer(Node):
         self.loads.submit("weights", job)
 
     def on_loaded(self) -> None:
-        """What the worker finished: weights to act on, checkpoints to serve (this thread swaps policies)."""
+        """Take what the worker finished: weights to act on, checkpoints to serve (swapped on this thread)."""
         for result in self.loads.drain():
             if isinstance(result, Exception):  # a bug in a job, not in the input: said, and serving goes on
                 self.get_logger().error(f"loading failed: {type(result).__name__}: {result}")

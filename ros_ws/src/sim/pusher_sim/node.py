@@ -42,7 +42,6 @@ from offline_rl_core.data.bag.cdr import encode_transition_rows
 from offline_rl_core.task.pusher_reach import CONTROL_HZ, JOINT_NAMES
 from offline_rl_core.nodes.joint_messages import action_from_effort, action_from_torques
 from offline_rl_core.nodes.pairing import check_answer_stamp, check_stamp
-from offline_rl_core.common.errors import UserError
 from offline_rl_core.common.output_paths import check_output_file
 from offline_rl_core.nodes.sim_loop import MAX_START_TIME_S, MODES, ArmState, SimLoop, Step, TickTiming
 from offline_rl_core.data.transitions import SOURCE_NAMES, SOURCE_POLICY, source_from_tag
