@@ -127,8 +127,12 @@ class PolicyServer(Node):
         self.pairing = StatePairing()
         self.held: Paired | None = None  # a state waiting for the weights version it needs
         self.answered = 0
+        # what the worker loaded is taken on this thread, woken by the guard condition
+        self.loads_ready = self.create_guard_condition(self.on_loaded)
+        self.loads = BackgroundLoads(self.loads_ready.trigger, max_pending=WEIGHTS_QOS.depth, name="policy-loads")
         self.status = NodeStatus(self, fields=lambda: {"answered": self.answered,
-                                                       "weights_version": self.policy.weights_version})
+                                                       "weights_version": self.policy.weights_version,
+                                                       "loads_dropped": dict(self.loads.dropped)})
 
         # Target subscription first: when both are ready the executor takes it first.
         # Paced, every state counts (it indexes the pacing and the exploration noise), and
@@ -139,9 +143,6 @@ class PolicyServer(Node):
         self.create_subscription(JointState, "pusher/state", self.on_state, depth)
         self.action_pub = self.create_publisher(JointState, "policy/action", 10)
         self.provenance_pub = self.create_publisher(String, "policy/provenance", 10)
-        # what the worker loaded is taken on this thread, woken by the guard condition
-        self.loads_ready = self.create_guard_condition(self.on_loaded)
-        self.loads = BackgroundLoads(self.loads_ready.trigger, max_pending=WEIGHTS_QOS.depth, name="policy-loads")
         if self.settings.weights_topic:  # raw: its size is checked before anything is decoded
             self.create_subscription(UInt8MultiArray, self.settings.weights_topic, self.on_weights, WEIGHTS_QOS,
                                      raw=True)
