@@ -138,7 +138,8 @@ def test_a_rogue_weights_message_is_refused_before_anything_is_allocated():
     peak_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB
     for name, data in messages.items():
         for _ in range(50):
-            policy, problem = policy_from_weights_message("pusher-rl/weights", data, session.verifier(), "learner/weights")
+            policy, problem = policy_from_weights_message("pusher-rl/weights", data, session.verifier(),
+                                                          "learner/weights")
             assert policy is None and problem.reason == "unsigned weights", (name, problem)
     assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - peak_before < 50 * 1024
     obs = np.linspace(-1, 1, 8, dtype=np.float32)
