@@ -64,6 +64,9 @@ def test_every_shipped_launch_file_reads_with_its_required_arguments():
     online = by_label(load_launch(LAUNCH_DIR / "online.launch.yaml", {"corrector": "none"}))
     assert list(online) == ["learner", "policy", "mux", "recorder", "sim"]  # the learner serves first
     assert online["policy"].params["weights_topic"] == "learner/weights"
+    # the session's key pair: the learner signs with the private key, the policy node checks the public one
+    assert online["learner"].params["signing_key"] == "runs/hil-online/keys/weights.key"
+    assert online["policy"].params["weights_key"] == "runs/hil-online/keys/weights.pub"
     assert online["mux"].params["require_teleop"] is False  # no corrector: the mux waits for no teleop
     assert online["policy"].params["paced_every"] == 50  # lockstep: paced by publish_every
     # a new out directory is made by the nodes that write into it

@@ -25,6 +25,8 @@ COMMAND_MODULES = (
     "export_onnx",
     "bench",
     "hil",
+    "weights_key",
+    "sros2",
 )
 
 

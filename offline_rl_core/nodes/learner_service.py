@@ -210,6 +210,6 @@ class LearnerService:
 
     def status(self) -> dict:
         learner = self.learner
-        return {"received": learner.n_online, "updates": learner.updates, "owed": learner.updates_owed,
+        return {"received": learner.n_online, "evicted": learner.n_evicted, "updates": learner.updates, "owed": learner.updates_owed,
                 "weights_version": learner.version, "rejected": dict(self.rejected.counts),
                 "train_s": round(learner.train_seconds, 2), **{k: round(v, 5) for k, v in learner.losses.items()}}

@@ -34,6 +34,7 @@ from ..evaluation.rollouts import evaluate_policy
 from ..runs.online_loop import EVAL_SEED, TRAIN_SEED_BASE, steps_to
 from ..serving.checkpoint import load_checkpoint
 from ..serving.policy import load_policy
+from ..serving.signing import make_session_keys
 from ..evaluation.stats import wilson_ci
 from ..data.transitions import SOURCE_HUMAN
 
@@ -164,6 +165,8 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
     }
     if len(cfg.bags) > 1:
         raise UserError("--online takes one offline bag (merge several with offline-rl dataset first)")
+    # this session's weights key pair: the policy node takes only weights the learner signed with it
+    arguments["keys"] = make_session_keys(out / "keys").signing_key.parent
     log(f"hil online: {cfg.env_steps} environment steps ({episodes} episodes, {cfg.mode}) with the "
         f"{cfg.corrector} corrector, learner utd {cfg.utd}, weights every {cfg.publish_every} steps -> {out} "
         f"(ROS_DOMAIN_ID {loop.env['ROS_DOMAIN_ID']})")

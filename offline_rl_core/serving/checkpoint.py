@@ -23,6 +23,7 @@ from __future__ import annotations
 import io
 import os
 import pickle
+import stat
 import warnings
 import zipfile
 from pathlib import Path
@@ -77,7 +78,7 @@ def checkpoint_to_bytes(checkpoint: dict) -> bytes:
 
 def checkpoint_from_bytes(data: bytes, source: str) -> dict:
     """``checkpoint_to_bytes`` reversed and validated like a file; ``source`` names it in errors."""
-    return _validated(_torch_load(io.BytesIO(bytes(data)), source), source)
+    return validated_checkpoint(_torch_load(io.BytesIO(bytes(data)), source), source)
 
 
 def _torch_load(f, source) -> dict:
@@ -138,6 +139,20 @@ def checkpoint_file(path: str | os.PathLike) -> Path:
     return path / "policy.pt" if path.is_dir() else path
 
 
+def regular_file_problem(path: str | os.PathLike) -> str | None:
+    """Why ``path`` cannot be a checkpoint file without opening it (missing, not a regular
+    file: a FIFO or a terminal would block a reader), or None."""
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        return f"{path}: no such checkpoint file"
+    except OSError as exc:
+        return f"{path}: cannot read the checkpoint ({exc.strerror})"
+    if not stat.S_ISREG(mode):
+        return f"{path}: not a regular file (a FIFO, device or socket); expected a checkpoint file"
+    return None
+
+
 def load_checkpoint(path: str | os.PathLike) -> dict:
     """Read and validate a checkpoint; a clear ``UserError`` for anything wrong."""
     path = Path(path)
@@ -149,14 +164,20 @@ def load_checkpoint(path: str | os.PathLike) -> dict:
             raise UserError(f"{path}: is a directory without policy.pt; expected a checkpoint file")
         path = candidate
     try:
-        f = open(path, "rb")  # one open file for the CRC check and the load, whatever renames meanwhile
+        # one open file for the CRC check and the load, whatever renames meanwhile; opened
+        # without blocking, so a FIFO or a terminal put in its place is refused, not waited on
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
     except OSError as exc:
         raise UserError(f"{path}: cannot read the checkpoint ({exc.strerror})") from None
+    f = os.fdopen(fd, "rb")
     with f:
-        return _validated(_torch_load(f, path), path)
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise UserError(f"{path}: not a regular file (a FIFO, device or socket); expected a checkpoint file")
+        return validated_checkpoint(_torch_load(f, path), path)
 
 
-def _validated(ckpt, path) -> dict:
+def validated_checkpoint(ckpt, path) -> dict:
+    """``ckpt`` if it is a servable checkpoint (fields, shapes, finite values); a UserError naming ``path`` if not."""
     if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
         raise UserError(f"{path}: not a pusher-rl checkpoint (expected format '{CHECKPOINT_FORMAT}')")
     if ckpt.get("version") != CHECKPOINT_VERSION:

@@ -28,12 +28,18 @@ State, goal and points are paired by stamp as ``offline_rl_core.nodes.pairing`` 
 
 The actor of the HIL-SERL stage (``offline_rl_core.serving.actor``): with ``weights_topic`` set
 (``learner/weights``) it also takes each new weights version the online learner
-publishes; it acts deterministically unless ``explore`` is set, then it samples the
+publishes, signed with the session's key (``weights_key``: the learner's public key; see
+``offline_rl_core.serving.weights``: anything else on the topic is refused and counted); it
+acts deterministically unless ``explore`` is set, then it samples the
 learner's Gaussian from its own ``seed``; with ``paced_every`` (the learner's
 ``publish_every``) state n waits for weights version n // paced_every, so a lockstep sim
 cannot outrun the learner. Every answer is also reported on ``policy/provenance``
 (std_msgs/String, JSON: stamp, weights_version, trained_through, weights_age_s: seconds
 since the learner cut them, explore), so a bag says which weights acted.
+
+Checkpoint files and weights messages are read, checked and decoded on a worker thread
+(``offline_rl_core.nodes.background_loads``), never on the thread that answers states;
+a ``checkpoint`` that is not a regular file (a FIFO, a terminal) is refused.
 """
 
 from __future__ import annotations
@@ -49,18 +55,22 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 from geometry_msgs.msg import PointStamped, PoseStamped  # noqa: E402
 from rclpy.clock import Clock, ClockType  # noqa: E402
 from rclpy.node import Node  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
+from rclpy.serialization import deserialize_message  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64MultiArray, String, UInt8MultiArray  # noqa: E402
 
 from offline_rl_core.serving.actor import Actor  # noqa: E402
 from offline_rl_core.common.errors import UserError  # noqa: E402
+from offline_rl_core.nodes.background_loads import BackgroundLoads  # noqa: E402
 from offline_rl_core.nodes.joint_messages import command_from_action  # noqa: E402
 from offline_rl_core.nodes.observation import ObservationBuilder, kinematics_model  # noqa: E402
-from offline_rl_core.serving.weights import policy_from_weights_message  # noqa: E402
 from offline_rl_core.nodes.pairing import Paired, StatePairing, check_stamp  # noqa: E402
-from offline_rl_core.serving.checkpoint import checkpoint_file, checkpoint_task  # noqa: E402
+from offline_rl_core.serving.checkpoint import checkpoint_file, checkpoint_task, regular_file_problem  # noqa: E402
 from offline_rl_core.serving.policy import LoadedPolicy, load_policy, policy_for_task  # noqa: E402
+from offline_rl_core.serving.signing import load_verifier  # noqa: E402
+from offline_rl_core.serving.weights import MAX_MESSAGE_BYTES, policy_from_weights_message  # noqa: E402
 from offline_rl_core.task.spec import JOINT_STATE, POSE_STAMPED, load_task  # noqa: E402
 from offline_rl_core.common.rejections import Rejection  # noqa: E402
 from pusher_common.node_main import run_node  # noqa: E402
@@ -97,6 +107,9 @@ PARAMS = (
           "on effort_controller/commands); remap the topic with -r", read_only=True),
     Param("weights_topic", "", "also act on the weights versions the online learner publishes on this topic "
           "(std_msgs/UInt8MultiArray, e.g. learner/weights; empty: off)", read_only=True, flag="--weights-topic"),
+    Param("weights_key", "", "the session learner's public key file (weights.pub, from offline-rl weights-key): "
+          "weights on weights_topic are taken only when signed with its private key (required with "
+          "weights_topic)", read_only=True, flag="--weights-key"),
     Param("explore", False, "sample exploration actions from the policy's Gaussian (the online learner's std) "
           "instead of acting deterministically", flag="--explore"),
     Param("seed", 0, "seed of the exploration noise", low=0, read_only=True, flag="--seed"),
@@ -116,19 +129,28 @@ class PolicyServer(Node):
             raise UserError("no checkpoint given: pass --checkpoint PATH or -p checkpoint:=PATH")
         self.path = str(checkpoint_file(self.settings.checkpoint))
         self.signature = file_signature(self.path)
+        self.verifier = None
+        if self.settings.weights_topic:
+            if not self.settings.weights_key:
+                raise UserError("weights_topic needs weights_key: the session learner's public key file (weights.pub)")
+            self.verifier = load_verifier(self.settings.weights_key)
         policy = load_policy(self.path)  # UserError with one clear line if missing/broken
         # the task given must be the checkpoint's (one line naming both layouts otherwise)
         self.task = load_task(self.settings.task) if self.settings.task else checkpoint_task(policy.checkpoint)
         policy = policy_for_task(policy.checkpoint, self.path, self.task)
         self.actor = Actor(policy, explore=self.settings.explore, seed=self.settings.seed,
                            paced_every=self.settings.paced_every)
-        self.candidate = None  # a checkpoint set at run time, loaded while checking it
+        self.reverting = None  # the checkpoint parameter being set back after a failed switch
         self.builder = ObservationBuilder(self.task, kinematics_model(self.task))
         self.pairing = StatePairing(points=tuple(self.builder.point_topics), required=self.builder.topic_only)
         self.held: Paired | None = None  # a state waiting for the weights version it needs
         self.answered = 0
+        # what the worker loaded is taken on this thread, woken by the guard condition
+        self.loads_ready = self.create_guard_condition(self.on_loaded)
+        self.loads = BackgroundLoads(self.loads_ready.trigger, max_pending=WEIGHTS_QOS.depth, name="policy-loads")
         self.status = NodeStatus(self, fields=lambda: {"answered": self.answered,
-                                                       "weights_version": self.policy.weights_version})
+                                                       "weights_version": self.policy.weights_version,
+                                                       "loads_dropped": dict(self.loads.dropped)})
 
         # Goal subscription first: when both are ready the executor takes it first.
         # Paced, every state counts (it indexes the pacing and the exploration noise), and
@@ -143,8 +165,9 @@ class PolicyServer(Node):
         self.create_subscription(JointState, task.state.topic, self.on_state, depth)
         self.action_pub = self.create_publisher(JointState, "policy/action", 10)
         self.provenance_pub = self.create_publisher(String, "policy/provenance", 10)
-        if self.settings.weights_topic:
-            self.create_subscription(UInt8MultiArray, self.settings.weights_topic, self.on_weights, WEIGHTS_QOS)
+        if self.settings.weights_topic:  # raw: its size is checked before anything is decoded
+            self.create_subscription(UInt8MultiArray, self.settings.weights_topic, self.on_weights, WEIGHTS_QOS,
+                                     raw=True)
         self.command_joint_state = task.command.type == JOINT_STATE
         self.command_pub = self.create_publisher(JointState if self.command_joint_state else Float64MultiArray,
                                                  task.command.topic, 10) if self.settings.publish_command else None
@@ -163,27 +186,18 @@ class PolicyServer(Node):
 
     # -------------------------------------------------------------- parameters
     def check_parameter(self, name: str, value) -> str | None:
+        """Refuse a new checkpoint that is not a regular file (the load itself runs on the worker)."""
         if name != "checkpoint":
             return None
-        path = str(checkpoint_file(value))
-        try:
-            self.candidate = (path, file_signature(path), load_policy(path, self.task))
-        except UserError as exc:  # refused with the reason; the old policy serves on
-            return str(exc)
-        except Exception as exc:  # noqa: BLE001 - whatever is wrong with the file
-            return f"cannot load {path}: {exc}"
-        return None
+        return regular_file_problem(checkpoint_file(value))
 
     def on_parameter_change(self, name: str, value) -> None:
         if name == "explore":
             self.actor.explore = bool(value)
         elif name == "poll_period":
             self.poll_timer.timer_period_ns = int(value * 1e9)
-        elif name == "checkpoint" and self.candidate is not None:
-            self.path, self.signature, policy = self.candidate
-            self.actor.offer(policy)
-            self.candidate = None
-            self.get_logger().info(f"serving {self.policy.algorithm} policy from {self.path}")
+        elif name == "checkpoint" and value != self.reverting:
+            self.load_checkpoint(str(checkpoint_file(value)), switch=True)
 
     # -------------------------------------------------------------- checkpoint
     def check_checkpoint(self) -> None:
@@ -194,28 +208,77 @@ class PolicyServer(Node):
         if signature is None:
             self.get_logger().warning(f"{self.path} disappeared; still serving the loaded policy")
             return
-        try:
-            policy = load_policy(self.path, self.task)  # a checkpoint of another task is refused too
-        except Exception as exc:  # noqa: BLE001 - whatever is wrong with the file, keep serving
-            self.status.rejections.add(Rejection("bad checkpoint", str(exc)))
-            self.get_logger().error(f"cannot reload {self.path}, keeping the previous policy: {exc}")
-            return
-        self.actor.offer(policy)  # one reference swap: a callback sees the old or the new policy
-        self.get_logger().info(f"reloaded {self.path} ({policy.algorithm})")
+        self.load_checkpoint(self.path, switch=False)
 
-    def on_weights(self, msg: UInt8MultiArray) -> None:
+    def load_checkpoint(self, path: str, switch: bool) -> None:
+        """Load ``path`` on the worker; ``on_loaded`` takes it (``switch``: serve from it from now on)."""
+        task = self.task
+
+        def job():
+            signature = file_signature(path)
+            try:
+                return "checkpoint", path, signature, switch, load_policy(path, task)  # another task's: refused
+            except Exception as exc:  # noqa: BLE001 - whatever is wrong with the file, keep serving
+                return "checkpoint", path, signature, switch, exc
+        self.loads.submit("checkpoint", job)
+
+    def on_weights(self, raw: bytes) -> None:
         topic = self.settings.weights_topic
         self.status.took(topic)
-        label = msg.layout.dim[0].label if msg.layout.dim else ""
-        policy, problem = policy_from_weights_message(label, msg.data, topic, self.task)
+        if len(raw) > MAX_MESSAGE_BYTES + 1024:  # the CDR framing around the bytes is a few dozen bytes
+            self.status.reject(topic, Rejection("bad weights", f"{len(raw)} bytes, more than weights may hold"))
+            return
+        verifier, task = self.verifier, self.task
+
+        def job():
+            msg = deserialize_message(raw, UInt8MultiArray)
+            label = msg.layout.dim[0].label if msg.layout.dim else ""
+            return ("weights", *policy_from_weights_message(label, msg.data, verifier, topic, task))
+        self.loads.submit("weights", job)
+
+    def on_loaded(self) -> None:
+        """Take what the worker finished: weights to act on, checkpoints to serve (swapped on this thread)."""
+        for result in self.loads.drain():
+            if isinstance(result, Exception):  # a bug in a job, not in the input: said, and serving goes on
+                self.get_logger().error(f"loading failed: {type(result).__name__}: {result}")
+            elif result[0] == "weights":
+                self.take_weights(*result[1:])
+            else:
+                self.take_checkpoint(*result[1:])
+
+    def take_weights(self, policy: LoadedPolicy | None, problem: Rejection | None) -> None:
+        topic = self.settings.weights_topic
+        if problem is None:
+            taken, problem = self.actor.offer_weights(policy)
         if problem:  # whatever is wrong with the message, the held policy serves on
             self.status.reject(topic, problem)
             return
-        if self.actor.offer(policy):
+        if taken:
             self.get_logger().info(f"acting on weights version {policy.weights_version}",
                                    throttle_duration_sec=WARN_THROTTLE_S)
             held, self.held = self.held, None
             self.answer(held)
+
+    def take_checkpoint(self, path: str, signature, switch: bool, policy) -> None:
+        if not switch and path != self.path:
+            return  # a reload of the file served before a switch
+        if isinstance(policy, Exception):
+            self.status.rejections.add(Rejection("bad checkpoint", str(policy)))
+            self.get_logger().error(f"cannot {'load' if switch else 'reload'} {path}, still serving "
+                                    f"{self.path}: {policy}")
+            if switch:  # the parameter says again what serves
+                self.reverting = self.path
+                self.set_parameters([Parameter("checkpoint", value=self.path)])
+                self.reverting = None
+            return
+        if switch:
+            self.path, self.signature = path, signature
+        self.actor.offer(policy)  # one reference swap: a callback sees the old or the new policy
+        self.get_logger().info(f"serving {policy.algorithm} policy from {path}" if switch else
+                               f"reloaded {path} ({policy.algorithm})")
+
+    def close(self) -> None:
+        self.loads.stop()  # before the guard condition it triggers goes with the node
 
     # -------------------------------------------------------------- serving
     def on_goal(self, msg) -> None:
