@@ -14,7 +14,7 @@ help:
 	@echo "make test      set up .venv, then run the whole test suite (slow end-to-end cases included)"
 	@echo "make test-fast the suite without the slow end-to-end cases"
 	@echo "make bag       regenerate bags/mix.db3 (bit-reproducible)"
-	@echo "make bench     full benchmark against the reference implementations -> bench/results.json"
+	@echo "make bench     full benchmark against the reference implementations -> bench/results.json, then bench/RESULTS.md"
 	@echo "make hil-demo  the corrections loop: serve, correct, record, retrain, reload"
 	@echo "make hil-online the HIL-SERL stage: the online learner fine-tunes the prior while the policy node acts"
 
@@ -53,6 +53,7 @@ bag: setup
 bench: setup
 	$(PIP) install -e '.[bench]'
 	$(VENV)/bin/offline-rl bench --json bench/results.json
+	$(PY) bench/results_page.py
 
 hil-demo: setup
 	$(VENV)/bin/offline-rl hil --out runs/hil

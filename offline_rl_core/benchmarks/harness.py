@@ -11,7 +11,9 @@ from __future__ import annotations
 import json
 import os
 import platform
+import shlex
 import statistics
+import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -203,6 +205,51 @@ def machine_info() -> dict:
     }
 
 
+def invoked_command() -> str:
+    """The command line this process runs, as a user types it: ``offline-rl ...`` for the
+    CLI (also when re-run under ``python -m``), ``python SCRIPT ...`` for a bench script."""
+    argv = sys.argv or [""]
+    script = Path(argv[0])
+    if script.name == "offline-rl" or script.parts[-2:] in (("offline_rl_core", "__main__.py"), ("commands", "cli.py")):
+        return shlex.join(["offline-rl", *argv[1:]])
+    try:  # a script path relative to the directory it was run from, as it was typed
+        script = script.resolve().relative_to(Path.cwd())
+    except ValueError:
+        pass
+    return shlex.join(["python", str(script), *argv[1:]])
+
+
+def utc_now() -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+
+
+def run_facts() -> dict:
+    """What every JSON file under bench/ says about its figures: the command that measured
+    them, the machine and when (bench/results_page.py prints them beside the figures)."""
+    return {"command": invoked_command(), "machine": machine_info(), "measured_at": utc_now()}
+
+
+def add_run_facts(store: dict) -> None:
+    """``run_facts`` for a JSON file that several commands fill in turn (a resumable bench
+    script): this command joins its ``commands``, ``measured_at`` becomes now, and the file
+    keeps one machine (figures from another CPU belong in another file)."""
+    facts = run_facts()
+    stored = store.setdefault("machine", facts["machine"])
+    if _cpu(stored) != _cpu(facts["machine"]):
+        raise SystemExit(f"this file holds figures measured on {_cpu(stored)}, not on this CPU "
+                         f"({_cpu(facts['machine'])}): write them to another --json")
+    commands = store.setdefault("commands", [])
+    if facts["command"] not in commands:
+        commands.append(facts["command"])
+    store["measured_at"] = facts["measured_at"]
+
+
+def _cpu(m: dict) -> str:
+    """A machine record's CPU model and flags, under the keys the writers of the time used."""
+    flags = m.get("cpu_isa_flags") or m.get("isa_flags") or m.get("isa") or []
+    return " ".join([m.get("cpu_model") or m.get("cpu") or "an unrecorded CPU", *flags])
+
+
 def choose_threads(requested: int | None) -> tuple[int, str]:
     """torch's default threads for the run's references, and why: torch's own default
     (as a user runs the chapter's script or d3rlpy), unless ``--threads`` says otherwise.
@@ -271,6 +318,7 @@ def run_bench(settings: BenchSettings, only: list[str] | None = None, log: Calla
     unknown = [g for g in groups if g not in GROUPS]
     if unknown:
         raise ValueError(f"unknown bench group(s) {', '.join(unknown)}; expected some of {', '.join(GROUPS)}")
+    started = utc_now()
     machine = machine_info()
     machine["threads_choice"] = why
     log(f"bench on {machine['cpu_model']} ({machine['cpu_count']} cpus, torch threads {why}, "
@@ -293,6 +341,7 @@ def run_bench(settings: BenchSettings, only: list[str] | None = None, log: Calla
         figures.extend(got)
         log(f"[{g}] {time.perf_counter() - t1:.1f}s")
     payload = results_json(figures, settings, machine, time.perf_counter() - t0)
+    payload["command"], payload["measured_at"] = invoked_command(), started
     return figures, payload
 
 
@@ -308,7 +357,5 @@ def figures_from_json(payload: dict) -> list[Figure]:
 
 
 if __name__ == "__main__":
-    import sys
-
     for arg in sys.argv[1:]:
         print(format_table(figures_from_json(json.loads(Path(arg).read_text())), markdown=True))
