@@ -35,6 +35,11 @@ $(STAMP): pyproject.toml $(ROS_FILES) ros_ws/tools/ros_install.py
 	  && ! printf '%s\n' "$$dry" | grep -q '^Would install.* torch-[0-9]' \
 	  && $(PIP) install 'torch==2.13.0' -e '.[ray]' \
 	  || echo "setup: Ray not installed (pip could not install it beside torch 2.13.0); offline-rl sweep --engine ray is unavailable"
+	@# the live view's Foxglove WebSocket server (the viz extra), likewise only beside this torch
+	@dry=$$($(PY) -m pip --disable-pip-version-check install --dry-run 'torch==2.13.0' -e '.[viz]' 2>&1) \
+	  && ! printf '%s\n' "$$dry" | grep -q '^Would install.* torch-[0-9]' \
+	  && $(PIP) install 'torch==2.13.0' -e '.[viz]' \
+	  || echo "setup: foxglove-sdk not installed (pip could not install it beside torch 2.13.0); ros2 run viz live_view is unavailable"
 	$(PY) ros_ws/tools/ros_install.py --venv $(VENV) $(ROS_PACKAGES)
 	@touch $(STAMP)
 

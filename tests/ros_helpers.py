@@ -23,7 +23,8 @@ PACKAGES = ("sim", "recorder", "trainer", "policy", "learner")
 # The Python module of each ROS package (PyPI has packages called sim, trainer, policy,
 # recorder).
 MODULES = {"sim": "pusher_sim", "recorder": "pusher_recorder", "trainer": "pusher_trainer", "policy": "pusher_policy",
-           "corrections": "pusher_corrections", "pusher_common": "pusher_common", "learner": "pusher_learner"}
+           "corrections": "pusher_corrections", "pusher_common": "pusher_common", "learner": "pusher_learner",
+           "viz": "pusher_viz"}
 INDEX = Path(sys.prefix) / "share" / "ament_index" / "resource_index" / "packages"
 
 # One DDS domain per test session, localhost only: parallel sessions and other machines

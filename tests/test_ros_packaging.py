@@ -42,7 +42,7 @@ def test_every_package_declares_node_and_real_dependencies():
 CONFIGS = [("sim", "pusher_sim.node", "sim"), ("policy", "pusher_policy.node", "policy"),
            ("trainer", "pusher_trainer.node", "trainer"), ("corrections", "pusher_corrections.mux", "mux"),
            ("corrections", "pusher_corrections.corrector", "corrector"), ("learner", "pusher_learner.node", "learner"),
-           ("recorder", "pusher_recorder.node", "recorder")]
+           ("recorder", "pusher_recorder.node", "recorder"), ("viz", "pusher_viz.markers", "markers")]
 
 
 def test_config_files_hold_every_setting_with_its_default():
@@ -62,7 +62,8 @@ def test_config_files_hold_every_setting_with_its_default():
 
 def test_ros_install_lays_out_an_ament_prefix_and_is_idempotent(tmp_path, capsys):
     venv = fake_venv(tmp_path)
-    args = ["--venv", str(venv), "--no-shim", *[str(SRC / p) for p in (*PACKAGES, "corrections", "pusher_common")]]
+    packages = (*PACKAGES, "corrections", "pusher_common", "viz")
+    args = ["--venv", str(venv), "--no-shim", *[str(SRC / p) for p in packages]]
     for _ in range(2):
         assert ros_install.main(args) == 0
     site = ros_install.site_packages(venv)

@@ -44,16 +44,19 @@ class NodeAccess:
     reply: tuple[str, ...] = ()  # services it serves
     request: tuple[str, ...] = ()  # services it calls
     status: bool = True  # publishes ~/status
+    diagnostics: bool = True  # publishes /diagnostics (offline_rl_core.nodes.diagnostics)
 
 
 NODE_GRAPH: dict[str, NodeAccess] = {
-    "sim": NodeAccess(publish=SIM_OUT, subscribe=("pusher/command",) + COMMANDS + ("effort_controller/commands",),
+    "sim": NodeAccess(publish=SIM_OUT + ("markers",),
+                      subscribe=("pusher/command",) + COMMANDS + ("effort_controller/commands",),
                       reply=("pusher/reset",)),
     "policy": NodeAccess(publish=("policy/action", "policy/provenance", "effort_controller/commands"),
                          subscribe=("pusher/state", "pusher/target", "pusher/fingertip", "learner/weights")),
     "mux": NodeAccess(publish=("pusher/command/policy", "pusher/command/human", "corrections/intervening"),
                       subscribe=("policy/action", "teleop/action")),
-    "corrector": NodeAccess(publish=("teleop/action",), subscribe=("pusher/state", "pusher/target"), status=False),
+    "corrector": NodeAccess(publish=("teleop/action", "episode_label"),
+                            subscribe=("pusher/state", "pusher/target", "joy"), status=False),
     "learner": NodeAccess(publish=("~/weights",), subscribe=("pusher/transition",)),
     # driving (collect) or passive: every topic of the pipeline, never a weights publisher
     "recorder": NodeAccess(publish=("pusher/command/expert", "pusher/command/random"),
@@ -61,15 +64,19 @@ NODE_GRAPH: dict[str, NodeAccess] = {
                                "policy/action", "policy/provenance", "teleop/action", "corrections/intervening",
                                "effort_controller/commands", "learner/weights", "/tf", "/tf_static"),
                            status=False),
-    "trainer": NodeAccess(publish=("~/progress",), status=False),
+    "trainer": NodeAccess(publish=("~/progress",), status=False, diagnostics=False),
+    # the arm's markers from a real arm's joint states (ros2 run viz markers)
+    "markers": NodeAccess(publish=("markers",), subscribe=("joint_states", "goal", "pusher/state", "pusher/target"),
+                          status=False),
     # a person's tools (ros2 topic/param/service): watch, set parameters, reset episodes
     "operator": NodeAccess(subscribe=("sim/status", "policy/status", "mux/status", "learner/status",
-                                      "trainer/progress", "policy/provenance", "corrections/intervening"),
+                                      "trainer/progress", "policy/provenance", "corrections/intervening",
+                                      "/diagnostics", "markers", "episode_label"),
                            request=("pusher/reset",) + tuple(
                                f"{node}/{service[2:]}" for node in
-                               ("sim", "policy", "mux", "corrector", "learner", "recorder", "trainer")
+                               ("sim", "policy", "mux", "corrector", "learner", "recorder", "trainer", "markers")
                                for service in PARAMETER_SERVICES),
-                           status=False),
+                           status=False, diagnostics=False),
 }
 
 
@@ -89,9 +96,11 @@ def fully_qualified(name: str, namespace: str, node: str) -> str:
 
 def _access(node: str) -> NodeAccess:
     a = NODE_GRAPH[node]
-    publish = a.publish + (("~/status",) if a.status else ()) + COMMON_PUBLISH
+    publish = a.publish + (("~/status",) if a.status else ()) + (("/diagnostics",) if a.diagnostics else ()) + \
+        COMMON_PUBLISH
     return NodeAccess(publish=_unique(publish), subscribe=_unique(a.subscribe + COMMON_SUBSCRIBE),
-                      reply=_unique(a.reply + PARAMETER_SERVICES), request=a.request, status=a.status)
+                      reply=_unique(a.reply + PARAMETER_SERVICES), request=a.request, status=a.status,
+                      diagnostics=a.diagnostics)
 
 
 def _unique(names) -> tuple[str, ...]:

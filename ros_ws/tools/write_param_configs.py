@@ -17,6 +17,8 @@ spec = {
  "recorder": [("pusher_recorder.node", "recorder", "ros2 run recorder node")],
  "corrections": [("pusher_corrections.mux", "mux", "ros2 run corrections mux"),
                  ("pusher_corrections.corrector", "corrector", "ros2 run corrections corrector")],
+ "viz": [("pusher_viz.markers", "markers", "ros2 run viz markers"),
+         ("pusher_viz.live_view", "live_view", "ros2 run viz live_view")],
 }
 for pkg, nodes in spec.items():
     d = Path(__file__).resolve().parents[1] / "src" / pkg / "config"

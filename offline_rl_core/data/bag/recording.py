@@ -26,6 +26,7 @@ import fcntl
 import os
 import shutil
 import threading
+import time
 from contextlib import suppress
 from pathlib import Path
 
@@ -143,6 +144,7 @@ class BagWriter:
         self._unwritten_topics: list[Topic] = []  # not yet in the current file
         self._pending: list[tuple[int, int, bytes]] = []
         self._pending_bytes = 0
+        self._oldest_pending_at: float | None = None  # monotonic time the oldest unflushed message came
         self._pending_stats: list[tuple[tuple[str, str], int]] = []
         self._file_first_stamp: int | None = None
         self._error: BaseException | None = None
@@ -203,12 +205,24 @@ class BagWriter:
                 self._next_file()
             if self._file_first_stamp is None:
                 self._file_first_stamp = stamp
+            if not self._pending:
+                self._oldest_pending_at = time.monotonic()
             self._pending.append((entry.id, stamp, bytes(data)))
             self._pending_stats.append((entry.key, stamp))
             self._pending_bytes += len(data)
             self.message_count += 1
             if self._pending_bytes >= FLUSH_BYTES:
                 self._flush()
+
+    def flush_lag_s(self) -> float:
+        """Seconds the oldest message not yet on disk has waited (0 when all are written)."""
+        since = self._oldest_pending_at
+        return 0.0 if since is None else max(time.monotonic() - since, 0.0)
+
+    @property
+    def error(self) -> BaseException | None:
+        """What made a flush fail (the bag keeps what it had), or None."""
+        return self._error
 
     def flush(self) -> None:
         """Write everything pending now (a flush also runs every ``flush_interval``)."""
@@ -288,6 +302,7 @@ class BagWriter:
             stats.add(key, stamp)
         topics, messages = self._unwritten_topics, self._pending
         self._unwritten_topics, self._pending, self._pending_stats, self._pending_bytes = [], [], [], 0
+        self._oldest_pending_at = None
         info = self.metadata()
         try:
             self._storage.flush(topics, messages, storage_metadata_text(info))

@@ -23,6 +23,15 @@ has not got closer to the target for ``patience`` steps, hands back after
   s      shoulder torque 0            k      elbow torque 0
   space  hand back to the policy      q      quit (Ctrl-C too)
 Any torque key takes over; the held torques are sent with every state until space.
+
+``--mode gamepad``: a person with a gamepad, read from ``joy`` (sensor_msgs/Joy, as the
+standard ``joy`` node publishes it): while the dead-man button is held the sticks' action
+answers every state (scaled into [-1, 1], in the command joints' order); released, the
+policy keeps the arm. Two buttons label the episode a success or a failure on
+``episode_label`` (std_msgs/String, ``{"label": "success"}``). The mapping is ``gamepad``
+(a YAML file; empty: an Xbox pad, as ``config/gamepad_xbox.yaml`` documents;
+``offline_rl_core.nodes.gamepad``). A Joy message the mapping cannot read is refused and
+counted on ``/diagnostics``.
 """
 
 from __future__ import annotations
@@ -40,7 +49,8 @@ from geometry_msgs.msg import PointStamped, PoseStamped
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.task import Future
-from sensor_msgs.msg import JointState
+from sensor_msgs.msg import JointState, Joy
+from std_msgs.msg import String
 
 from offline_rl_core.common.errors import UserError
 from offline_rl_core.nodes.observation import ObservationBuilder, kinematics_model
@@ -49,6 +59,10 @@ from offline_rl_core.task.spec import DEFAULT_TASK, JOINT_STATE, POSE_STAMPED, l
 from pusher_common.node_main import run_node
 from pusher_common.params import Param, Settings
 from pusher_common.stamps import stamp_key
+from pusher_common.diagnostics import NodeDiagnostics
+from offline_rl_core.nodes.diagnostics import StatusDiagnosis
+from offline_rl_core.nodes.gamepad import LABEL_TOPIC, GamepadTeleop, label_json, load_mapping
+from offline_rl_core.common.rejections import RejectionCounter
 
 from offline_rl_core.task.corrector import CorrectorParams, ScriptedCorrector, task_rule
 
@@ -108,7 +122,10 @@ PARAMS = (
     Param("task", DEFAULT_TASK, "the task: a built-in task or a task file (its state, goal, reward distance and "
           "scripted expert)", read_only=True, flag="--task"),
     Param("mode", "scripted", "scripted: the scripted expert takes over when progress stalls; keyboard: a person "
-          "at this terminal", choices=("scripted", "keyboard"), read_only=True, flag="--mode"),
+          "at this terminal; gamepad: a person with a gamepad on joy (sensor_msgs/Joy)",
+          choices=("scripted", "keyboard", "gamepad"), read_only=True, flag="--mode"),
+    Param("gamepad", "", "gamepad mode: the mapping file (YAML: deadman, axes, deadzone, success, failure; empty: "
+          "an Xbox pad, as config/gamepad_xbox.yaml)", read_only=True, flag="--gamepad"),
     Param("patience", 8, "k: states without progress before taking over", low=1, flag="--patience"),
     Param("grace_steps", 20, "states at an episode's start before progress is judged", low=0, flag="--grace-steps"),
     Param("hold_steps", 25, "m: steps of a takeover before handing back", low=1, flag="--hold-steps"),
@@ -118,7 +135,7 @@ PARAMS = (
     Param("reaction_delay", 0, "states between deciding to take over and acting", low=0, flag="--reaction-delay"),
     Param("seed", 0, "seed of the correction noise", low=0, read_only=True, flag="--seed"),
 )
-RULE_PARAMS = tuple(p.name for p in PARAMS if p.name not in ("mode", "task"))
+RULE_PARAMS = tuple(p.name for p in PARAMS if p.name not in ("mode", "task", "gamepad"))
 
 
 class Corrector(Node):
@@ -140,6 +157,8 @@ class Corrector(Node):
                 self.teleop = ScriptedCorrector(CorrectorParams(**values), expert, distance, task.reward.success_within)
             except ValueError as exc:
                 raise UserError(str(exc)) from None
+        elif self.mode == "gamepad":
+            self.teleop = GamepadTeleop(load_mapping(self.settings.gamepad), task.act_dim)
         else:
             if task.act_dim != 2:
                 raise UserError(f"--mode keyboard drives a two-joint arm; task {task.name} has {task.act_dim} "
@@ -150,18 +169,49 @@ class Corrector(Node):
         self.answers: dict[int, JointState] = {}
         self.states = 0
         self.corrections = 0
+        self.correcting = False  # the last state decided was answered with a correction
         goal_type = {JOINT_STATE: JointState, POSE_STAMPED: PoseStamped}.get(task.goal.type, PointStamped)
         self.create_subscription(goal_type, task.goal.topic, self.on_goal, 10)
         state_sub = self.create_subscription(JointState, task.state.topic, self.on_state, 10)
         self.pub = self.create_publisher(JointState, "teleop/action", 10)
+        self.rejected = RejectionCounter()
+        if self.mode == "gamepad":
+            self.create_subscription(Joy, "joy", self.on_joy, 10)
+            self.label_pub = self.create_publisher(String, LABEL_TOPIC, 10)
+        self.diagnostics = NodeDiagnostics(self, self.status, StatusDiagnosis(idle=lambda st: (
+            f"{st['mode']}: {'taking over' if st['correcting'] else 'watching'}")), hardware_id=task.name)
         rule = ", ".join(f"{k}={v}" for k, v in values.items())
-        desc = f"scripted ({rule})" if self.mode == "scripted" else "keyboard"
+        desc = {"scripted": f"scripted ({rule})", "keyboard": "keyboard",
+                "gamepad": f"gamepad ({self.teleop.mapping.source if self.mode == 'gamepad' else ''})"}[self.mode]
         self.get_logger().info(f"corrector {desc} of task {task.name}: answering {state_sub.topic_name} on "
                                f"{self.pub.topic_name}")
 
+    def status(self) -> dict:
+        out = {"mode": self.mode, "states": self.states, "corrections": self.corrections,
+               "correcting": self.correcting}
+        if self.mode == "scripted":
+            out["takeovers"] = self.teleop.takeovers
+        if self.mode == "gamepad":
+            out["deadman_held"] = self.teleop.active
+            out["labels"] = dict(self.teleop.labels_sent)
+            out["rejected"] = dict(self.rejected.counts)
+        return out
+
+    def on_joy(self, msg: Joy) -> None:
+        events, problem = self.teleop.on_joy(msg.axes, msg.buttons)
+        if problem:
+            self.rejected.add(problem)
+            line = self.rejected.warning("joy", problem)
+            if line is not None:
+                self.get_logger().warning(line)
+            return
+        for label in events.labels:
+            self.label_pub.publish(String(data=label_json(label)))
+            self.get_logger().info(f"episode labelled {label}")
+
     def check_parameter(self, name: str, value) -> str | None:
         if self.mode != "scripted":
-            return f"{name} belongs to the scripted corrector; this one is a keyboard"
+            return f"{name} belongs to the scripted corrector; this one is a {self.mode}"
         try:
             replace(self.teleop.p, **{name: value})  # the rule's own validation
         except ValueError as exc:
@@ -198,6 +248,7 @@ class Corrector(Node):
                 return
             action = self.teleop.decide(joints[0], joints[1], paired.goal)
             self.states += 1
+            self.correcting = action is not None
             out = JointState(name=list(self.task.command.joints))
             if action is not None:
                 out.effort = [float(a) for a in action]

@@ -42,6 +42,7 @@ from pusher_common.params import Param, Settings
 from pusher_common.scheduling import THREAD_PRIORITY, apply_thread_priority
 from pusher_common.stamps import stamp_key
 from pusher_common.status import NodeStatus
+from offline_rl_core.nodes.diagnostics import StatusDiagnosis
 
 from offline_rl_core.nodes.arbiter import HUMAN, POLICY, LockstepArbiter, RealtimeArbiter
 
@@ -78,7 +79,9 @@ class Mux(Node):
         self.arbiter = LockstepArbiter() if self.mode == "lockstep" else RealtimeArbiter(self.hold_s)
         self.intervening: bool | None = None
         self.status = NodeStatus(self, fields=lambda: {"forwarded": dict(self.arbiter.counts),
-                                                       "intervening": self.intervening})
+                                                       "intervening": self.intervening},
+                                 diagnosis=StatusDiagnosis(idle=lambda st: "a person drives" if st["intervening"]
+                                                           else "the policy drives"))
         # who acted is the topic: pusher/command/policy or pusher/command/human (the sim logs it)
         self.command_pubs = {source: self.create_publisher(JointState, f"pusher/command/{source}", 10)
                              for source in (POLICY, HUMAN)}

@@ -42,6 +42,7 @@ from offline_rl_core.serving.weights import WEIGHTS_LABEL, encode_weights
 from pusher_common.node_main import run_node
 from pusher_common.params import Param, Settings
 from pusher_common.status import NodeStatus
+from offline_rl_core.nodes.diagnostics import StatusDiagnosis, learner_checks
 
 # Deep and reliable: in lockstep the sim publishes as fast as it is answered, and a
 # transition lost here is a transition the learner never trains on.
@@ -115,7 +116,9 @@ class Learner(Node):
             session_bag=s.session_bag or None, snapshot_every=s.snapshot_every, settings=settings, train=train),
             log=self.get_logger().info)
         self.weights_pub = self.create_publisher(UInt8MultiArray, "~/weights", WEIGHTS_QOS)
-        self.status = NodeStatus(self, fields=self.service.status, counter=self.service.rejected)
+        self.status = NodeStatus(self, fields=self.service.status, counter=self.service.rejected,
+                                 diagnosis=StatusDiagnosis(checks=(learner_checks,), idle=lambda st: (
+                                     f"weights version {st['weights_version']}, {st['updates']} updates")))
         self.create_subscription(Float32MultiArray, "pusher/transition", self.on_transition, TRANSITION_QOS,
                                  raw=True)
         # wall-clock work, also under use_sim_time: a timer on sim time would wait for a

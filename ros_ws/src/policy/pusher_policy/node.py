@@ -78,6 +78,7 @@ from pusher_common.params import Param, Settings  # noqa: E402
 from pusher_common.scheduling import THREAD_PRIORITY, apply_thread_priority  # noqa: E402
 from pusher_common.stamps import stamp_key  # noqa: E402
 from pusher_common.status import NodeStatus  # noqa: E402
+from offline_rl_core.nodes.diagnostics import StatusDiagnosis, policy_checks  # noqa: E402
 
 WARN_THROTTLE_S = 2.0
 PACED_QUEUE_DEPTH = 10_000
@@ -150,7 +151,10 @@ class PolicyServer(Node):
         self.loads = BackgroundLoads(self.loads_ready.trigger, max_pending=WEIGHTS_QOS.depth, name="policy-loads")
         self.status = NodeStatus(self, fields=lambda: {"answered": self.answered,
                                                        "weights_version": self.policy.weights_version,
-                                                       "loads_dropped": dict(self.loads.dropped)})
+                                                       "weights_age_s": self.weights_age_s(),
+                                                       "loads_dropped": dict(self.loads.dropped)},
+                                 diagnosis=StatusDiagnosis(checks=(policy_checks,), idle=serving_message),
+                                 hardware_id=self.task.name)
 
         # Goal subscription first: when both are ready the executor takes it first.
         # Paced, every state counts (it indexes the pacing and the exploration noise), and
@@ -351,13 +355,21 @@ class PolicyServer(Node):
         command.header.stamp = header_stamp
         self.command_pub.publish(command)
 
-    def publish_provenance(self, stamp: int) -> None:
+    def weights_age_s(self) -> float | None:
+        """Seconds since the learner cut the weights acting (None for a checkpoint file's)."""
         cut = self.policy.checkpoint.get("cut_unix")  # when the learner cut these weights (same machine clock)
+        return None if cut is None else round(time.time() - float(cut), 4)
+
+    def publish_provenance(self, stamp: int) -> None:
         self.provenance_pub.publish(String(data=json.dumps({
             "stamp": stamp, "weights_version": self.policy.weights_version,
             "trained_through": int(self.policy.checkpoint.get("trained_through", 0) or 0),
-            "weights_age_s": None if cut is None else round(time.time() - float(cut), 4),
+            "weights_age_s": self.weights_age_s(),
             "explore": self.actor.explore})))
+
+
+def serving_message(status: dict) -> str:
+    return f"serving weights version {status['weights_version']}, {status['answered']} states answered"
 
 
 def main(argv: list[str] | None = None) -> int:

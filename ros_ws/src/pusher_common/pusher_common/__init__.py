@@ -8,6 +8,8 @@
 - :mod:`pusher_common.spin`: a message-fast ``spin_until_future_complete``.
 - :mod:`pusher_common.status`: ``NodeStatus``, a node's ``~/status`` (messages taken,
   rejections by reason) and its throttled warnings about refused messages.
+- :mod:`pusher_common.diagnostics`: ``NodeDiagnostics``, the node's entry on ``/diagnostics``.
+- :mod:`pusher_common.markers`: ``marker_array``, the arm's markers as a MarkerArray.
 """
 
 from .stamps import stamp_from_ns, stamp_key

@@ -20,18 +20,24 @@ from rclpy.clock import Clock, ClockType
 from std_msgs.msg import String
 
 from offline_rl_core.common.rejections import Rejection, RejectionCounter
+from offline_rl_core.nodes.diagnostics import StatusDiagnosis
+
+from .diagnostics import NodeDiagnostics
 
 STATUS_PERIOD_S = 1.0
 
 
 class NodeStatus:
     def __init__(self, node, fields: Callable[[], dict] = dict, counter: RejectionCounter | None = None,
-                 period_s: float = STATUS_PERIOD_S):
+                 period_s: float = STATUS_PERIOD_S, diagnosis: StatusDiagnosis | None = None,
+                 hardware_id: str = ""):
         self.node = node
         self.fields = fields
         self.rejections = counter if counter is not None else RejectionCounter()
         self.messages: dict[str, int] = {}
         self.publisher = node.create_publisher(String, "~/status", 10)
+        # published by this timer, not its own: one dict per tick for both topics
+        self.diagnostics = NodeDiagnostics(node, self.as_dict, diagnosis, hardware_id, period_s=None)
         node.create_timer(period_s, self.publish, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     def took(self, topic: str) -> None:
@@ -52,4 +58,6 @@ class NodeStatus:
         return {**self.fields(), "messages": dict(self.messages), "rejected": dict(self.rejections.counts)}
 
     def publish(self) -> None:
-        self.publisher.publish(String(data=json.dumps(self.as_dict())))
+        status = self.as_dict()
+        self.publisher.publish(String(data=json.dumps(status)))
+        self.diagnostics.publish(status)

@@ -12,7 +12,8 @@ transitions equal ``offline-rl collect``'s bit for bit.
   ros2 run recorder node --out bags/mix.db3 --episodes 200 --expert-frac 0.3 --seed 0
 
 ``--passive`` records what flows (a policy or a person driving): the ``topics`` given,
-or every topic as it appears (like ``ros2 bag record -a``), until Ctrl-C, or until
+or every topic as it appears (like ``ros2 bag record -a``; but ``/diagnostics`` and the
+markers, views derived from what the bag holds, only when named), until Ctrl-C, or until
 ``episodes`` episodes have ended when given. Each topic is subscribed with a QoS its
 publishers offer (reliable only when they all are, transient local likewise), and the
 bag keeps their offered QoS, as ``ros2 bag record`` does. Topic names are relative:
@@ -65,6 +66,8 @@ from pusher_common.node_main import run_node
 from pusher_common.params import Param, Settings
 from pusher_common.spin import spin_until_future_complete
 from pusher_common.stamps import stamp_from_ns, stamp_key
+from pusher_common.diagnostics import NodeDiagnostics
+from offline_rl_core.nodes.diagnostics import StatusDiagnosis, recorder_checks
 
 # The loop's topics, relative to the node's namespace, and their types.
 TRANSITION, STATE, TARGET, COMMAND = "pusher/transition", "pusher/state", "pusher/target", "pusher/command"
@@ -77,6 +80,10 @@ LOOP_TYPES = {
 DISCOVERY_PERIOD_S = 0.5
 MESSAGE_TYPE = re.compile(r"[A-Za-z][A-Za-z0-9_]*/msg/[A-Za-z][A-Za-z0-9_]*")
 BEFORE_CLOCK_BYTES = 64 << 20  # what may wait for the first /clock under use_sim_time
+# Derived views of what the bag holds anyway (the arm as markers: from its joint states; the
+# nodes' health): recorded when named in `topics`, not by "every topic", so a session's
+# bag holds the same topics as before they were published.
+NOT_RECORDED_BY_DEFAULT = ("diagnostic_msgs/msg/DiagnosticArray", "visualization_msgs/msg/MarkerArray")
 
 PARAMS = (
     Param("out", "", "bag to write: x.db3 / x.mcap (one file) or a directory (metadata.yaml + x_0.db3, x_1.db3, ...)",
@@ -214,12 +221,24 @@ class Recorder(Node):
         if self.dynamic:
             self.create_timer(DISCOVERY_PERIOD_S, self.discover)
             self.discover()
+        self.diagnostics = NodeDiagnostics(self, self.status, StatusDiagnosis(
+            checks=(recorder_checks,), idle=lambda st: f"recording to {self.bag.path}"))
         what = f"{self.episodes} episodes ({plan.n_expert} expert)" if self.active else "passively"
         which = "every topic" if self.record_all else ", ".join(sorted(self.wanted | set(self.subs)))
         self.get_logger().info(f"recording {what} to {self.bag.path}: {which}")
 
     def resolve(self, topic: str) -> str:
         return self.resolve_topic_name(topic)
+
+    def status(self) -> dict:
+        """What /diagnostics reports: counts, how far the disk lags, and what stops the recording."""
+        error = self.bag.error
+        return {"messages": self.bag.message_count, "topics": len(self.bag_topics),
+                "transitions": self.driver.transitions, "episodes_done": self.driver.episodes_done,
+                "flush_lag_s": round(self.bag.flush_lag_s(), 3), "flush_interval_s": self.bag.flush_interval,
+                "low_space_bytes": self.bag.low_space, "dropped_before_clock": self.dropped_before_clock,
+                "error": None if error is None else f"{type(error).__name__}: {error}",
+                "finished": self.finished.done()}
 
     # -------------------------------------------------------------- parameters
     def check_parameter(self, name: str, value) -> str | None:
@@ -255,6 +274,8 @@ class Recorder(Node):
                 continue
             if self.active and topic in (pub.topic_name for pub in self.command_pubs.values()):
                 continue  # written as sent (see send)
+            if topic not in self.wanted and set(types) & set(NOT_RECORDED_BY_DEFAULT):
+                continue
             if len(types) != 1:
                 self.warn_once(topic, f"not recording {topic}: published with several types ({', '.join(types)})")
                 continue

@@ -13,6 +13,10 @@ Pusher model), exposed as a ros2_control arm is. For the task it publishes
   offline_rl_core.data.transitions), ``/clock`` (its sim time), and the task itself on
   ``task_description`` (std_msgs/String, the task's JSON, reliable and transient local as
   robot_description is: a late subscriber, a recorder, gets it);
+- ``markers`` (visualization_msgs/MarkerArray, frame ``world``: the links, joints, tracked
+  points and goal, ``offline_rl_core.nodes.arm_markers``) for RViz and Foxglove, only while
+  someone subscribes, with a new state at most every ``marker_period`` seconds of wall time;
+- ``/diagnostics`` (with every node: ``pusher_common.diagnostics``);
 
 and takes commands on
 
@@ -61,6 +65,7 @@ from rclpy.task import Future
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float32MultiArray, Float64MultiArray, String
+from visualization_msgs.msg import MarkerArray
 from std_srvs.srv import Trigger
 
 from offline_rl_core.common.atomic import atomic_path
@@ -81,6 +86,10 @@ from pusher_common.scheduling import THREAD_PRIORITY, apply_thread_priority
 from pusher_common.spin import spin_node_fast
 from pusher_common.stamps import NS_PER_S, stamp_from_ns, stamp_key
 from pusher_common.status import NodeStatus
+from pusher_common.markers import MARKERS_TOPIC, marker_array
+from offline_rl_core.nodes.arm_markers import ArmMarkers
+from offline_rl_core.task.envs import task_model
+from offline_rl_core.nodes.diagnostics import StatusDiagnosis
 
 # Transitions must not be dropped by a slow reader: a deep reliable history.
 TRANSITION_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
@@ -113,6 +122,8 @@ PARAMS = (
     Param("effort_topic", "", "also take commands as std_msgs/Float64MultiArray in the task's units (torques in "
           "N·m for an effort interface) on this topic, as its controller does (besides the task's command topic, "
           "which pusher_reach takes only through this; empty: off)", read_only=True),
+    Param("marker_period", 0.04, "seconds of wall time between the arm's markers (while someone subscribes)",
+          low=0.0, high=60.0),
     THREAD_PRIORITY,
 )
 
@@ -133,7 +144,10 @@ class PusherSim(Node):
         self.last_publish = 0.0
         self.timing = TickTiming(task.control_period)
         self.status = NodeStatus(self, fields=lambda: {"episode": self.loop.episode,
-                                                       "episodes_done": len(self.loop.results)})
+                                                       "episodes_done": len(self.loop.results)},
+                                 diagnosis=StatusDiagnosis(idle=lambda st: f"{s.mode}, episode {st['episode']}, "
+                                                                           f"{st['episodes_done']} done"),
+                                 hardware_id=task.name)
 
         self.clock_pub = self.create_publisher(ClockMsg, "/clock", 10)
         self.state_pub = self.create_publisher(JointState, task.state.topic, 10)
@@ -154,6 +168,9 @@ class PusherSim(Node):
         if task.goal.type == JOINT_STATE:
             self.goal_msg.name = list(task.goal.joints)
         self.transition_pub = self.create_publisher(Float32MultiArray, "pusher/transition", TRANSITION_QOS)
+        self.marker_pub = self.create_publisher(MarkerArray, MARKERS_TOPIC, 10)
+        self.arm_markers = ArmMarkers(task, task_model(task))
+        self.last_markers = -float("inf")
         self.task_pub = self.create_publisher(String, "task_description", LATCHED_QOS)
         self.task_pub.publish(String(data=task_json(task)))
         self.create_subscription(JointState, "pusher/command", lambda m: self.on_command(m, None, "pusher/command"), 10)
@@ -236,8 +253,17 @@ class PusherSim(Node):
         self.state_pub.publish(msg)
         if self.joint_states_pub is not None and self.joint_states_pub.get_subscription_count():
             self.joint_states_pub.publish(msg)
+        self.publish_markers(state, stamp)
         self.last_publish = time.monotonic()
         self.loop.published()
+
+    def publish_markers(self, state: ArmState, stamp) -> None:
+        now = time.monotonic()
+        if now - self.last_markers < self.settings.marker_period or not self.marker_pub.get_subscription_count():
+            return
+        self.last_markers = now
+        markers = self.arm_markers.markers(state.position, state.goal, state.points)
+        self.marker_pub.publish(marker_array(markers, stamp))
 
     def fill_goal(self, state: ArmState, stamp) -> None:
         msg = self.goal_msg

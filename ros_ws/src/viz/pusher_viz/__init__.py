@@ -1,0 +1,1 @@
+"""The arm in RViz and Foxglove (``ros2 run viz markers``)."""
