@@ -58,3 +58,28 @@ def test_seven_joint_arm_in_3d_ends_at_its_fingertip_site():
     # the joints move the links: another pose, other segments
     other = np.array(by_ns(arm.markers(q + 0.3))["links"].points)
     assert np.max(np.abs(other - links)) > 0.01
+
+
+def test_foxglove_layout_shows_the_markers_and_plots_the_transition_fields_it_names():
+    import json
+    import re
+
+    from offline_rl_core.data.transitions import Layout
+    from ros_helpers import REPO
+
+    layout = json.loads((REPO / "ros_ws" / "src" / "viz" / "config" / "foxglove_layout.json").read_text())
+    panels = layout["configById"]
+    assert {p.split("!")[0] for p in panels} == {"3D", "Plot", "DiagnosticSummary", "DiagnosticStatusPanel"}
+    assert panels["3D!arm"]["topics"]["/markers"]["visible"] and panels["3D!arm"]["followTf"] == "world"
+    assert panels["DiagnosticSummary!nodes"]["topicToRender"] == "/diagnostics"
+    task = load_task("pusher_reach")
+    slices = Layout(task.obs_dim, task.act_dim).slices
+    for panel in ("Plot!success", "Plot!intervention"):
+        for path in panels[panel]["paths"]:
+            index = re.fullmatch(r"/pusher/transition\.data\[(\d+)\]", path["value"])
+            if index:  # the transition row's field the label names
+                assert slices[path["label"]].start == int(index.group(1)), path
+    # every panel of the layout tree is configured
+    def leaves(node):
+        return [node] if isinstance(node, str) else leaves(node["first"]) + leaves(node["second"])
+    assert sorted(leaves(layout["layout"])) == sorted(panels)

@@ -43,7 +43,8 @@ PARAMS = (
 class Markers(Node):
     def __init__(self, overrides=()):
         super().__init__("markers", parameter_overrides=list(overrides))
-        self.settings = Settings(self, PARAMS)
+        # marker_period is read on every state: a new value holds from the next one
+        self.settings = Settings(self, PARAMS, on_change=lambda name, value: None)
         self.task = task = load_task(self.settings.task or None)  # UserError: one line naming the task
         model = task_model(task) if task.sim else None
         self.arm = ArmMarkers(task, model)
