@@ -238,7 +238,8 @@ def test_live_view_streams_markers_and_state_to_a_websocket_client_on_loopback(s
     assert view.wait_for_output("live view on ws://", 60), view.output()
     url = re.search(r"live view on (ws://127\.0\.0\.1:\d+)", view.output()).group(1)
     wanted = {"/markers": MarkerArray, "/pusher/state": JointState}
-    with ws_client.connect(url, subprotocols=["foxglove.websocket.v1"], open_timeout=30) as ws:
+    # the SDK speaks the protocol as foxglove.sdk.v1 (foxglove.websocket.v1 before it)
+    with ws_client.connect(url, subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"], open_timeout=30) as ws:
         channels, got = {}, {}
         deadline = time.monotonic() + 60
         while len(got) < len(wanted) and time.monotonic() < deadline:
