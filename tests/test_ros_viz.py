@@ -240,13 +240,18 @@ def test_live_view_streams_markers_and_state_to_a_websocket_client_on_loopback(s
     wanted = {"/markers": MarkerArray, "/pusher/state": JointState}
     # the SDK speaks the protocol as foxglove.sdk.v1 (foxglove.websocket.v1 before it)
     with ws_client.connect(url, subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"], open_timeout=30) as ws:
-        channels, got = {}, {}
+        channels, got, statuses = {}, {}, []
         deadline = time.monotonic() + 60
         while len(got) < len(wanted) and time.monotonic() < deadline:
             frame = ws.recv(timeout=max(deadline - time.monotonic(), 0.1))
             if isinstance(frame, str):
                 msg = json.loads(frame)
-                if msg["op"] == "advertise":
+                if msg["op"] == "unadvertise":  # as any client must: a channel re-advertised is subscribed again
+                    for topic in [t for t, c in channels.items() if c["id"] in msg["channelIds"]]:
+                        del channels[topic]
+                elif msg["op"] == "status":
+                    statuses.append(msg.get("message"))
+                elif msg["op"] == "advertise":
                     new = [c for c in msg["channels"] if c["topic"] in wanted and c["topic"] not in channels]
                     for c in new:
                         assert c["encoding"] == "cdr" and c["schemaEncoding"] == "ros2msg"
@@ -259,7 +264,7 @@ def test_live_view_streams_markers_and_state_to_a_websocket_client_on_loopback(s
             sub_id, _stamp = struct.unpack_from("<IQ", frame, 1)
             topic = next(t for t, c in channels.items() if c["id"] == sub_id)
             got[topic] = deserialize_message(bytes(frame[13:]), wanted[topic])
-    assert set(got) == set(wanted), (sorted(channels), view.output()[-2000:], sim.output()[-2000:])
+    assert set(got) == set(wanted), (sorted(channels), statuses, view.output()[-2000:], sim.output()[-2000:])
     assert channels["/markers"]["schemaName"] == "visualization_msgs/msg/MarkerArray"
     assert "MSG: geometry_msgs/Point" in channels["/markers"]["schema"]  # with its dependencies, as MCAP has it
     assert {m.ns for m in got["/markers"].markers} >= {"links", "joints", "points/fingertip", "goal"}
