@@ -63,3 +63,10 @@ def task_of_bag(path: str | os.PathLike, given: str | os.PathLike | TaskSpec | N
         raise UserError(f"{path}: the bag records task {recorded.name} (digest {recorded.digest}); "
                         f"--task gives {task.name} (digest {task.digest})")
     return task
+
+
+def chosen_task(task: str | None, from_topics: str | None) -> str | None:
+    """The task of ``--task`` and ``--from-topics TASK`` (which must agree when both are given)."""
+    if task and from_topics and str(task) != str(from_topics):
+        raise UserError(f"--task {task} and --from-topics {from_topics} name different tasks; give one")
+    return task or from_topics

@@ -33,7 +33,9 @@ from .plots import plot_training_curve
 from .prior import plan_training
 from ..serving.checkpoint import load_checkpoint, save_checkpoint
 from ..data.raw_topics import transitions_from_topics
-from ..data.transitions import SOURCE_NAMES, Transitions
+from ..data.task_record import chosen_task, task_of_bag
+from ..data.transitions import PUSHER_LAYOUT, SOURCE_NAMES, Transitions
+from ..task.spec import load_task
 
 DEFAULT_EVAL_SEED = seeds.HELD_OUT
 _CONFIG_FIELDS = {f.name for f in fields(TrainConfig)}
@@ -44,9 +46,11 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     d = TrainConfig()
     parser.add_argument("--bag", action="append", required=True, metavar="PATH",
                         help="rosbag2 bag (directory, .db3 or .mcap) with /pusher/transition; repeat to merge bags")
-    parser.add_argument("--from-topics", metavar="SPEC",
-                        help="build the transitions from each bag's raw robot topics as this YAML spec says "
-                             "(see `offline-rl dataset --help`, e.g. bags/pusher_topics.yaml)")
+    parser.add_argument("--from-topics", metavar="TASK", nargs="?", const=True, default=None,
+                        help="build the transitions from each bag's raw robot topics as the task file says "
+                             "(see `offline-rl dataset --help`); TASK: the same as --task")
+    parser.add_argument("--task", metavar="TASK",
+                        help="built-in task name or task file (default: the task each bag records, else pusher_reach)")
     parser.add_argument("--algo", choices=ALGORITHMS + ("auto",), default=d.algo,
                         help="learner; auto: chosen from what the bag holds, trained for --budget-s "
                              "(README, 'The best prior') (default: %(default)s)")
@@ -97,18 +101,32 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
         raise UserError(str(exc)) from None
 
 
-def load_bags(paths: list[str], from_topics: str | None = None) -> tuple[Transitions, list[dict]]:
+def load_bags(paths: list[str], from_topics: bool | str | None = None, task: str | None = None
+              ) -> tuple[Transitions, list[dict]]:
     """Read and merge bags; episode ids are offset so they stay unique per bag.
-    ``from_topics``: a raw-topic spec; the transitions are built from each bag's raw topics."""
+    ``from_topics``: build the transitions from each bag's raw topics (a task name or file
+    here is the same as ``task``); ``task``: the task to read the bags as (default: the one
+    each bag records, else pusher_reach). Bags of different layouts are refused."""
+    if isinstance(from_topics, (str, os.PathLike)):
+        task = chosen_task(task, str(from_topics))
     parts, summary, offset = [], [], 0
     for path in paths:
-        joined = transitions_from_topics(path, from_topics) if from_topics else None
+        of_bag = task_of_bag(path, task)
+        joined = transitions_from_topics(path, of_bag) if from_topics else None
         data = joined[0] if joined else read_transitions(path)
+        if (data.obs.shape[1], data.action.shape[1]) != (of_bag.obs_dim, of_bag.act_dim):
+            raise UserError(f"{path}: its transitions have {data.obs.shape[1]} observation and {data.action.shape[1]} "
+                            f"action values; task {of_bag.name} ({of_bag.source_file()}) has {of_bag.obs_dim} and "
+                            f"{of_bag.act_dim}")
+        if parts and data.layout != parts[0].layout:
+            raise UserError(f"{path}: its transitions ({data.layout.describe()}) are not those of {paths[0]} "
+                            f"({parts[0].layout.describe()}); train on bags of one task")
         data.episode = data.episode - data.episode.min() + offset
         offset = int(data.episode.max()) + 1
         parts.append(data)
         counts = {SOURCE_NAMES.get(int(s), str(s)): int(n) for s, n in zip(*np.unique(data.source, return_counts=True))}
         summary.append({"path": str(path), "transitions": len(data), "sources": counts,
+                        **({"task": of_bag.name} if of_bag.digest != load_task().digest else {}),
                         **({"from_topics": joined[1].as_dict()} if joined else {})})
     return (parts[0] if len(parts) == 1 else Transitions.concatenate(parts)), summary
 
@@ -135,10 +153,11 @@ def run_training(
     log: Callable[[str], None] = lambda s: print(s, file=sys.stderr),
     resume: bool = False,
     resume_every: float = 1.0,
-    from_topics: str | None = None,
+    from_topics: bool | str | None = None,
     auto: bool = False,
     budget_s: float | None = None,
     steps: int | None = None,
+    task: str | None = None,
 ) -> Path:
     """Train ``cfg`` on the bags and write the run's files to ``out_dir``. ``auto``: the
     learner is the one ``prior.plan_training`` picks for the bag; ``auto`` or ``budget_s``:
@@ -146,7 +165,10 @@ def run_training(
     out = check_output_dir(out_dir, "--out")
     if eval_episodes < 0:
         raise UserError(f"--eval-episodes must be >= 0, got {eval_episodes}")
-    data, bag_summary = load_bags(bags, from_topics)
+    data, bag_summary = load_bags(bags, from_topics, task)
+    if eval_episodes and data.layout != PUSHER_LAYOUT:  # until evaluation hosts any task's env
+        raise UserError(f"--eval-episodes {eval_episodes}: held-out rollouts run the pusher-reach sim, which "
+                        f"does not fit these transitions ({data.layout.describe()}); pass --eval-episodes 0")
     cfg, plan = plan_training(data, cfg, auto, budget_s, steps, log)
     init_ckpt = None
     if init:
@@ -211,7 +233,7 @@ def run_training_from_args(args: argparse.Namespace, progress: Callable[[Progres
     return run_training(args.bag, cfg, args.seed, out, args.eval_episodes, args.eval_seed, args.init,
                         progress=progress or console_progress(), resume=args.resume, resume_every=args.resume_every,
                         from_topics=args.from_topics, auto=args.algo == "auto", budget_s=args.budget_s,
-                        steps=args.steps)
+                        steps=args.steps, task=getattr(args, "task", None))
 
 
 def summary_line(out: Path) -> str:

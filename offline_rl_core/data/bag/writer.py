@@ -14,6 +14,7 @@ import numpy as np
 from rosbags.rosbag2 import Writer
 
 from ...common.errors import UserError
+from ...task.spec import load_task
 from ..transitions import PUSHER_LAYOUT, Layout, Transitions
 from .cdr import TRANSITION_MSGTYPE, TRANSITION_TOPIC, encode_transition_blob, message_size
 from .metadata import ROSBAG2_VERSION, typestore
@@ -42,8 +43,12 @@ def write_transitions(
     transitions: Transitions | np.ndarray,
     storage: str | None = None,
     custom_data: dict[str, str] | None = None,
+    task=None,
 ) -> None:
     """Write transitions as a rosbag2 bag with one ``/pusher/transition`` message per row.
+
+    ``task``: a TaskSpec the bag records on ``/task_description`` (``data.task_record``),
+    except the chapter's pusher_reach, whose bags record none.
 
     ``path``: ``x.db3`` or ``x.mcap`` gives a single self-describing storage file, any other
     path a bag directory whose storage is ``storage`` ('sqlite3', the default, or 'mcap').
@@ -64,6 +69,11 @@ def write_transitions(
         with writer:
             for key, value in (custom_data or {}).items():
                 writer.set_custom_data(key, value)
+            if task is not None and task.digest != load_task().digest:
+                from ..task_record import TASK_MSGTYPE, TASK_TOPIC, encode_task_message
+
+                described = writer.add_connection(TASK_TOPIC, TASK_MSGTYPE, typestore=typestore())
+                writer.write(described, TRANSITION_START_NS, encode_task_message(task))
             conn = writer.add_connection(TRANSITION_TOPIC, TRANSITION_MSGTYPE, typestore=typestore())
             write = writer.write
             for i, offset in enumerate(range(0, len(blob), size)):

@@ -1,4 +1,5 @@
-"""Decoding a topic's raw CDR messages with numpy: JointState, PointStamped, Float64MultiArray.
+"""Decoding a topic's raw CDR messages with numpy: JointState, PointStamped, PoseStamped,
+Float64MultiArray.
 
 A robot's driver publishes the same joint names and frame id in every message, so all
 messages of a topic share one byte layout and differ only in their stamps and numbers.
@@ -24,8 +25,9 @@ import numpy as np
 
 JOINT_STATE = "sensor_msgs/msg/JointState"
 POINT_STAMPED = "geometry_msgs/msg/PointStamped"
+POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 FLOAT64_MULTI_ARRAY = "std_msgs/msg/Float64MultiArray"
-HAS_HEADER = {JOINT_STATE: True, POINT_STAMPED: True, FLOAT64_MULTI_ARRAY: False}
+HAS_HEADER = {JOINT_STATE: True, POINT_STAMPED: True, POSE_STAMPED: True, FLOAT64_MULTI_ARRAY: False}
 
 MAX_LAYOUTS = 32  # per group of equal-length payloads, before walking row by row
 _CHUNK_BYTES = 8 << 20  # payload bytes stacked into one matrix at a time
@@ -131,6 +133,15 @@ def _walk_point_stamped(w: _Walker) -> Layout:
     return Layout(w.little, stamp, frame_id, (), (("point", x, 3),))
 
 
+def _walk_pose_stamped(w: _Walker) -> Layout:
+    stamp = w.stamp()
+    frame_id = w.string()
+    x = w.f64()
+    for _ in range(6):  # position y, z and the orientation quaternion follow, aligned
+        w.f64()
+    return Layout(w.little, stamp, frame_id, (), (("point", x, 3), ("orientation", x + 24, 4)))
+
+
 def _walk_float64_multi_array(w: _Walker) -> Layout:
     labels = []
     for _ in range(w.u32()):
@@ -143,6 +154,7 @@ def _walk_float64_multi_array(w: _Walker) -> Layout:
 WALKERS: dict[str, Callable[[_Walker], Layout]] = {
     JOINT_STATE: _walk_joint_state,
     POINT_STAMPED: _walk_point_stamped,
+    POSE_STAMPED: _walk_pose_stamped,
     FLOAT64_MULTI_ARRAY: _walk_float64_multi_array,
 }
 
