@@ -100,6 +100,35 @@ def test_a_killed_learner_restarts_and_the_session_ends_as_if_it_never_died(ros_
     _assert_same_weights(out / "learner" / "policy.pt", reference)
 
 
+@pytest.mark.slow
+def test_on_raw_topics_the_learner_trains_on_the_batch_join_of_the_sessions_recording(ros_env, tmp_path, prior):
+    """The stage against an arm that publishes only standard topics (--from-topics): the
+    learner joins the raw topics live, and its online buffer is, row for row and in order,
+    what `offline-rl dataset` builds from the passive recorder's bag of the same session;
+    the recording holds the raw topics and no transition."""
+    from offline_rl_core.data.bag.info import bag_info
+    from offline_rl_core.data.raw_topics import transitions_from_topics
+    from offline_rl_core.learners.data import MemberData
+
+    out = tmp_path / "online"
+    cmd = [sys.executable, "-m", "offline_rl_core", "hil", "--online", "--env-steps", "200", "--publish-every", "25",
+           "--eval-every", "100", "--eval-episodes", "2", "--prior", str(prior), "--out", str(out),
+           "--task", "pusher_reach", "--from-topics"]
+    proc = subprocess.run(cmd, env=ros_env, cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    topics = {t.name for t in bag_info(out / "session.db3").topics}
+    assert "/pusher/transition" not in topics and {"/pusher/state", "/pusher/target", "/pusher/command/policy"} <= topics
+    batch, report = transitions_from_topics(out / "session.db3", "pusher_reach")
+    state = torch.load(out / "learner" / "learner_state.pt", weights_only=True)
+    assert state["n_online"] == len(batch) == 198  # two episodes, each but its last step
+    assert state["n_steps"] == report.steps - 1 == 199  # the session's last step: no later state closes it
+    expected = MemberData.columns(batch)
+    for name in ("obs", "action", "reward", "next_obs", "not_done", "human"):
+        assert np.array_equal(state["online_rows"][name].numpy(), expected[name]), name
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["counts"]["steps"] == 198 and summary["counts"]["human"] == int(expected["human"].sum())
+
+
 def test_the_learner_node_drops_bad_transitions_and_counts_them(spawn, tmp_path, prior):
     from std_msgs.msg import Float32MultiArray, String
 

@@ -16,7 +16,7 @@ from ..common.seeds import seed_arg
 OFFLINE_ONLY = ("rounds", "episodes", "steps", "correction_ratio", "beta", "patience", "hold_steps", "grace_steps",
                 "noise", "reaction_delay")
 ONLINE_ONLY = ("env_steps", "corrector", "mode", "prior_algo", "no_prior", "utd", "publish_every", "eval_every",
-               "in_process")
+               "in_process", "from_topics")
 
 
 def _resolve_mode_flags(args) -> None:
@@ -40,6 +40,11 @@ def _run(args) -> int:
     _resolve_mode_flags(args)
     if args.online:
         return _run_online(args)
+    if args.task:
+        from ..task.spec import load_task
+
+        if load_task(args.task).digest != load_task().digest:
+            raise UserError(f"--task {args.task}: the offline rounds run pusher_reach; other tasks only with --online")
     cfg = HilConfig(
         out=args.out, rounds=args.rounds, episodes=args.episodes, prior=args.prior, bags=args.bag,
         seed=args.seed, prior_steps=args.prior_steps, steps=args.steps, correction_ratio=args.correction_ratio,
@@ -59,7 +64,7 @@ def _run_online(args) -> int:
         prior_algo=args.prior_algo,
         bags=args.bag, corrector=args.corrector, mode=args.mode, utd=args.utd,
         publish_every=args.publish_every, eval_every=args.eval_every, eval_episodes=args.eval_episodes,
-        eval_seed=args.eval_seed, in_process=args.in_process)
+        eval_seed=args.eval_seed, in_process=args.in_process, task=args.task, from_topics=args.from_topics)
     summary = run_hil_online(cfg)
     print(json.dumps({k: summary[k] for k in ("prior_success", "final_success", "final_ci", "to", "intervention_rate",
                                               "wall_seconds")}))
@@ -123,4 +128,10 @@ def register(subparsers) -> None:
                    help=f"environment steps between points of the learning curve (default: {od.eval_every})")
     o.add_argument("--in-process", action="store_true", default=None, help="the same stage in one process, without ROS "
                    "(the reference; ablations)")
+    o.add_argument("--from-topics", action="store_true", default=None,
+                   help="the learner builds its transitions live from the task's raw topics (joint states, commands, "
+                        "goal), as a robot that publishes only standard topics has them; implied by a --task other than "
+                        "pusher_reach")
+    p.add_argument("--task", metavar="TASK", help="built-in task name or task file (default: pusher_reach); with "
+                   "--online, the learner joins its raw topics")
     p.set_defaults(func=_run)

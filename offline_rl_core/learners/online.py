@@ -3,12 +3,17 @@
 Transitions arrive one by one (the arm's own steps and a person's takeovers) and are
 appended to an online buffer that sits beside the offline bag; every gradient step
 draws ``offline_ratio`` of its batch from the offline rows and the rest from the online
-ones (RLPD / HIL-SERL's symmetric sampling), and ``utd`` steps are owed per arrived
-transition. New weights are cut every ``publish_every`` transitions.
+ones (RLPD / HIL-SERL's symmetric sampling), and ``utd`` steps are owed per environment
+step. New weights are cut every ``publish_every`` environment steps.
+
+An environment step is a transition, except where a stream of raw topics holds a step
+whose transition cannot be built (an episode's last, when the state after it is never
+published): it is counted (``add(empty, steps=1)``), so versions stay in step with the
+arm (a paced actor waits for version ``n // publish_every`` at its n-th state).
 
 Everything is scheduled by counts, not by clocks: update j samples only among the
-first ``j // utd + 1`` online transitions, and weights version v is cut after exactly
-``utd * v * publish_every`` updates. So a run that receives the same transitions gives
+online transitions of the first ``j // utd + 1`` environment steps, and weights version v
+is cut after exactly ``utd * v * publish_every`` updates. So a run that receives the same transitions gives
 the same weights however fast or slow the learner was, and an actor that waits for
 version v (lockstep over ROS) makes the whole procedure reproducible.
 
@@ -98,18 +103,35 @@ class OnlineLearner:
         self.sampler = OnlineSampler(self.n_offline, cfg.batch_size, settings.offline_ratio, sample_gen)
         self.step_once = make_step(self.learner.update, self.data, (1, cfg.batch_size), cfg.device, cfg.cuda_graph,
                                    cfg.threads)
-        self.n_online = 0
+        self.n_online = 0  # online transitions
+        self.n_steps = 0  # environment steps (transitions, and steps that made none)
+        self.step_rows: list[int] | None = None  # online transitions through each step, once they differ
         self.updates = 0
         self.version = 0
         self.losses: dict[str, float] = {}
         self.train_seconds = 0.0
 
     # ------------------------------------------------------------------ data
-    def add(self, rows: Transitions) -> None:
-        """Append live transitions (already checked: finite, known layout)."""
+    def add(self, rows: Transitions, steps: int | None = None) -> None:
+        """Append live transitions (already checked: finite, known layout), the transitions
+        of the last of ``steps`` environment steps (default: one step per transition)."""
+        steps = len(rows) if steps is None else int(steps)
+        if steps < len(rows):
+            raise ValueError(f"{len(rows)} transitions cannot come from {steps} steps")
         if len(rows):
             self.data.append(rows)
             self.n_online += len(rows)
+        if self.step_rows is None and steps != len(rows):
+            self.step_rows = list(range(1, self.n_steps + 1))  # one transition per step so far
+        if self.step_rows is not None:
+            self.step_rows += [self.n_online - len(rows)] * (steps - 1) + [self.n_online] * min(steps, 1)
+        self.n_steps += steps
+
+    def rows_through(self, steps: int) -> int:
+        """Online transitions of the first ``steps`` environment steps (those that arrived)."""
+        if self.step_rows is None:
+            return min(steps, self.n_online)
+        return self.step_rows[min(steps, self.n_steps) - 1] if steps > 0 else 0
 
     @property
     def n_human(self) -> int:
@@ -118,7 +140,7 @@ class OnlineLearner:
 
     @property
     def updates_owed(self) -> int:
-        return self.settings.utd * self.n_online - self.updates
+        return self.settings.utd * self.n_steps - self.updates
 
     # ------------------------------------------------------------------ training
     def train(self, max_updates: int | None = None, until_version: bool = True) -> int:
@@ -132,7 +154,7 @@ class OnlineLearner:
         t0 = time.perf_counter()
         with torch_threads(intra_op_threads(self.cfg.threads)):
             for _ in range(todo):
-                bound = self.updates // self.settings.utd + 1
+                bound = self.rows_through(self.updates // self.settings.utd + 1)
                 losses = self.step_once(self.sampler.next(bound))
                 self.updates += 1
             self.losses = {k: float(v.float().mean()) for k, v in losses.items()}
@@ -192,6 +214,8 @@ class OnlineLearner:
             "learner": learner_training_state(self.learner),
             "sample_generator": self.sample_gen.get_state(),
             "n_online": self.n_online,
+            "n_steps": self.n_steps,
+            "step_rows": None if self.step_rows is None else torch.tensor(self.step_rows, dtype=torch.int64),
             "updates": self.updates,
             "train_version": self.version,
             "online_rows": {name: getattr(self.data, name)[0, self.n_offline: self.n_offline + self.n_online].clone()
@@ -211,3 +235,6 @@ class OnlineLearner:
             getattr(self.data, name)[0, self.n_offline: self.n_offline + n] = state["online_rows"][name]
         self.data.sizes = [self.n_offline + n]
         self.n_online, self.updates, self.version = n, int(state["updates"]), int(state["train_version"])
+        self.n_steps = int(state.get("n_steps", n))  # states saved before steps were counted: one per row
+        rows = state.get("step_rows")
+        self.step_rows = None if rows is None else [int(v) for v in rows]

@@ -14,6 +14,12 @@ learner's wall time, with the intervention rate and the critic's values of each 
 ``DIR/summary.json`` and ``DIR/online.png`` hold them. ``in_process`` runs the same stage
 in one process without ROS (``online_loop``): the reference the ROS run is measured
 against, and the fast way to run ablations.
+
+``from_topics`` (implied by a ``task`` other than pusher_reach): the learner builds its
+transitions live from the task's raw topics, as from a robot that publishes only standard
+topics; the recorder records those topics (no pusher/transition) until the sim has run
+its episodes and the learner has taken every step, and the session's transitions are the
+batch join of that recording (``offline-rl dataset``), which are the ones trained on.
 """
 
 from __future__ import annotations
@@ -64,6 +70,14 @@ class OnlineHilConfig:
     eval_seed: int = EVAL_SEED
     in_process: bool = False
     timeout: float = 4 * 3600.0
+    task: str | None = None  # built-in name or task file (default pusher_reach)
+    from_topics: bool = False  # the learner joins the task's raw topics (implied by another task)
+
+    @property
+    def raw_topics(self) -> bool:
+        from ..task.spec import load_task
+
+        return self.from_topics or (self.task is not None and load_task(self.task).digest != load_task().digest)
 
     def validate(self) -> None:
         if self.env_steps < EPISODE_STEPS or self.env_steps % EPISODE_STEPS:
@@ -94,6 +108,15 @@ class OnlineHilConfig:
                 raise no_such_bag(bag)
         if self.prior and not Path(self.prior).exists():
             raise UserError(f"{self.prior}: no such checkpoint")
+        if self.raw_topics and self.in_process:
+            raise UserError("--in-process runs the stage without ROS, on no topics; --from-topics (or --task) joins "
+                            "a robot's topics over ROS")
+        from ..task.spec import load_task
+
+        task = load_task(self.task)
+        if (task.obs_dim, task.act_dim) != (8, 2) or task.sim.get("env") != "pusher_reach":
+            raise UserError(f"--task {self.task}: the learning curve is scored by held-out rollouts in the "
+                            "pusher-reach sim, which this task does not run in")
 
 
 def run_hil_online(cfg: OnlineHilConfig, log: Callable[[str], None] = lambda s: print(s, file=sys.stderr,
@@ -157,6 +180,8 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
         # realtime: the nodes that answer the arm go first (where the user may use SCHED_FIFO)
         "thread_priority": 0 if lockstep else REALTIME_THREAD_PRIORITY, "reset_seed": TRAIN_SEED_BASE + 10000 * cfg.seed, "episodes": episodes,
         "snapshot_every": cfg.eval_every, "corrector": cfg.corrector,
+        "task": cfg.task or "", "from_topics": "true" if cfg.raw_topics else "false",
+        "record_topics": _record_topics(cfg) if cfg.raw_topics else "",
         # a person's corrector runs in the foreground, on this terminal (below)
         "with_corrector": "true" if cfg.corrector == "scripted" else "false",
     }
@@ -166,6 +191,7 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
         f"{cfg.corrector} corrector, learner utd {cfg.utd}, weights every {cfg.publish_every} steps -> {out} "
         f"(ROS_DOMAIN_ID {loop.env['ROS_DOMAIN_ID']})")
     ready = {"learner": "learning from", "policy": "serving", "recorder": "recording"}
+    stopped_recorder = False
     if lockstep:
         ready["mux"] = "mux lockstep"
     launched = loop.launch("online.launch.yaml", arguments, out / "logs", ready=ready, timeout=120.0)
@@ -183,6 +209,11 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
             proc = launched[name]
             if proc.running() or launched.finished() is not None:
                 continue
+            if name == "sim" and proc.poll() == 0 and cfg.raw_topics:
+                # the sim ran its episodes: once the learner has every step, the recording ends
+                _wait_for_the_learner(cfg, launched, learner_dir, None, log)
+                stopped_recorder = launched["recorder"].stop(signal.SIGINT, timeout=60.0) is not None
+                break
             if name == "sim" and proc.poll() == 0:
                 # the sim ran its episodes: the recorder ends once it has written the last one
                 sim_done = sim_done or time.monotonic()
@@ -203,11 +234,13 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
                 f"{time.monotonic() - started:6.0f} s  "
                 f"critic loss {progress.get('critic_loss', float('nan')):.4f}  "
                 f"Q {progress.get('q_policy', float('nan')):+.3f}")
+        if stopped_recorder:
+            break
         time.sleep(0.5)
     ended = launched.finished()
-    rc = 0 if ended is None else ended.poll()
+    rc = 0 if ended is None or stopped_recorder else ended.poll()
     wall = time.monotonic() - started
-    if ended is not None and rc == 0:
+    if ended is not None and rc == 0 and not cfg.raw_topics:
         _wait_for_the_learner(cfg, launched, learner_dir, out / "session.db3", log)
     loop.stop_all()  # the learner saves its resume point and final weights on the way out
     if person is not None:
@@ -216,9 +249,7 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
         raise UserError(f"the recorder failed (exit {rc}); see {out / 'logs' / 'recorder.log'}")
     log(f"hil online: session done in {wall:.0f} s; scoring the learner's snapshots on {cfg.eval_episodes} "
         f"held-out resets each")
-    from ..data.bag import read_transitions
-
-    session = read_transitions(out / "session.db3")
+    session = session_transitions(cfg, out / "session.db3")
     curve = _score_snapshots(cfg, learner_dir, session)
     human = session.source == SOURCE_HUMAN
     counts = {"steps": len(session), "human": int(human.sum()),
@@ -228,13 +259,39 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
     return {"curve": curve, "counts": counts, "learner_seconds": round(wall, 2), "where": "over ROS"}
 
 
-def _wait_for_the_learner(cfg, launched, learner_dir: Path, session_bag: Path, log, timeout: float = 300.0) -> None:
-    """The session is recorded: let the learner cut the version that holds its last whole
-    ``publish_every`` transitions before it is stopped (a restarted learner can be behind),
-    so the final weights are those of a learner that never stopped."""
+def session_transitions(cfg: OnlineHilConfig, bag: Path):
+    """The session's transitions: those the sim published, or (raw topics) the batch join of
+    the recording, which are the ones the learner trained on."""
+    if cfg.raw_topics:
+        from ..data.raw_topics import transitions_from_topics
+
+        return transitions_from_topics(bag, cfg.task)[0]
     from ..data.bag import read_transitions
 
-    recorded = len(read_transitions(session_bag))
+    return read_transitions(bag)
+
+
+def _record_topics(cfg: OnlineHilConfig) -> str:
+    """The recorder's --topics for a raw-topic session: the task's topics and its description."""
+    from ..data.raw_topics import plan_for
+    from ..data.task_record import TASK_TOPIC
+    from ..task.spec import load_task
+
+    return "--topics " + " ".join([*(r.given for r in plan_for(load_task(cfg.task)).roles), TASK_TOPIC.lstrip("/")])
+
+
+def _wait_for_the_learner(cfg, launched, learner_dir: Path, session_bag: Path | None, log,
+                          timeout: float = 300.0) -> None:
+    """The session is recorded: let the learner cut the version that holds its last whole
+    ``publish_every`` environment steps before it is stopped (a restarted learner can be
+    behind), so the final weights are those of a learner that never stopped. Raw topics:
+    every step but the session's last (which only a later state could close) is live."""
+    if session_bag is None:
+        recorded = cfg.env_steps - 1
+    else:
+        from ..data.bag import read_transitions
+
+        recorded = len(read_transitions(session_bag))
     last = recorded - recorded % cfg.publish_every
     deadline = time.monotonic() + timeout
     while launched["learner"].running() and time.monotonic() < deadline:
@@ -262,7 +319,15 @@ def _restart_learner(cfg, loop, launched, learner_dir: Path, out: Path, attempt:
     deadline = time.monotonic() + 30.0
     while needed and time.monotonic() < deadline:
         try:
-            if len(read_transitions(out / "session.db3")) >= needed:
+            if cfg.raw_topics:
+                from ..data.raw_topics.build import read_bag
+                from ..data.raw_topics.spec import plan_for
+                from ..task.spec import load_task
+
+                plan = plan_for(load_task(cfg.task))
+                if len(read_bag(out / "session.db3", plan)[0].commands) >= needed:
+                    break
+            elif len(read_transitions(out / "session.db3")) >= needed:
                 break
         except UserError:
             pass  # not readable yet

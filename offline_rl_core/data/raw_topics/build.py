@@ -415,7 +415,13 @@ def join(plan: JoinPlan, s: Streams, report: JoinReport, kinematics=None, allow_
     # 7. reward, success latch, episode end: the task's rule on the next state
     dist_state = features.distances(features.vector(task, task.reward.distance[0], positions, vectors),
                                     features.vector(task, task.reward.distance[1], positions, vectors))
-    hit = (dist_state < task.reward.success_within) & ~new  # the sim latches success only after a step
+    # success latches on a step's result, as the sim latches it: at states a command acts on
+    # or a step ends in, never at an episode's first (a driver's states between two
+    # commands of a slower controller are neither)
+    control = np.zeros(t_state.size, bool)
+    control[state_of[joined]] = True
+    control[b] = True
+    hit = (dist_state < task.reward.success_within) & ~new & control
     hits_so_far = np.cumsum(hit)
     before_episode = np.where(first_state > 0, hits_so_far[first_state - 1], 0)[episode]
     success_before = hits_so_far[a] - before_episode[a] > 0

@@ -72,6 +72,32 @@ class LiveCounts:
                 "steps": self.steps, "transitions": self.transitions}
 
 
+class _Buffer:
+    """A role's rows, appended one message at a time and joined into one array when read."""
+
+    def __init__(self, width: int):
+        self.width = width
+        self._rows = Rows.empty(width)
+        self._new: list[Rows] = []
+
+    @property
+    def rows(self) -> Rows:
+        if self._new:
+            self._rows = Rows.concat([self._rows, *self._new], self.width)
+            self._new = []
+        return self._rows
+
+    def append(self, rows: Rows) -> None:
+        self._new.append(rows)
+
+    def holds(self, stamp: int) -> bool:
+        return bool(np.any(self._rows.stamp == stamp)) or any(int(r.stamp[0]) == stamp for r in self._new)
+
+    def keep(self, mask_of) -> None:
+        rows = self.rows
+        self._rows = rows.take(mask_of(rows))
+
+
 class LiveJoin:
     def __init__(self, task: TaskSpec, settings: LiveSettings | None = None):
         self.task = task
@@ -81,10 +107,10 @@ class LiveJoin:
         self.roles = {r.topic: r for r in self.plan.roles}
         self.types: dict[str, str] = {}  # topic -> message type, from its first message
         width = {r.topic: role_width(self.plan, r) for r in self.plan.roles}
-        self.states = Rows.empty(width[self.plan.state_topic])
-        self.commands = Rows.empty(task.act_dim)
-        self.goal = Rows.empty(task.goal.size)
-        self.points = {r.name: Rows.empty(width[r.topic]) for r in self.plan.of_role("point")}
+        self.states = _Buffer(width[self.plan.state_topic])
+        self.commands = _Buffer(task.act_dim)
+        self.goal = _Buffer(task.goal.size)
+        self.points = {r.name: _Buffer(width[r.topic]) for r in self.plan.of_role("point")}
         self.resets: list[int] = []
         self.watermark = {r.topic: NEVER for r in self.plan.roles}  # latest stamp heard, per topic
         self.commands_watermark = NEVER
@@ -128,16 +154,10 @@ class LiveJoin:
         elif not self._in_window(role, stamp):
             self.counts.old += 1  # a copy of a message the window let go of, or one far too late
             return None
-        elif stamp < self.sealed[group] and not np.any(self._held(role).stamp == stamp):
+        elif stamp < self.sealed[group] and not self._held(role).holds(stamp):
             self.counts.late += 1  # it may change a step handed out; kept for the steps to come
-        if role.role == "state":
-            self.states = Rows.concat([self.states, rows], rows.values.shape[1])
-        elif role.role in ("command", "action"):
-            self.commands = Rows.concat([self.commands, rows], self.task.act_dim)
-        elif role.role == "goal":
-            self.goal = Rows.concat([self.goal, rows], self.task.goal.size)
-        elif role.role == "point":
-            self.points[role.name] = Rows.concat([self.points[role.name], rows], rows.values.shape[1])
+        if role.role != "reset":
+            self._held(role).append(rows)
         if stamp > self.watermark[topic]:
             self.watermark[topic] = stamp
             if role.role in ("command", "action"):
@@ -150,7 +170,11 @@ class LiveJoin:
             return f"{topic}: a command of another length than robot.command.joints ({self.task.act_dim})"
         return None
 
-    def _held(self, role: TopicRole) -> Rows:
+    def heard_stream(self) -> bool:
+        """Whether the state and goal topics have been heard (the join can start)."""
+        return len(self.states.rows) > 0 and len(self.goal.rows) > 0
+
+    def _held(self, role: TopicRole) -> _Buffer:
         if role.role == "point":
             return self.points[role.name]
         return {"state": self.states, "command": self.commands, "action": self.commands, "goal": self.goal}[role.role]
@@ -173,8 +197,8 @@ class LiveJoin:
         self.changed = False
         self.quiet_used = quiet
         report = JoinReport("live", self.task.source_file())
-        streams = Streams(self.states, self.commands, self.goal, self.points,
-                          np.asarray(self.resets, np.int64))
+        streams = Streams(self.states.rows, self.commands.rows, self.goal.rows,
+                          {name: b.rows for name, b in self.points.items()}, np.asarray(self.resets, np.int64))
         try:
             result = join(self.plan, streams, report, self.kinematics, allow_empty=True)
         except JoinEmpty:
@@ -249,12 +273,14 @@ class LiveJoin:
         if start <= self.window_start:
             return
         tol = self.plan.tolerance_ns
-        goal_ok = self.goal.stamp[self.goal.ok & (self.goal.stamp <= start + tol)]
+        goals = self.goal.rows
+        goal_ok = goals.stamp[goals.ok & (goals.stamp <= start + tol)]
         self.window_start = start
         if goal_ok.size:
             self.goal_start = int(goal_ok.max())
-        self.states = self.states.take(self.states.stamp >= start)
-        self.commands = self.commands.take(self.commands.stamp >= start - tol)
-        self.goal = self.goal.take(self.goal.stamp >= self.goal_start)
-        self.points = {n: p.take(p.stamp >= start - tol) for n, p in self.points.items()}
+        self.states.keep(lambda r: r.stamp >= start)
+        self.commands.keep(lambda r: r.stamp >= start - tol)
+        self.goal.keep(lambda r: r.stamp >= self.goal_start)
+        for buffer in self.points.values():
+            buffer.keep(lambda r: r.stamp >= start - tol)
 

@@ -181,6 +181,8 @@ def decode_messages(payloads: Sequence[bytes], msgtype: str) -> list[Decoded]:
     if n == 0:
         return []
     walker = WALKERS[msgtype]
+    if n == 1:  # one message as it arrives (the live join): its walk gives every offset
+        return [_decode_one(bytes(payloads[0]), walker)]
     lengths = np.fromiter(map(len, payloads), np.int64, n)
     parts: dict[Layout, list[tuple[np.ndarray, np.ndarray]]] = {}  # layout -> [(rows, matrix)]
     for size in np.unique(lengths):
@@ -209,6 +211,21 @@ def decode_messages(payloads: Sequence[bytes], msgtype: str) -> list[Decoded]:
             {key: np.concatenate(v)[order] for key, v in arrays.items()},
         ))
     return out
+
+
+def _decode_one(payload: bytes, walker) -> Decoded:
+    try:
+        layout = walker(_Walker(payload))
+    except MessageDecodeError as exc:
+        raise MessageDecodeError(f"message 1: {exc}") from None
+    end = "<" if layout.little_endian else ">"
+    stamp = None
+    if layout.stamp is not None:
+        sec, nanosec = struct.unpack_from(end + "iI", payload, layout.stamp)
+        stamp = np.array([sec * 1_000_000_000 + nanosec], np.int64)
+    arrays = {key: np.frombuffer(payload, end + "f8", count, off).astype(np.float64).reshape(1, count)
+              for key, off, count in layout.arrays}
+    return Decoded(layout, np.zeros(1, np.int64), stamp, arrays)
 
 
 def _read_stamps(mat: np.ndarray, layout: Layout) -> np.ndarray:

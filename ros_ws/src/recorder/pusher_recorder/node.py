@@ -30,7 +30,6 @@ protocol); this node subscribes, publishes and writes the bag.
 
 from __future__ import annotations
 
-import importlib
 import sys
 import time
 from pathlib import Path
@@ -52,6 +51,7 @@ from offline_rl_core.task.pusher_reach import JOINT_NAMES
 from offline_rl_core.common.errors import UserError
 from offline_rl_core.common.output_paths import check_output_dir
 from offline_rl_core.data.transitions import SOURCE_EXPERT, SOURCE_NAMES, SOURCE_RANDOM
+from pusher_common.message_types import message_class
 from pusher_common.node_main import run_node
 from pusher_common.params import Param, Settings
 from pusher_common.spin import spin_until_future_complete
@@ -95,15 +95,6 @@ PARAMS = (
           low=0.0, flag="--max-bag-duration"),
 )
 TRANSITION_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
-
-
-def message_class(msgtype: str):
-    """The Python class of 'pkg/msg/Name', or None when its package is not installed."""
-    package, _, name = msgtype.split("/")
-    try:
-        return getattr(importlib.import_module(f"{package}.msg"), name)
-    except (ImportError, AttributeError):
-        return None
 
 
 def _qos_time(duration) -> QosTime:
