@@ -265,3 +265,78 @@ def expected_transitions(task, rec: Recorded):
         step=rec.step.astype(np.int64),
         source=np.full(n, SOURCE_POLICY, np.int64),
     )
+
+
+# ------------------------------------------------------------------------ over ROS
+
+class ArmOverRos:
+    """The same arm behind ROS 2 topics, on an rclpy ``node`` (a test's): ``joint_states``
+    at 100 Hz of the wall clock (names in the broadcaster's order, a gripper besides),
+    ``velocity_controller/commands`` taken as a forward_command_controller takes them (the
+    latest held; one of another length ignored), and each episode's goal on ``goal_joints``
+    (transient local: a node that starts later still gets it). Episodes run on the held-out
+    resets, ``MAX_STEPS`` control periods each; ``success`` holds each one's outcome."""
+
+    def __init__(self, node, task, n: int, episodes: int, seed: int = HELD_OUT_SEED):
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import JointState
+        from std_msgs.msg import Float64MultiArray
+
+        self.node, self.task, self.n, self.episodes, self.seed = node, task, n, episodes, seed
+        self.JointState = JointState
+        self.names = joint_names(n)
+        self.published = [*reversed(self.names[1:]), "gripper_joint", self.names[0]]
+        self.arm = Arm(n)
+        self.success: list[bool] = []
+        self.ignored = 0
+        self.commands = 0
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.state_pub = node.create_publisher(JointState, "joint_states", 10)
+        self.goal_pub = node.create_publisher(JointState, "goal_joints", latched)
+        node.create_subscription(Float64MultiArray, "velocity_controller/commands", self.on_command, 10)
+        self._start_episode()
+        self.timer = node.create_timer(PHYSICS_NS / 1e9, self.tick)
+
+    @property
+    def done(self) -> bool:
+        return len(self.success) >= self.episodes
+
+    def _start_episode(self) -> None:
+        q0, self.goal = sample_reset(self.n, self.seed + len(self.success))
+        self.arm.reset(q0)
+        self.ticks, self.reached = 0, False
+        msg = self.JointState(name=list(self.names), position=[float(v) for v in self.goal])
+        msg.header.stamp = self.node.get_clock().now().to_msg()
+        self.goal_pub.publish(msg)
+
+    def on_command(self, msg) -> None:
+        values = np.asarray(msg.data, np.float64)
+        if values.size != self.n:
+            self.ignored += 1
+            return
+        self.commands += 1
+        action = (values - np.asarray(self.task.command.offset)) / np.asarray(self.task.command.scale)
+        self.arm.command(_to_joint_order(self.task, action[None]))
+
+    def tick(self) -> None:
+        if self.done:
+            return
+        self.arm.advance(PHYSICS_NS)
+        self.ticks += 1
+        if self.ticks % 2 == 0:  # a control period: judged as the task's reward judges a step
+            from offline_rl_core.task import features
+
+            self.reached = bool(features.score(self.task, self.arm.q, {"goal": self.goal[None]}, [self.ticks // 2],
+                                               [self.reached]).success[0])
+            if self.ticks // 2 >= MAX_STEPS:
+                self.success.append(self.reached)
+                if not self.done:
+                    self._start_episode()
+                return
+        cols = [self.names.index(j) for j in self.published if j != "gripper_joint"]
+        gripper = self.published.index("gripper_joint")
+        msg = self.JointState(name=list(self.published),
+                              position=[float(v) for v in np.insert(self.arm.q[0][cols], gripper, 0.04)],
+                              velocity=[float(v) for v in np.insert(self.arm.velocity[0][cols], gripper, 0.0)])
+        msg.header.stamp = self.node.get_clock().now().to_msg()
+        self.state_pub.publish(msg)
