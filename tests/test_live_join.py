@@ -137,4 +137,4 @@ def test_a_message_that_does_not_fit_the_task_is_refused_and_counted(tmp_path):
     live = LiveJoin(task)
     command = next(m for m in bag_messages(bag, task) if m[0] == "/effort_controller/commands")
     why = live.add(*command, now=0.0)
-    assert "another length" in why and live.counts.refused == {"another length": 1}
+    assert why.reason == "wrong length" and "another length" in why and live.counts.refused == {"wrong length": 1}

@@ -167,6 +167,23 @@ def test_dropped_and_jittered_messages_are_counted_never_filled(tmp_path):
         assert np.allclose(row[obs][6:], want[obs][6:], atol=0.02)
 
 
+def test_a_point_from_the_tasks_model_where_the_bag_has_no_topic_for_it(tmp_path):
+    """``kinematics: site:fingertip`` of the task's MuJoCo model (task.envs.task_model): the
+    fingertip of states the bag has no point for, as the policy node computes it."""
+    pytest.importorskip("offline_rl_core.task.envs")
+    raw = tmp_path / "arm.db3"
+    record_raw_bag(raw, episodes=1, expert_frac=1.0, seed=3, sim_like=False, topics=RAW_TOPICS)
+    doc = load_task("pusher_reach").describe()
+    doc["points"] = [{**doc["points"][0], "kinematics": "site:fingertip", "link_lengths": []}]
+    task = task_from_dict(doc)
+    built, report = transitions_from_topics(raw, task)
+    assert report.points["fingertip"] == "site:fingertip" and len(built) == 100
+    obs = LAYOUT_SLICES["obs"]
+    for row, want in zip(built.to_rows(), collect_transitions(1, 1.0, 3).to_rows()):
+        assert np.array_equal(row[obs][:6], want[obs][:6])
+        assert np.allclose(row[obs][6:], want[obs][6:], atol=0.015)  # the site at qpos, not 10 ms behind
+
+
 def test_train_takes_the_task(tmp_path):
     """`offline-rl train --from-topics` and the trainer node share run_training_from_args."""
     raw, out = tmp_path / "arm.db3", tmp_path / "run"

@@ -183,11 +183,9 @@ class LearnerService:
     def receive_message(self, topic: str, msgtype: str, raw: bytes, recv_ns: int) -> Rejection | None:
         """One message of the task's raw topics (``topic`` as ``live.topics()`` names it),
         received at ``recv_ns`` (the node's clock); returns why it was refused (counted), or None."""
-        why = self.live.add(topic, msgtype, raw, recv_ns, time.monotonic())
-        if why is None:
-            return None
-        rejection = Rejection("does not fit the task", why)
-        self.rejected.add(rejection)
+        rejection = self.live.add(topic, msgtype, raw, recv_ns, time.monotonic())
+        if rejection is not None:
+            self.rejected.add(rejection)
         return rejection
 
     def take_steps(self, ended: bool = False) -> int:

@@ -272,12 +272,16 @@ def session_transitions(cfg: OnlineHilConfig, bag: Path):
 
 
 def _record_topics(cfg: OnlineHilConfig) -> str:
-    """The recorder's --topics for a raw-topic session: the task's topics and its description."""
+    """The recorder's --topics for a raw-topic session: the task's topics (those of a known
+    type subscribed from the start: the session's first states are in the bag) and its
+    description."""
     from ..data.raw_topics import plan_for
     from ..data.task_record import TASK_TOPIC
     from ..task.spec import load_task
 
-    return "--topics " + " ".join([*(r.given for r in plan_for(load_task(cfg.task)).roles), TASK_TOPIC.lstrip("/")])
+    roles = plan_for(load_task(cfg.task)).roles
+    return (f"--topics {' '.join([*(r.given for r in roles), TASK_TOPIC.lstrip('/')])} "
+            f"--types {' '.join(f'{r.given}:{r.types[0]}' for r in roles if r.types and len(r.types) == 1)}")
 
 
 def _wait_for_the_learner(cfg, launched, learner_dir: Path, session_bag: Path | None, log,

@@ -48,7 +48,7 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
                         help="rosbag2 bag (directory, .db3 or .mcap) with /pusher/transition; repeat to merge bags")
     parser.add_argument("--from-topics", metavar="TASK", nargs="?", const=True, default=None,
                         help="build the transitions from each bag's raw robot topics as the task file says "
-                             "(see `offline-rl dataset --help`); TASK: the same as --task")
+                             "(see `offline-rl dataset --help`); `--from-topics TASK` is `--from-topics --task TASK`")
     parser.add_argument("--task", metavar="TASK",
                         help="built-in task name or task file (default: the task each bag records, else pusher_reach)")
     parser.add_argument("--algo", choices=ALGORITHMS + ("auto",), default=d.algo,

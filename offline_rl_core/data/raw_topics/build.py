@@ -45,7 +45,7 @@ from ..bag import TRANSITION_TOPIC, open_bag
 from ..transitions import Transitions
 from .messages import MessageDecodeError
 from .spec import JoinPlan, plan_for
-from .streams import Mismatch, Rows, decode_rows, role_width
+from .streams import Mismatch, Rows, decode_rows, has_header
 
 
 @dataclass
@@ -65,11 +65,12 @@ class JoinReport:
     episode_starts: dict = field(default_factory=dict)  # what started each new episode
     steps: int = 0  # joined commands: the environment steps the recording holds
     transitions: int = 0
+    ignored: dict = field(default_factory=dict)  # topic -> why it was not read
 
     def as_dict(self) -> dict:
         return {k: getattr(self, k) for k in ("bag", "task", "points", "command_topics", "states", "commands",
                                                "goals", "point_topics", "resets", "episodes", "episode_starts",
-                                               "steps", "transitions")}
+                                               "steps", "transitions", "ignored")}
 
     def format(self) -> str:
         """The report as a few lines of text (what `offline-rl dataset` prints)."""
@@ -84,7 +85,8 @@ class JoinReport:
             f"{cmd['within_tolerance']} within tolerance), dropped {cmd['without_state']} without a state, "
             f"{cmd['superseded']} with another command nearer the same state, {cmd['no_next_state']} without a "
             f"next state, {cmd['after_termination']} after termination; {cmd['clipped']} clipped to [-1, 1]",
-            f"              on {', '.join(f'{t} ({n})' for t, n in self.command_topics.items())}",
+            f"              on {', '.join(f'{t} ({n})' for t, n in self.command_topics.items())}"
+            + "".join(f"; not {t}: {why}" for t, why in self.ignored.items()),
             f"  goals       {_messages_text(self.goals)}",
         ]
         for name, counts in self.point_topics.items():
@@ -173,6 +175,12 @@ def read_bag(bag: Path, plan: JoinPlan) -> tuple[Streams, JoinReport]:
                 raise UserError(f"{bag}: {role.topic} has several types ({', '.join(got)}); {plan.where} field "
                                 f"{role.field} needs {' or '.join(role.types)}")
             found[role.topic] = got[0]
+        headed = [r.topic for r in commands if r.topic in found and has_header(found[r.topic])]
+        for role in commands:
+            if role.topic in found and not plan.receive_stamps and not has_header(found[role.topic]) and headed:
+                # joined by header stamps, a command without one cannot be placed; the
+                # action topics (which have one) hold the arm's commands
+                report.ignored[role.topic] = f"{found.pop(role.topic)} has no header (join.stamps: header)"
         recv: dict[str, list] = {t: [] for t in found}
         data: dict[str, list] = {t: [] for t in found}
         connections = [c for c in reader.connections if c.topic in found]
@@ -391,7 +399,10 @@ def join(plan: JoinPlan, s: Streams, report: JoinReport, kinematics=None, allow_
     action = np.clip(action64, -1.0, 1.0).astype(np.float32)  # as the sim does: clip, then float32
     state_of, dist, joined = nearest(t_state, t_cmd, tol)
     c = np.flatnonzero(joined)
-    c = c[np.lexsort((t_cmd[c], dist[c], state_of[c]))]  # per state: nearest first, then earliest
+    # per state: a command of the project's action topics before the controller's (they say
+    # who acted: the mux's output, where a policy node also sends its own proposal to the
+    # controller), then the nearest, then the earliest
+    c = c[np.lexsort((t_cmd[c], dist[c], commands.rank[c], state_of[c]))]
     first = np.ones(c.size, bool)
     first[1:] = state_of[c][1:] != state_of[c][:-1]
     report.commands.update(exact=int((dist[c[first]] == 0).sum()), within_tolerance=int((dist[c[first]] > 0).sum()),
@@ -408,7 +419,8 @@ def join(plan: JoinPlan, s: Streams, report: JoinReport, kinematics=None, allow_
     report.commands["no_next_state"] = int((~has_next).sum())
     live = {"cmd_t": np.full(t_state.size, -1, np.int64), "cmd_dist": np.full(t_state.size, -1, np.int64),
             "next_t": np.full(t_state.size, -1, np.int64), "next_dist": np.zeros(t_state.size, np.int64)}
-    live["cmd_t"][a], live["cmd_dist"][a] = t_cmd[c], dist[c]
+    # how far a command nearer (or of an action topic, for the controller's) could still come
+    live["cmd_t"][a], live["cmd_dist"][a] = t_cmd[c], np.where(commands.rank[c] > 0, tol, dist[c])
     live["next_t"][a[candidate]], live["next_dist"][a[candidate]] = t_state[b[candidate]], next_dist[candidate]
     c, a, b, step_index = c[has_next], a[has_next], b[has_next], step_index[has_next]
 

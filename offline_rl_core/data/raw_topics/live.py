@@ -28,12 +28,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ...common.rejections import Rejection
 from ...task.spec import TaskSpec
 from ..transitions import Layout, Transitions
 from .build import JoinEmpty, JoinReport, Streams, join, point_kinematics
 from .messages import MessageDecodeError
 from .spec import TopicRole, plan_for
-from .streams import Mismatch, Rows, decode_rows, role_width
+from .streams import Mismatch, Rows, decode_rows, has_header, role_width
 
 NEVER = -(2**62)  # a watermark before any stamp
 _GROUP = {"state": "states", "command": "commands", "action": "commands", "goal": "observed", "point": "observed",
@@ -131,10 +132,12 @@ class LiveJoin:
 
     # ---------------------------------------------------------------- input
     def topics(self) -> list[TopicRole]:
-        """The topics to subscribe to (``given``: the task's name for each)."""
-        return list(self.plan.roles)
+        """The topics to subscribe to (``given``: the task's name for each); joined by header
+        stamps, not a command type without a header (the action topics hold the arm's commands)."""
+        return [r for r in self.plan.roles if r.types is None or self.plan.receive_stamps
+                or any(has_header(t) for t in r.types)]
 
-    def add(self, topic: str, msgtype: str, payload: bytes, recv_ns: int, now: float) -> str | None:
+    def add(self, topic: str, msgtype: str, payload: bytes, recv_ns: int, now: float) -> Rejection | None:
         """One message of ``topic`` (absolute, as ``topics()`` names it) received at
         ``recv_ns`` (the node's clock) at ``now`` (the caller's clock, s). Returns why it was
         refused (counted), or None."""
@@ -142,9 +145,7 @@ class LiveJoin:
         try:
             rows = decode_rows(self.plan, role, msgtype, [bytes(payload)], [recv_ns])
         except (MessageDecodeError, Mismatch) as exc:
-            reason = "unreadable" if isinstance(exc, MessageDecodeError) else "does not fit the task"
-            self.counts.refused[reason] = self.counts.refused.get(reason, 0) + 1
-            return f"{topic}: {exc}"
+            return self._refuse(getattr(exc, "reason", "bad layout"), f"{topic}: {exc}")
         self.types.setdefault(topic, msgtype)
         self.counts.messages[topic] = self.counts.messages.get(topic, 0) + 1
         stamp = int(rows.stamp[0])
@@ -166,9 +167,13 @@ class LiveJoin:
             self.quiet_used = False
         self.changed = True
         if role.types is not None and rows.wrong_length:
-            self.counts.refused["another length"] = self.counts.refused.get("another length", 0) + 1
-            return f"{topic}: a command of another length than robot.command.joints ({self.task.act_dim})"
+            return self._refuse("wrong length", f"{topic}: a command of another length than the "
+                                                f"{self.task.act_dim} joints of robot.command.joints")
         return None
+
+    def _refuse(self, reason: str, text: str) -> Rejection:
+        self.counts.refused[reason] = self.counts.refused.get(reason, 0) + 1
+        return Rejection(reason, text)
 
     def heard_stream(self) -> bool:
         """Whether the state and goal topics have been heard (the join can start)."""

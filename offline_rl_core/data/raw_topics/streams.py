@@ -26,7 +26,12 @@ from .spec import JoinPlan, TopicRole
 
 
 class Mismatch(ValueError):
-    """A topic's messages do not fit the task file (its text names the topic and the field)."""
+    """A topic's messages do not fit the task file (its text names the topic and the field);
+    ``reason``: the node's rejection reason for it (``common.rejections.REASONS``)."""
+
+    def __init__(self, text: str, reason: str = "bad layout"):
+        super().__init__(text)
+        self.reason = reason
 
 
 def source_of_topic(topic: str) -> int | None:
@@ -43,10 +48,15 @@ class Rows:
     values: np.ndarray  # float64 (n, width)
     ok: np.ndarray  # bool: decoded, the task's length, finite
     source: np.ndarray  # int64: who acted (commands; 0 otherwise)
+    rank: np.ndarray | None = None  # commands: 0 from the project's action topics, 1 from the controller's
     wrong_length: int = 0  # commands refused for holding another number of values
 
     def __len__(self) -> int:
         return int(self.stamp.size)
+
+    def __post_init__(self):
+        if self.rank is None:
+            self.rank = np.zeros(self.stamp.size, np.int8)
 
     @classmethod
     def empty(cls, width: int) -> "Rows":
@@ -57,12 +67,13 @@ class Rows:
     def concat(cls, parts: list["Rows"], width: int) -> "Rows":
         if not parts:
             return cls.empty(width)
-        return cls(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("stamp", "recv", "values", "ok", "source")),
+        return cls(*(np.concatenate([getattr(p, f) for p in parts])
+                     for f in ("stamp", "recv", "values", "ok", "source", "rank")),
                    sum(p.wrong_length for p in parts))
 
     def take(self, index) -> "Rows":
         return Rows(self.stamp[index], self.recv[index], self.values[index], self.ok[index], self.source[index],
-                    self.wrong_length)
+                    self.rank[index], self.wrong_length)
 
 
 def role_width(plan: JoinPlan, role: TopicRole) -> int:
@@ -83,9 +94,13 @@ def check_type(plan: JoinPlan, role: TopicRole, msgtype: str) -> None:
     if role.types is not None and msgtype not in role.types:
         raise Mismatch(f"{role.topic} has type {msgtype}; {plan.where} field {role.field} needs "
                        f"{' or '.join(role.types)}")
-    if role.types is not None and not plan.receive_stamps and not HAS_HEADER.get(msgtype, True):
+    if role.types is not None and not plan.receive_stamps and not has_header(msgtype):
         raise Mismatch(f"{role.topic} ({msgtype}) has no header, but {plan.where} joins by header stamps "
-                       "(field join.stamps); set join.stamps: receive to join by receive times")
+                       "(field join.stamps); set join.stamps: receive to join by receive times", "bad stamp")
+
+
+def has_header(msgtype: str) -> bool:
+    return HAS_HEADER.get(msgtype, True)
 
 
 def decode_rows(plan: JoinPlan, role: TopicRole, msgtype: str, payloads, recv_ns) -> Rows:
@@ -116,7 +131,7 @@ def _columns(role: TopicRole, names: tuple[str, ...], count: int, wanted: tuple[
         missing = [j for j in wanted if j not in names]
         if missing:
             raise Mismatch(f"{role.topic}: joint {missing[0]!r} ({where} field {field}) is not among the "
-                           f"message's joint names [{', '.join(names)}]")
+                           f"message's joint names [{', '.join(names)}]", "unknown joints")
         return [names.index(j) for j in wanted] if count == len(names) else None
     return list(range(len(wanted))) if count == len(wanted) else None
 
@@ -151,6 +166,7 @@ def _read_command(plan: JoinPlan, role: TopicRole, msgtype: str, decoded: list[D
     controller = role.role == "command"
     topic_source = source_of_topic(role.topic)
     rows.source[:] = SOURCE_POLICY if topic_source is None else topic_source
+    rows.rank[:] = 1 if controller else 0
     fixed = command.source != "auto"
     if fixed:
         rows.source[:] = SOURCE_BY_NAME[command.source]

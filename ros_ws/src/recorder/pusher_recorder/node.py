@@ -87,6 +87,9 @@ PARAMS = (
           "at start)", read_only=True, flag="--make-parents"),
     Param("topics", [], "topics to record (relative names resolve in the node's namespace); none: every topic when "
           "passive, the loop's when driving", read_only=True, flag="--topics", kind=list),
+    Param("types", [], "TOPIC:TYPE pairs (e.g. joint_states:sensor_msgs/msg/JointState) to record from the start, "
+          "subscribed reliable at once rather than when discovery finds their publishers: a session's first messages "
+          "are in the bag however slowly discovery goes", read_only=True, flag="--types", kind=list),
     Param("flush_interval", 1.0, "seconds between writes to disk: a kill loses at most this much", low=0.001,
           high=3600.0, flag="--flush-interval"),
     Param("max_bag_size", 0, "start a new file of the bag directory past this many bytes (0: never)", low=0,
@@ -177,6 +180,15 @@ class Recorder(Node):
             loop = (TRANSITION,) if self.record_all or self.transition_topic in self.wanted else ()
         for topic in loop:
             self.subscribe(self.resolve(topic), *LOOP_TYPES[topic], TRANSITION_QOS if topic == TRANSITION else 10)
+        for pair in s.types:
+            topic, _, msgtype = pair.partition(":")
+            msg_class = message_class(msgtype) if msgtype.count("/") == 2 else None
+            if not topic or msg_class is None:
+                raise UserError(f"--types {pair}: expected TOPIC:TYPE with an installed type, e.g. "
+                                "joint_states:sensor_msgs/msg/JointState")
+            self.wanted.add(self.resolve(topic))
+            if self.resolve(topic) not in self.subs:
+                self.subscribe(self.resolve(topic), msgtype, msg_class, TRANSITION_QOS)
         if self.active:
             # who acted is the topic, as the sim reads it: pusher/command/expert or .../random
             self.command_pubs = {source: self.create_publisher(JointState, f"{COMMAND}/{SOURCE_NAMES[source]}", 10)
@@ -388,13 +400,15 @@ def spin_recorder(executor, node: Recorder) -> None:
 
 
 def expand_topics(argv: list[str]) -> list[str]:
-    """``--topics a b c`` (as ``ros2 bag record`` takes it) -> ``--topics a --topics b ...``."""
+    """``--topics a b c`` (as ``ros2 bag record`` takes it) -> ``--topics a --topics b ...``
+    (``--types`` likewise)."""
     out, i = [], 0
     while i < len(argv):
         out.append(argv[i])
         if argv[i] == "--ros-args":
             return out + argv[i + 1 :]
-        if argv[i] == "--topics":
+        flag = argv[i]
+        if flag in ("--topics", "--types"):
             i += 1
             names = []
             while i < len(argv) and not argv[i].startswith("-"):
@@ -402,7 +416,7 @@ def expand_topics(argv: list[str]) -> list[str]:
                 i += 1
             out.pop()
             for name in names or [""]:
-                out += ["--topics", name] if name else ["--topics"]
+                out += [flag, name] if name else [flag]
             continue
         i += 1
     return out
