@@ -41,7 +41,7 @@ class Learner:
 
     def poll(self, idle: bool = False, ended: bool = False):
         if idle:  # the learner had nothing to do for a while: nothing more was on the wire
-            self.now += QUIET
+            self.now += 2 * QUIET
         out = self.live.poll(self.now, ended=ended)
         self.steps += len(out)
         if len(out.transitions):

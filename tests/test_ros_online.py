@@ -127,6 +127,7 @@ def test_on_raw_topics_the_learner_trains_on_the_batch_join_of_the_sessions_reco
         assert np.array_equal(state["online_rows"][name].numpy(), expected[name]), name
     summary = json.loads((out / "summary.json").read_text())
     assert summary["counts"]["steps"] == 198 and summary["counts"]["human"] == int(expected["human"].sum())
+    assert json.loads((out / "learner" / "live.json").read_text())["join"]["late"] == 0
 
 
 def test_the_learner_node_drops_bad_transitions_and_counts_them(spawn, tmp_path, prior):

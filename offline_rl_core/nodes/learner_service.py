@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..common.atomic import atomic_path
+from ..common.atomic import atomic_path, write_json_atomic
 from ..data.bag.cdr import TransitionDecodeError, decode_transition_payloads
 from ..common.errors import UserError
 from ..learners.config import TrainConfig
@@ -117,6 +117,7 @@ class LearnerService:
         self.idle_since = time.monotonic()  # when training last stopped (the live join's quiet rule)
         self.skip_steps = 0  # steps the live join hands over again after a resume (trained on already)
         self.last_poll = -math.inf
+        self.live_file_due = False
         prior = load_checkpoint(cfg.prior) if cfg.prior else None  # validated as the policy node validates it
         if prior is not None:
             policy_for_task(prior, cfg.prior, self.task.obs_dim, self.task.act_dim)  # refused when not the task's
@@ -188,18 +189,20 @@ class LearnerService:
             self.rejected.add(rejection)
         return rejection
 
-    def take_steps(self, ended: bool = False) -> int:
+    def take_steps(self, ended: bool = False, quiet: bool | None = None) -> int:
         """Hand the environment steps the live join holds as final to the learner (each with
-        its transition, or none); returns how many."""
+        its transition, or none); returns how many. ``quiet``: everything published has
+        arrived (default: the live join's quiet rule)."""
         if self.live is None:
             return 0
         now = time.monotonic()
-        if now - self.last_poll < LIVE_POLL_PERIOD_S and not ended:
+        if now - self.last_poll < LIVE_POLL_PERIOD_S and not ended and quiet is None:
             return 0  # a join of the window costs milliseconds: at most once a control period
         self.last_poll = now
-        steps = self.live.poll(now, self.idle_since, ended=ended)
+        steps = self.live.poll(now, self.idle_since, ended=ended, quiet=quiet)
         if len(steps) == 0:
             return 0
+        self.live_file_due = True
         rows = steps.transitions.to_rows() if len(steps.transitions) else np.zeros((0, self.layout.width), np.float32)
         k = 0
         for has_row in steps.has_row:
@@ -233,6 +236,8 @@ class LearnerService:
                 self._on_version(self.weights)
         if trained:
             self.idle_since = time.monotonic()
+        if self.live is not None and self.live_file_due and not self.learner.updates_owed:
+            self._write_live_file()
         if time.monotonic() - self.last_save >= self.cfg.save_every:
             self.save()
         return versions
@@ -255,7 +260,25 @@ class LearnerService:
     def _write_policy(self, weights: dict) -> None:
         save_checkpoint(self.out / "policy.pt", weights)
 
+    def _write_live_file(self) -> None:
+        """``live.json``: the steps taken from the raw topics and trained on (a pipeline
+        waits on it for the learner to have the whole session before stopping it)."""
+        self.live_file_due = False
+        write_json_atomic(self.out / "live.json", {"steps": self.learner.n_steps, "transitions": self.learner.n_online,
+                                                   "updates": self.learner.updates, "join": self.live.counts.as_dict()})
+
     # ---------------------------------------------------------------- persistence
+    def close(self) -> Path:
+        """On the way out: the steps whose messages have all come (nothing is in flight any
+        more; a learner busy training till the end never saw the stream fall quiet), then the
+        resume point."""
+        self.take_steps(quiet=True)
+        path = self.save()
+        if self.live is not None:
+            self.log(f"learner: closed at {self.learner.n_steps} environment steps, {self.learner.n_online} "
+                     f"transitions; live join {json.dumps(self.live.counts.as_dict())}")
+        return path
+
     def save(self) -> Path:
         path = self.out / "learner_state.pt"
         with atomic_path(path) as tmp, open(tmp, "wb") as f:

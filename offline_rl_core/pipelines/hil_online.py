@@ -292,6 +292,14 @@ def _wait_for_the_learner(cfg, launched, learner_dir: Path, session_bag: Path | 
     every step but the session's last (which only a later state could close) is live."""
     if session_bag is None:
         recorded = cfg.env_steps - 1
+        deadline = time.monotonic() + timeout
+        while launched["learner"].running() and time.monotonic() < deadline:
+            try:  # the learner has taken (and trained on) every step from the topics
+                if json.loads((learner_dir / "live.json").read_text())["steps"] >= recorded:
+                    break
+            except (OSError, ValueError, KeyError):
+                pass
+            time.sleep(0.2)
     else:
         from ..data.bag import read_transitions
 

@@ -7,16 +7,17 @@ environment step whose outcome no later message can change: its transition, or t
 has none (an episode's last step, whose next state never comes). So a session's live
 transitions are the rows `offline-rl dataset` builds from the session's bag.
 
-When is an outcome final? Each topic's messages are taken to arrive in stamp order, and
-a step's outcome depends only on messages up to a horizon past it: its command (the nearest
-to the state), the next state (one period on, within the period tolerance), the goal and
-the tracked points of both states (within the join tolerance). A topic is known complete
-up to the latest stamp heard on it; a topic that falls silent (a goal published once an
-episode, commands that stopped) is taken complete up to ``lateness`` before the state
-stream. When nothing new has come for ``quiet`` seconds while the caller was idle (a
-lockstep sim waiting for the learner), everything published so far is taken to have
-arrived, up to twice the largest tolerance past the latest state, never for commands:
-a command for the latest state may come only once the learner answers. A message that
+When is an outcome final? Each topic's messages are taken to arrive in stamp order (not
+across topics), and a step's outcome depends only on messages up to a horizon past it: its
+command (the nearest to the state), the next state (one period on, within the period
+tolerance), the goal and the tracked points of both states (within the join tolerance). A
+topic is known complete up to the latest stamp heard on it; a topic that falls silent (a
+goal published once an episode, a person who does not take over) is taken complete up to
+``lateness`` before the state stream. When nothing new has come for ``quiet`` seconds while
+the caller was idle (a lockstep sim waiting for the learner), everything published so far
+is taken to have arrived: up to twice the largest tolerance past the latest state, for
+commands up to just before it (the latest state's command may come only once the learner
+answers). A message that
 comes after a step it could have changed was handed out is counted as late (the live
 rows may then differ from the batch's).
 """
@@ -63,13 +64,15 @@ class LiveSteps:
 class LiveCounts:
     messages: dict = field(default_factory=dict)  # topic -> messages taken
     late: int = 0  # messages that came after a step they could change was handed out
+    late_topics: dict = field(default_factory=dict)  # topic -> late messages
     old: int = 0  # messages from before the window (copies of messages let go of)
     refused: dict = field(default_factory=dict)  # reason -> messages that do not fit the task
     steps: int = 0
     transitions: int = 0
 
     def as_dict(self) -> dict:
-        return {"messages": dict(self.messages), "late": self.late, "old": self.old, "refused": dict(self.refused),
+        return {"messages": dict(self.messages), "late": self.late, "late_topics": dict(self.late_topics),
+                "old": self.old, "refused": dict(self.refused),
                 "steps": self.steps, "transitions": self.transitions}
 
 
@@ -114,7 +117,6 @@ class LiveJoin:
         self.points = {r.name: _Buffer(width[r.topic]) for r in self.plan.of_role("point")}
         self.resets: list[int] = []
         self.watermark = {r.topic: NEVER for r in self.plan.roles}  # latest stamp heard, per topic
-        self.commands_watermark = NEVER
         self.window_start = NEVER  # first state of the window (an episode start)
         self.goal_start = NEVER  # the earliest goal the window's states can take
         self.handed_out = NEVER  # every state stamped before this has had its steps handed out
@@ -157,12 +159,11 @@ class LiveJoin:
             return None
         elif stamp < self.sealed[group] and not self._held(role).holds(stamp):
             self.counts.late += 1  # it may change a step handed out; kept for the steps to come
+            self.counts.late_topics[topic] = self.counts.late_topics.get(topic, 0) + 1
         if role.role != "reset":
             self._held(role).append(rows)
         if stamp > self.watermark[topic]:
             self.watermark[topic] = stamp
-            if role.role in ("command", "action"):
-                self.commands_watermark = max(self.commands_watermark, stamp)
             self.last_advance = now
             self.quiet_used = False
         self.changed = True
@@ -192,11 +193,14 @@ class LiveJoin:
         return stamp >= self.window_start - self.plan.tolerance_ns
 
     # ---------------------------------------------------------------- output
-    def poll(self, now: float, idle_since: float = -math.inf, ended: bool = False) -> LiveSteps:
+    def poll(self, now: float, idle_since: float = -math.inf, ended: bool = False, quiet: bool | None = None
+             ) -> LiveSteps:
         """The steps that became final since the last poll. ``idle_since``: when the caller
         last finished other work (the quiet rule counts only time it was free to take
-        messages); ``ended``: the stream is over (nothing more will come), every step is final."""
-        quiet = now - max(self.last_advance, idle_since) >= self.settings.quiet
+        messages); ``quiet``: whether all that was published has arrived (default: by the
+        quiet rule); ``ended``: the stream is over (nothing more will come), every step is final."""
+        if quiet is None:
+            quiet = now - max(self.last_advance, idle_since) >= self.settings.quiet
         if not self.changed and (not quiet or self.quiet_used) and not ended:
             return self._none()
         self.changed = False
@@ -236,15 +240,23 @@ class LiveJoin:
         return LiveSteps(Transitions.empty(0, Layout(self.task.obs_dim, self.task.act_dim)), np.zeros(0, bool))
 
     def _seals(self, quiet: bool) -> tuple[int, int, int]:
-        """How far the states, the commands and the goal and points are known complete."""
+        """How far the states, the commands and the goal and points are known complete:
+        each topic up to its latest stamp, a silent one up to ``lateness`` behind the states;
+        when quiet, all but the commands up to twice the largest tolerance past the latest
+        state, and the commands up to just before it (those for earlier states were sent
+        before it came; the latest state's may come only once the learner answers)."""
         s_wm = self.watermark[self.plan.state_topic]
         if s_wm == NEVER:
             return NEVER, NEVER, NEVER
         silent = s_wm - self.lateness_ns
         states = s_wm + (self.quiet_horizon if quiet else 0)
-        commands = max(self.commands_watermark, silent)
-        observed = [r.topic for r in self.plan.of_role("goal", "point")]
-        seen = min(max(self.watermark[t], silent, states if quiet else NEVER) for t in observed)
+        read = self.topics()
+        commands = min((max(self.watermark[r.topic], silent) for r in read if r.role in ("command", "action")),
+                       default=silent)
+        if quiet:
+            commands = max(commands, s_wm - 1)
+        seen = min((max(self.watermark[r.topic], silent, states if quiet else NEVER)
+                    for r in read if r.role in ("goal", "point")), default=states)
         return states, commands, seen
 
     def _cut(self, r, seals: tuple[int, int, int]) -> int:

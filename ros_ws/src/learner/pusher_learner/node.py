@@ -186,7 +186,7 @@ class Learner(Node):
         self.weights_pub.publish(msg)
 
     def close(self) -> None:
-        self.service.save()
+        self.service.close()
 
 
 def main(argv: list[str] | None = None) -> int:
