@@ -8,23 +8,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from offline_rl_core.data.bag import open_bag
-from offline_rl_core.data.raw_topics import LiveJoin, plan_for, transitions_from_topics
+from offline_rl_core.data.raw_topics import LiveJoin, transitions_from_topics
 from offline_rl_core.data.raw_topics.live import LiveSettings
 from offline_rl_core.data.transitions import Transitions
-from offline_rl_core.task.spec import load_task, task_from_dict
+from offline_rl_core.task.spec import load_task
 
-from raw_topic_bags import RAW_TOPICS, record_raw_bag
+from raw_topic_bags import RAW_TOPICS, bag_messages, pusher_task, record_raw_bag
 
 QUIET = LiveSettings().quiet
-
-
-def bag_messages(bag, task) -> list[tuple[str, str, bytes, int]]:
-    """(topic, type, payload, receive time) of the task's topics, in the bag's order."""
-    wanted = {r.topic for r in plan_for(task).roles}
-    with open_bag(bag) as reader:
-        conns = [c for c in reader.connections if c.topic in wanted]
-        return [(c.topic, c.msgtype, bytes(raw), t) for c, t, raw in reader.messages(connections=conns)]
 
 
 class Learner:
@@ -100,9 +91,7 @@ def test_topics_interleaved_otherwise_than_in_the_bag_give_the_same_rows(tmp_pat
     bag = tmp_path / "robot.db3"
     record_raw_bag(bag, episodes=3, expert_frac=0.5, seed=3, sim_like=True, topics=RAW_TOPICS, drop=0.1,
                    jitter_ns=3_000_000, duplicates=0.05)
-    doc = load_task("pusher_reach").describe()
-    doc["join"] = {**doc["join"], "tolerance": 0.008, "period_tolerance": 0.008}
-    task = task_from_dict(doc)
+    task = pusher_task(join={"tolerance": 0.008, "period_tolerance": 0.008})
     rng = np.random.default_rng(seed)
     messages = bag_messages(bag, task)
     delivery = np.array([recv for *_, recv in messages], np.int64) + rng.integers(0, 15_000_000, len(messages))
@@ -118,9 +107,7 @@ def test_topics_interleaved_otherwise_than_in_the_bag_give_the_same_rows(tmp_pat
 def test_commands_without_a_header_joined_live_by_receive_time(tmp_path):
     bag = tmp_path / "torque.db3"
     record_raw_bag(bag, episodes=2, expert_frac=0.5, seed=5, sim_like=False, torque_commands=True)
-    doc = load_task("pusher_reach").describe()
-    doc["join"] = {**doc["join"], "stamps": "receive"}
-    task = task_from_dict(doc)
+    task = pusher_task(join={"stamps": "receive"})
     learner = Learner(task)
     for message in bag_messages(bag, task):
         learner.take(*message)
@@ -130,10 +117,7 @@ def test_commands_without_a_header_joined_live_by_receive_time(tmp_path):
 def test_a_message_that_does_not_fit_the_task_is_refused_and_counted(tmp_path):
     bag = tmp_path / "torque.db3"
     record_raw_bag(bag, episodes=1, expert_frac=1.0, seed=0, sim_like=False, torque_commands=True)
-    doc = load_task("pusher_reach").describe()
-    doc["join"] = {**doc["join"], "stamps": "receive"}
-    doc["command"] = {**doc["command"], "joints": ["shoulder"], "scale": [0.5], "offset": [0.0]}
-    task = task_from_dict(doc)
+    task = pusher_task(join={"stamps": "receive"}, command={"joints": ["shoulder"], "scale": [0.5], "offset": [0.0]})
     live = LiveJoin(task)
     command = next(m for m in bag_messages(bag, task) if m[0] == "/effort_controller/commands")
     why = live.add(*command, now=0.0)

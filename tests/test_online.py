@@ -244,8 +244,7 @@ def test_a_paced_actor_waits_for_the_learners_own_weights(offline, prior):
 def raw_session(tmp_path_factory):
     """A lockstep session of the sim as a robot logs it (joint states, target, fingertip,
     commands), and its messages in the order a learner takes them."""
-    from raw_topic_bags import record_raw_bag
-    from test_live_join import bag_messages
+    from raw_topic_bags import bag_messages, record_raw_bag
 
     from offline_rl_core.task.spec import load_task
 

@@ -23,7 +23,7 @@ from offline_rl_core.evaluation.stats import newcombe_diff_ci
 from offline_rl_core.runs.training_run import add_train_arguments, run_training, run_training_from_args
 from offline_rl_core.data.transitions import LAYOUT_SLICES
 
-from raw_topic_bags import RAW_TOPICS, SIM_TOPICS, record_raw_bag
+from raw_topic_bags import RAW_TOPICS, SIM_TOPICS, pusher_task, record_raw_bag
 from ros_helpers import ros2, ros_env, spawn  # noqa: F401 - fixtures
 
 REPO = Path(__file__).resolve().parents[1]
@@ -36,14 +36,6 @@ def bits(rows: np.ndarray) -> np.ndarray:
 
 def rows_by_step(data) -> dict[tuple[int, int], np.ndarray]:
     return {(int(e), int(s)): row for e, s, row in zip(data.episode, data.step, data.to_rows())}
-
-
-def pusher_task(**sections):
-    """pusher_reach with some fields of its sections changed (``join={"stamps": "receive"}``)."""
-    doc = load_task("pusher_reach").describe()
-    for key, value in sections.items():
-        doc[key] = {**doc[key], **value}
-    return task_from_dict(doc)
 
 
 def edited_task_file(tmp_path: Path, *edits: tuple[str, str]) -> Path:
@@ -173,7 +165,8 @@ def test_a_point_from_the_tasks_model_where_the_bag_has_no_topic_for_it(tmp_path
     pytest.importorskip("offline_rl_core.task.envs")
     raw = tmp_path / "arm.db3"
     record_raw_bag(raw, episodes=1, expert_frac=1.0, seed=3, sim_like=False, topics=RAW_TOPICS)
-    doc = load_task("pusher_reach").describe()
+    task = pusher_task()
+    doc = task.describe()
     doc["points"] = [{**doc["points"][0], "kinematics": "site:fingertip", "link_lengths": []}]
     task = task_from_dict(doc)
     built, report = transitions_from_topics(raw, task)

@@ -180,7 +180,7 @@ class Recorder(Node):
             loop = (TRANSITION,) if self.record_all or self.transition_topic in self.wanted else ()
         for topic in loop:
             self.subscribe(self.resolve(topic), *LOOP_TYPES[topic], TRANSITION_QOS if topic == TRANSITION else 10)
-        for pair in s.types:
+        for pair in s.types or ():
             topic, _, msgtype = pair.partition(":")
             msg_class = message_class(msgtype) if msgtype.count("/") == 2 else None
             if not topic or msg_class is None:
