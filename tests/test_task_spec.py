@@ -114,3 +114,16 @@ def test_a_wrong_task_file_is_one_line_naming_the_field(tmp_path, edit, message)
 def test_an_unknown_task_name_lists_the_built_in_ones():
     with pytest.raises(UserError, match="unknown task 'pusher_rech': expected a built-in task \\(.*pusher_reach"):
         load_task("pusher_rech")
+
+
+def test_a_joint_space_goal_meets_each_joint_in_its_own_order():
+    """A JointState goal naming its joints in another order (or a subset) is compared joint by joint."""
+    task = task_from_yaml(VELOCITY_ARM.replace("goal: {topic: goal_joints, type: sensor_msgs/JointState}",
+                                                "goal: {topic: goal_joints, type: sensor_msgs/JointState, joints: [j2, j0]}"))
+    assert task.observation_labels()[-2:] == ("goal(j2)-pos(j2)", "goal(j0)-pos(j0)")
+    positions = np.array([[0.1, -0.2, 0.3]])
+    goal = np.array([[0.5, 0.4]])  # j2, j0
+    obs = features.observe(task, positions, np.zeros((1, 3)), {"goal": goal})[0]
+    np.testing.assert_allclose(obs[-2:], np.array([0.5 - 0.3, 0.4 - 0.1], np.float32))
+    scored = features.score(task, positions, {"goal": goal}, [1], [False])
+    assert scored.dist[0] == pytest.approx(np.hypot(0.2, 0.3))

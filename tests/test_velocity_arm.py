@@ -54,7 +54,7 @@ def test_the_log_of_an_arm_nobody_modelled_gives_its_own_steps(tmp_path, capsys,
     assert main(["train", "--bag", str(out), "--algo", "bc", "--steps", "20", "--batch-size", "32", "--hidden", "32",
                  "--eval-episodes", "0", "--out", str(run)]) == 0
     metrics = json.loads((run / "metrics.json").read_text())
-    assert metrics["bags"][0]["task"] == f"velocity_arm_{n}" and metrics["transitions"] == len(recorded.q)
+    assert metrics["task"]["task"] == f"velocity_arm_{n}" and metrics["transitions"] == len(recorded.q)
 
 
 @pytest.mark.parametrize("edit, message", [

@@ -21,9 +21,12 @@ COMMAND_MODULES = (
     "train",
     "eval",
     "experiment",
+    "sweep",
     "export_onnx",
     "bench",
     "hil",
+    "weights_key",
+    "sros2",
 )
 
 

@@ -44,12 +44,12 @@ from ..learners.config import TrainConfig
 from ..learners.online import OnlineLearner, OnlineSettings, PriorMismatch
 from .joint_messages import VALUE_LIMIT
 from ..common.output_paths import check_output_dir
-from ..serving.checkpoint import load_checkpoint, save_checkpoint
+from ..serving.checkpoint import checkpoint_task, load_checkpoint, save_checkpoint
 from ..serving.policy import policy_for_task
 from ..common.rejections import Rejection, RejectionCounter
 from ..data.raw_topics.live import LiveJoin, LiveSettings
 from ..data.transitions import PUSHER_LAYOUT, SOURCE_NAMES, Layout, Transitions
-from ..task.spec import load_task
+from ..task.spec import TaskSpec
 
 
 LIVE_POLL_PERIOD_S = 0.02
@@ -65,7 +65,7 @@ class LearnerServiceConfig:
     resume: bool = False
     session_bag: str | None = None  # the session's recording: transitions missed while down
     snapshot_every: int = 0  # live transitions between kept copies of the weights (0: none)
-    task: str | None = None  # built-in name or task file (default pusher_reach)
+    task: str | None = None  # a built-in task or a task file; None: the prior's, else the bags'
     from_topics: bool = False  # build the live transitions from the task's raw topics
     live: LiveSettings = field(default_factory=LiveSettings)
     settings: OnlineSettings = field(default_factory=OnlineSettings)
@@ -104,27 +104,28 @@ def _count(value: float) -> bool:
 
 class LearnerService:
     def __init__(self, cfg: LearnerServiceConfig, log=print):
-        from ..runs.training_run import load_bags
+        from ..runs.training_run import load_bags, task_of_run
 
         self.cfg, self.log = cfg, log
         self.out = check_output_dir(cfg.out, "parameter out:")  # before the bags load: a bad path is refused at once
         self.out.mkdir(parents=True, exist_ok=True)
-        self.task = load_task(cfg.task)
+        prior = load_checkpoint(cfg.prior) if cfg.prior else None  # validated as the policy node validates it
+        given = cfg.task or (checkpoint_task(prior) if prior is not None and "task" in prior else None)
+        self.task = task_of_run(cfg.bags, given)
         self.layout = Layout(self.task.obs_dim, self.task.act_dim)
-        offline = self._offline(cfg, load_bags)
+        offline = self._offline(cfg.bags, cfg.from_topics, self.task, load_bags)
         # the live join of the task's raw topics (None: the transitions come on pusher/transition)
         self.live = LiveJoin(self.task, cfg.live) if cfg.from_topics else None
         self.idle_since = time.monotonic()  # when training last stopped (the live join's quiet rule)
         self.skip_steps = 0  # steps the live join hands over again after a resume (trained on already)
         self.last_poll = -math.inf
         self.live_file_due = False
-        prior = load_checkpoint(cfg.prior) if cfg.prior else None  # validated as the policy node validates it
         if prior is not None:
-            policy_for_task(prior, cfg.prior, self.task.obs_dim, self.task.act_dim)  # refused when not the task's
+            policy_for_task(prior, cfg.prior, self.task)  # a prior of another task: one line naming both
             if prior["hidden"] != cfg.train.hidden:
                 raise UserError(f"{cfg.prior}: the prior's hidden width is {prior['hidden']}, the learner's {cfg.train.hidden}")
         try:
-            self.learner = OnlineLearner(offline, cfg.train, cfg.settings, cfg.seed, prior)
+            self.learner = OnlineLearner(offline, cfg.train, cfg.settings, cfg.seed, prior, self.task)
         except PriorMismatch as exc:
             raise UserError(f"{cfg.prior}: {exc}") from None
         self.rejected = RejectionCounter()  # live transitions refused, by reason (never trained on)
@@ -145,18 +146,18 @@ class LearnerService:
         self.weights = self.learner.weights()  # the version the actor should be acting on
 
     @staticmethod
-    def _offline(cfg: LearnerServiceConfig, load_bags) -> Transitions:
+    def _offline(bags: list[str], from_topics: bool, task: TaskSpec, load_bags) -> Transitions:
         """The offline bags: their transitions, or (raw topics) those joined from a bag
         that holds none."""
-        if not cfg.from_topics:
-            return load_bags(cfg.bags, task=cfg.task)[0]
+        if not from_topics:
+            return load_bags(bags, task=task)[0]
         from ..data.bag.reader import open_bag, transition_topic
 
         parts = []
-        for bag in cfg.bags:
+        for bag in bags:
             with open_bag(bag) as reader:
                 joined = transition_topic(reader) is None
-            parts.append(load_bags([bag], from_topics=joined or None, task=cfg.task)[0])
+            parts.append(load_bags([bag], from_topics=joined or None, task=task)[0])
         if len(parts) == 1:
             return parts[0]
         offset = 0
@@ -332,6 +333,7 @@ class LearnerService:
     def status(self) -> dict:
         learner = self.learner
         live = {"steps": learner.n_steps, "join": self.live.counts.as_dict()} if self.live is not None else {}
-        return {"received": learner.n_online, **live, "updates": learner.updates, "owed": learner.updates_owed,
+        return {"received": learner.n_online, **live, "evicted": learner.n_evicted, "updates": learner.updates,
+                "owed": learner.updates_owed,
                 "weights_version": learner.version, "rejected": dict(self.rejected.counts),
                 "train_s": round(learner.train_seconds, 2), **{k: round(v, 5) for k, v in learner.losses.items()}}

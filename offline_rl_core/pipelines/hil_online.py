@@ -40,6 +40,7 @@ from ..evaluation.rollouts import evaluate_policy
 from ..runs.online_loop import EVAL_SEED, TRAIN_SEED_BASE, steps_to
 from ..serving.checkpoint import load_checkpoint
 from ..serving.policy import load_policy
+from ..serving.signing import make_session_keys
 from ..evaluation.stats import wilson_ci
 from ..data.transitions import SOURCE_HUMAN
 
@@ -61,6 +62,7 @@ class OnlineHilConfig:
     prior_algo: str = "auto"  # auto: the best prior (README, "The best prior"); awac: the chapter's
     prior_steps: int = 8000  # of an AWAC prior
     bags: list[str] = field(default_factory=lambda: [DEFAULT_BAG])
+    task: str | None = None  # a built-in task or a task file; None: the one the bags record, else pusher_reach
     corrector: str = "scripted"  # scripted | keyboard | none
     mode: str = "lockstep"  # lockstep (paced, reproducible) | realtime (50 Hz)
     utd: int = 2
@@ -70,7 +72,6 @@ class OnlineHilConfig:
     eval_seed: int = EVAL_SEED
     in_process: bool = False
     timeout: float = 4 * 3600.0
-    task: str | None = None  # built-in name or task file (default pusher_reach)
     from_topics: bool = False  # the learner joins the task's raw topics (implied by another task)
 
     @property
@@ -123,11 +124,12 @@ def run_hil_online(cfg: OnlineHilConfig, log: Callable[[str], None] = lambda s: 
                                                                                            flush=True)) -> dict:
     cfg.validate()
     out = Path(cfg.out)
-    from .hil import HilConfig, Loop, hil_session, resolve_prior
+    from .hil import HilConfig, Loop, hil_session, resolve_prior, resolve_task
 
     loop = Loop(HilConfig(out=str(out), seed=cfg.seed, bags=cfg.bags), log)
     t0 = time.monotonic()
     with hil_session(out, loop):
+        resolve_task(loop, cfg.task, cfg.bags, cfg.prior, out)
         prior_path, prior_from = (None, "none") if cfg.no_prior else resolve_prior(
             loop, cfg.prior, cfg.bags, cfg.seed, cfg.prior_steps, out, log, cfg.prior_algo)
         if cfg.in_process:
@@ -172,7 +174,7 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
     episodes = cfg.env_steps // EPISODE_STEPS
     lockstep = cfg.mode == "lockstep"
     arguments = {
-        "bag": cfg.bags[0], "prior": prior_path or "", "out": out,
+        "bag": cfg.bags[0], "prior": prior_path or "", "out": out, "task": loop.task_arg,
         # until the learner's first weights, the policy serves the prior (or the learner's initial weights)
         "checkpoint": prior_path or learner_dir / "policy.pt",
         "mode": cfg.mode, "paced_every": cfg.publish_every if lockstep else 0, "publish_every": cfg.publish_every,
@@ -180,13 +182,15 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
         # realtime: the nodes that answer the arm go first (where the user may use SCHED_FIFO)
         "thread_priority": 0 if lockstep else REALTIME_THREAD_PRIORITY, "reset_seed": TRAIN_SEED_BASE + 10000 * cfg.seed, "episodes": episodes,
         "snapshot_every": cfg.eval_every, "corrector": cfg.corrector,
-        "task": cfg.task or "", "from_topics": "true" if cfg.raw_topics else "false",
+        "from_topics": "true" if cfg.raw_topics else "false",
         "record_topics": _record_topics(cfg) if cfg.raw_topics else "",
         # a person's corrector runs in the foreground, on this terminal (below)
         "with_corrector": "true" if cfg.corrector == "scripted" else "false",
     }
     if len(cfg.bags) > 1:
         raise UserError("--online takes one offline bag (merge several with offline-rl dataset first)")
+    # this session's weights key pair: the policy node takes only weights the learner signed with it
+    arguments["keys"] = make_session_keys(out / "keys").signing_key.parent
     log(f"hil online: {cfg.env_steps} environment steps ({episodes} episodes, {cfg.mode}) with the "
         f"{cfg.corrector} corrector, learner utd {cfg.utd}, weights every {cfg.publish_every} steps -> {out} "
         f"(ROS_DOMAIN_ID {loop.env['ROS_DOMAIN_ID']})")

@@ -14,7 +14,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .spec import JOINTS_VECTOR, TaskSpec
+from .spec import JOINT_STATE, JOINTS_VECTOR, TaskSpec
 
 
 def wrap_angle(angle):
@@ -32,11 +32,20 @@ def joint_columns(spec: TaskSpec, positions: np.ndarray, names) -> np.ndarray:
     return cols
 
 
-def vector(spec: TaskSpec, name: str, positions: np.ndarray, vectors: dict[str, np.ndarray]) -> np.ndarray:
-    """A named vector of N rows, float64: ``joints`` (the state's positions), or one of ``vectors``."""
+def vector(spec: TaskSpec, name: str, positions: np.ndarray, vectors: dict[str, np.ndarray],
+           partner: str | None = None) -> np.ndarray:
+    """A named vector of N rows, float64: ``joints`` (the state's positions), or one of ``vectors``.
+    Compared with a joint-space goal (``partner`` is ``goal``), ``joints`` is in the goal's
+    joint order, so that each goal value meets its own joint."""
     if name == JOINTS_VECTOR:
-        return joint_columns(spec, positions, spec.state.joints)
+        order = spec.goal.joints if partner == "goal" and spec.goal.type == JOINT_STATE else spec.state.joints
+        return joint_columns(spec, positions, order)
     return np.asarray(vectors[name], dtype=np.float64)
+
+
+def pair(spec: TaskSpec, a: str, b: str, positions, vectors) -> tuple[np.ndarray, np.ndarray]:
+    """Vectors ``a`` and ``b``, each value of one facing its own of the other."""
+    return vector(spec, a, positions, vectors, partner=b), vector(spec, b, positions, vectors, partner=a)
 
 
 def observe(spec: TaskSpec, positions, velocities, vectors: dict[str, np.ndarray]) -> np.ndarray:
@@ -53,10 +62,10 @@ def observe(spec: TaskSpec, positions, velocities, vectors: dict[str, np.ndarray
     for f in spec.observation:
         if f.kind == "cos_sin":
             angles = joint_columns(spec, positions, f.args)
-            pair = np.empty((n, 2 * len(f.args)))
-            pair[:, 0::2] = np.cos(angles)
-            pair[:, 1::2] = np.sin(angles)
-            parts.append(pair)
+            cos_sin = np.empty((n, 2 * len(f.args)))
+            cos_sin[:, 0::2] = np.cos(angles)
+            cos_sin[:, 1::2] = np.sin(angles)
+            parts.append(cos_sin)
         elif f.kind == "positions":
             parts.append(joint_columns(spec, positions, f.args))
         elif f.kind == "velocities":
@@ -64,8 +73,8 @@ def observe(spec: TaskSpec, positions, velocities, vectors: dict[str, np.ndarray
         elif f.kind == "vector":
             parts.append(vector(spec, f.args[0], positions, vectors))
         else:
-            a, b = f.args
-            parts.append(vector(spec, a, positions, vectors) - vector(spec, b, positions, vectors))
+            va, vb = pair(spec, *f.args, positions, vectors)
+            parts.append(va - vb)
     return np.concatenate(parts, axis=1).astype(np.float32)
 
 
@@ -93,8 +102,7 @@ def score(spec: TaskSpec, positions, vectors: dict[str, np.ndarray], steps, succ
           terminate_on_success: bool | None = None) -> StepScore:
     """Reward, success latch and episode end for N states reached by their ``steps``-th step;
     ``success_before``: each one's latch before this step."""
-    a, b = spec.reward.distance
-    dist = distances(vector(spec, a, positions, vectors), vector(spec, b, positions, vectors))
+    dist = distances(*pair(spec, *spec.reward.distance, positions, vectors))
     success_before = np.asarray(success_before, dtype=bool)
     reward = -dist
     newly = ~success_before & (dist < spec.reward.success_within)

@@ -157,6 +157,7 @@ class PusherReachEnv:
     ``(obs, reward, done, info)`` with ``info = {terminated, truncated, success, dist}``.
     """
 
+    task = TASK
     obs_dim = OBS_DIM
     act_dim = ACT_DIM
     max_steps = MAX_STEPS
@@ -188,6 +189,32 @@ class PusherReachEnv:
     @property
     def fingertip(self) -> np.ndarray:
         return self.data.site_xpos[self._fingertip]
+
+    # -- the state as a robot publishes it, under the names every task env has (task.envs) --
+    @property
+    def joint_positions(self) -> np.ndarray:
+        return self.qpos
+
+    @property
+    def joint_velocities(self) -> np.ndarray:
+        return self.qvel
+
+    @property
+    def joint_efforts(self) -> np.ndarray:
+        """N·m at the joints: the motors' force times their gear (actuator_force is the action)."""
+        return self.data.qfrc_actuator[:ACT_DIM]
+
+    @property
+    def goal(self) -> np.ndarray:
+        """The task's goal vector: the target's x, y."""
+        return self.target[:2]
+
+    @property
+    def goal_position(self) -> np.ndarray:
+        return self.target
+
+    def point_positions(self) -> dict[str, np.ndarray]:
+        return {"fingertip": self.fingertip}
 
     def distance(self) -> float:
         return float(planar_distances(self.target[None, :2], self.fingertip[None, :2])[0])

@@ -27,6 +27,7 @@ import json
 import math
 import os
 from dataclasses import asdict, dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 from ..common.errors import UserError
@@ -156,12 +157,16 @@ class TaskSpec:
     def act_dim(self) -> int:
         return len(self.command.joints)
 
-    def vector_size(self, name: str) -> int:
+    def vector_size(self, name: str, partner: str | None = None) -> int:
         if name == "goal":
             return self.goal.size
         if name == JOINTS_VECTOR:
-            return len(self.state.joints)
+            return len(self._joint_order(partner))
         return len(self.point(name).axes)
+
+    def _joint_order(self, partner: str | None) -> tuple[str, ...]:
+        """The ``joints`` vector's joints: the goal's, facing a joint-space goal (task.features.pair)."""
+        return self.goal.joints if partner == "goal" and self.goal.type == JOINT_STATE else self.state.joints
 
     def point(self, name: str) -> PointSpec:
         for p in self.points:
@@ -184,12 +189,12 @@ class TaskSpec:
                 labels += self._vector_labels(f.args[0])
             else:
                 a, b = f.args
-                labels += [f"{x}-{y}" for x, y in zip(self._vector_labels(a), self._vector_labels(b))]
+                labels += [f"{x}-{y}" for x, y in zip(self._vector_labels(a, b), self._vector_labels(b, a))]
         return tuple(labels)
 
-    def _vector_labels(self, name: str) -> list[str]:
+    def _vector_labels(self, name: str, partner: str | None = None) -> list[str]:
         if name == JOINTS_VECTOR:
-            return [f"pos({j})" for j in self.state.joints]
+            return [f"pos({j})" for j in self._joint_order(partner)]
         if name == "goal" and self.goal.type == JOINT_STATE:
             return [f"goal({j})" for j in self.goal.joints]
         axes = self.goal.axes if name == "goal" else self.point(name).axes
@@ -209,7 +214,7 @@ class TaskSpec:
         out.pop("path")
         return json.loads(json.dumps(out))
 
-    @property
+    @cached_property  # a frozen spec: computed once (every env step of a task asks for its expert by it)
     def digest(self) -> str:
         text = json.dumps(self.describe(), sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(text.encode()).hexdigest()[:16]
@@ -220,7 +225,7 @@ class TaskSpec:
                 "action": list(self.action_labels())}
 
     def source_file(self) -> str:
-        return str(self.path) if self.path else f"built-in task {self.name}"
+        return str(self.path) if self.path and self.path.parent != BUILTIN_DIR else f"built-in task {self.name}"
 
 
 # ------------------------------------------------------------------------ loading
@@ -433,6 +438,10 @@ class _Reader:
         kind = self.choice("goal.type", doc.get("type"), GOAL_TYPES, POINT_STAMPED)
         axes = self.axes("goal.axes", doc.get("axes"))
         joints = self.names("goal.joints", doc.get("joints") or None, state.joints if kind == JOINT_STATE else ())
+        unknown = [j for j in joints if j not in state.joints]
+        if unknown:
+            raise UserError(f"{self.where}: field goal.joints names {unknown[0]!r}, not one of robot.state.joints "
+                            f"({', '.join(state.joints)})")
         return GoalSpec(self.topic("goal.topic", doc.get("topic"), "goal"), kind, axes, joints)
 
     def axes(self, label, value):
@@ -502,9 +511,9 @@ class _Reader:
                     raise self.error(f"{label}.difference", "two vector names [a, b] (a - b)", args)
                 for v in pair:
                     self.vector_name(f"{label}.difference", v, spec)
-                if spec.vector_size(pair[0]) != spec.vector_size(pair[1]):
-                    raise UserError(f"{self.where}: field {label}.difference: {pair[0]} has {spec.vector_size(pair[0])} "
-                                    f"values, {pair[1]} {spec.vector_size(pair[1])}")
+                if spec.vector_size(pair[0], pair[1]) != spec.vector_size(pair[1], pair[0]):
+                    raise UserError(f"{self.where}: field {label}.difference: {pair[0]} has "
+                                    f"{spec.vector_size(pair[0], pair[1])} values, {pair[1]} {spec.vector_size(pair[1], pair[0])}")
                 out.append(Feature(kind, pair))
         return tuple(out)
 
@@ -517,9 +526,9 @@ class _Reader:
         a, b = spec.reward.distance
         for v in (a, b):
             self.vector_name("reward.distance", v, spec)
-        if spec.vector_size(a) != spec.vector_size(b):
-            raise UserError(f"{self.where}: field reward.distance: {a} has {spec.vector_size(a)} values, "
-                            f"{b} {spec.vector_size(b)}")
+        if spec.vector_size(a, b) != spec.vector_size(b, a):
+            raise UserError(f"{self.where}: field reward.distance: {a} has {spec.vector_size(a, b)} values, "
+                            f"{b} {spec.vector_size(b, a)}")
 
     def reward(self, doc) -> RewardSpec:
         doc = self.mapping("reward", doc, ("distance", "success_within", "success_bonus", "terminate_on_success"))
@@ -551,6 +560,10 @@ class _Reader:
         if not isinstance(doc, dict):
             raise self.error("sim", "a mapping (env, model, ...)", doc)
         return json.loads(json.dumps(doc))  # plain values; the env that reads it checks its fields
+
+
+# The field checks, for the readers of sections this module leaves opaque (``sim``: task.mujoco_task).
+FieldReader = _Reader
 
 
 def _replace(spec: TaskSpec, **changes) -> TaskSpec:

@@ -11,10 +11,12 @@ from __future__ import annotations
 import os
 
 import numpy as np
+from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 from rosbags.rosbag2 import Writer
 
 from ...common.errors import UserError
-from ...task.spec import load_task
+from ...task.spec import TaskSpec, load_task
+from ..task_record import TASK_MSGTYPE, TASK_TOPIC, encode_task_message
 from ..transitions import PUSHER_LAYOUT, Layout, Transitions
 from .cdr import TRANSITION_MSGTYPE, TRANSITION_TOPIC, encode_transition_blob, message_size
 from .metadata import ROSBAG2_VERSION, typestore
@@ -38,12 +40,20 @@ def _check_rows(path, rows: np.ndarray, layout: Layout) -> None:
                         f"(first in field {layout.field_of_column(column)!r}); not writing them")
 
 
+def _latched_qos() -> Qos:
+    """The QoS the sim offers ``/task_description`` with (as robot_description): ``ros2 bag
+    play`` then offers it to late subscribers too."""
+    zero = QosTime(0, 0)
+    return Qos(QosHistory.KEEP_LAST, 1, QosReliability.RELIABLE, QosDurability.TRANSIENT_LOCAL, zero, zero,
+               QosLiveliness.AUTOMATIC, zero, False)
+
+
 def write_transitions(
     path: str | os.PathLike,
     transitions: Transitions | np.ndarray,
     storage: str | None = None,
     custom_data: dict[str, str] | None = None,
-    task=None,
+    task: TaskSpec | None = None,
 ) -> None:
     """Write transitions as a rosbag2 bag with one ``/pusher/transition`` message per row.
 
@@ -53,7 +63,9 @@ def write_transitions(
     ``path``: ``x.db3`` or ``x.mcap`` gives a single self-describing storage file, any other
     path a bag directory whose storage is ``storage`` ('sqlite3', the default, or 'mcap').
     An existing bag at ``path`` is replaced atomically; on any error it is left untouched and
-    nothing half-written remains. Stamps are TRANSITION_START_NS + i * 20 ms.
+    nothing half-written remains. Stamps are TRANSITION_START_NS + i * 20 ms, or with
+    ``task`` i * its control period, and the bag records the task on ``/task_description``
+    (data.task_record) at TRANSITION_START_NS; without one the bag is pusher_reach's.
     """
     if isinstance(transitions, Transitions):
         rows, layout = transitions.to_rows(), transitions.layout
@@ -69,15 +81,17 @@ def write_transitions(
         with writer:
             for key, value in (custom_data or {}).items():
                 writer.set_custom_data(key, value)
-            if task is not None and task.digest != load_task().digest:
-                from ..task_record import TASK_MSGTYPE, TASK_TOPIC, encode_task_message
-
-                described = writer.add_connection(TASK_TOPIC, TASK_MSGTYPE, typestore=typestore())
-                writer.write(described, TRANSITION_START_NS, encode_task_message(task))
+            period_ns = TRANSITION_PERIOD_NS
+            if task is not None:
+                period_ns = round(task.control_period * 1e9)
+            if task is not None and task.digest != load_task().digest:  # pusher_reach's bags keep their bytes
+                record = writer.add_connection(TASK_TOPIC, TASK_MSGTYPE, typestore=typestore(),
+                                               offered_qos_profiles=[_latched_qos()])
+                writer.write(record, TRANSITION_START_NS, encode_task_message(task))
             conn = writer.add_connection(TRANSITION_TOPIC, TRANSITION_MSGTYPE, typestore=typestore())
             write = writer.write
             for i, offset in enumerate(range(0, len(blob), size)):
-                write(conn, TRANSITION_START_NS + i * TRANSITION_PERIOD_NS, blob[offset : offset + size])
+                write(conn, TRANSITION_START_NS + i * period_ns, blob[offset : offset + size])
         staged.publish()
     except OSError as exc:
         raise UserError(f"{target.path}: cannot write the bag: {exc}") from exc
