@@ -89,6 +89,73 @@ def test_a_task_for_fewer_joints_than_the_controller_commands_is_refused(tmp_pat
                                      f"than the 3 joints of {task_file} field robot.command.joints") in err, err
 
 
+def test_train_from_the_arms_plain_topics_with_the_task_file(tmp_path, capsys):
+    """`offline-rl train --from-topics --task FILE --bag RAW`: the raw log is joined as
+    `offline-rl dataset` joins it (the same transitions, so the same dataset hash), and the
+    checkpoint and metrics.json carry the task's layout (no sim hosts it: no rollouts)."""
+    task_file, task, bag, recorded = arm_files(tmp_path, 3, episodes=3, expert_frac=0.34)
+    joined = tmp_path / "data.db3"
+    assert main(["dataset", "--task", str(task_file), str(bag), str(joined)]) == 0
+    small = ["--algo", "bc", "--steps", "20", "--batch-size", "32", "--hidden", "32", "--eval-episodes", "0"]
+    raw_run, joined_run = tmp_path / "raw", tmp_path / "joined"
+    assert main(["train", "--from-topics", "--task", str(task_file), "--bag", str(bag), *small,
+                 "--out", str(raw_run)]) == 0
+    assert main(["train", "--bag", str(joined), *small, "--out", str(joined_run)]) == 0
+    capsys.readouterr()
+    raw_metrics = json.loads((raw_run / "metrics.json").read_text())
+    joined_metrics = json.loads((joined_run / "metrics.json").read_text())
+    assert raw_metrics["dataset_hash"] == joined_metrics["dataset_hash"]
+    assert raw_metrics["transitions"] == len(recorded.q) and "eval" not in raw_metrics
+    assert raw_metrics["task"] == task.layout()
+    assert raw_metrics["bags"][0]["from_topics"]["transitions"] == len(recorded.q)
+    ckpt = load_checkpoint(raw_run / "policy.pt")
+    assert ckpt["task"]["digest"] == task.digest and (ckpt["obs_dim"], ckpt["act_dim"]) == (3 * 3, 3)
+    # --from-topics FILE is the same as --from-topics --task FILE
+    again = tmp_path / "again"
+    assert main(["train", "--from-topics", str(task_file), "--bag", str(bag), *small, "--out", str(again)]) == 0
+    assert json.loads((again / "metrics.json").read_text())["dataset_hash"] == raw_metrics["dataset_hash"]
+
+
+@pytest.mark.parametrize("edit, message", [
+    (("joints: [joint_1, joint_2, joint_3]}", "joints: [joint_1, joint_2, joint_3, joint_4]}"),
+     "/joint_states: joint 'joint_4' ({task} field robot.state.joints) is not among the message's joint names"),
+    (("goal: {topic: goal_joints,", "goal: {topic: goal,"), "no topic /goal ({task}, field goal.topic)"),
+    (("goal: {topic: goal_joints, type: sensor_msgs/JointState}", "goal: {topic: goal_joints, type: "
+      "geometry_msgs/PointStamped}"),
+     "/goal_joints has type sensor_msgs/msg/JointState; {task} field goal.topic needs geometry_msgs/msg/PointStamped"),
+    (("controller: velocity_controller", "controller: position_controller"),
+     "{task}, fields robot.command.topic and robot.command.action_topics); the bag has: /goal_joints, "
+     "/joint_states, /velocity_controller/commands"),
+], ids=["joint-missing", "goal-topic-missing", "goal-type", "command-topic-missing"])
+def test_train_from_topics_refuses_a_task_that_does_not_fit_in_one_line(tmp_path, capsys, edit, message):
+    """The same refusals through `offline-rl train --from-topics --task FILE`: one line naming
+    the file and field, exit 2, and no run directory written."""
+    task_file, _, bag, _ = arm_files(tmp_path, 3, episodes=1, expert_frac=1.0)
+    text = task_file.read_text()
+    assert edit[0] in text
+    task_file.write_text(text.replace(*edit))
+    out = tmp_path / "run"
+    assert main(["train", "--from-topics", "--task", str(task_file), "--bag", str(bag), "--steps", "5",
+                 "--eval-episodes", "0", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and message.format(task=task_file) in err, err
+    assert not out.exists()
+
+
+def test_train_from_topics_refuses_commands_of_another_length(tmp_path, capsys):
+    """A 4-joint arm's log trained as a 3-joint task: every command holds 4 values."""
+    _, _, bag, _ = arm_files(tmp_path, 4, episodes=1, expert_frac=1.0)
+    task_file = tmp_path / "three.yaml"
+    task_file.write_text(va.task_yaml(3))
+    out = tmp_path / "run"
+    assert main(["train", "--from-topics", "--task", str(task_file), "--bag", str(bag), "--steps", "5",
+                 "--eval-episodes", "0", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and (f"/velocity_controller/commands: every command holds another number of values "
+                                     f"than the 3 joints of {task_file} field robot.command.joints") in err, err
+    assert not out.exists()
+
+
 def _policy(run_dir) -> LoadedPolicy:
     return LoadedPolicy(load_checkpoint(run_dir / "policy.pt"), source=str(run_dir))
 
