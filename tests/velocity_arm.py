@@ -290,6 +290,7 @@ class ArmOverRos:
         self.success: list[bool] = []
         self.ignored = 0
         self.commands = 0
+        self.goal_heard = False  # the first goal published with a reader matched
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self.state_pub = node.create_publisher(JointState, "joint_states", 10)
         self.goal_pub = node.create_publisher(JointState, "goal_joints", latched)
@@ -305,6 +306,9 @@ class ArmOverRos:
         q0, self.goal = sample_reset(self.n, self.seed + len(self.success))
         self.arm.reset(q0)
         self.ticks, self.reached = 0, False
+        self._publish_goal()
+
+    def _publish_goal(self) -> None:
         msg = self.JointState(name=list(self.names), position=[float(v) for v in self.goal])
         msg.header.stamp = self.node.get_clock().now().to_msg()
         self.goal_pub.publish(msg)
@@ -321,6 +325,17 @@ class ArmOverRos:
     def tick(self) -> None:
         if self.done:
             return
+        if self.commands == 0:
+            # until the controller's first command the arm holds still at the first reset,
+            # publishing its state: an episode's clock starts once the loop is closed
+            # (discovery of the policy node's topics takes a while), as a real arm waits
+            # for its controller to come up. The first goal went out before anyone
+            # listened: it goes again once a reader is matched.
+            if not self.goal_heard and self.goal_pub.get_subscription_count() > 0:
+                self.goal_heard = True
+                self._publish_goal()
+            self._publish_state()
+            return
         self.arm.advance(PHYSICS_NS)
         self.ticks += 1
         if self.ticks % 2 == 0:  # a control period: judged as the task's reward judges a step
@@ -333,6 +348,9 @@ class ArmOverRos:
                 if not self.done:
                     self._start_episode()
                 return
+        self._publish_state()
+
+    def _publish_state(self) -> None:
         cols = [self.names.index(j) for j in self.published if j != "gripper_joint"]
         gripper = self.published.index("gripper_joint")
         msg = self.JointState(name=list(self.published),
