@@ -246,3 +246,42 @@ def _read_all(fd, screen):
         if not data:
             return
         screen.append(data.decode(errors="replace"))
+
+
+@pytest.mark.slow
+def test_the_online_stage_runs_on_pusher7_reach(ros_env, tmp_path):
+    """`offline-rl hil --online --task pusher7_reach`: the sim hosts the 7-joint arm, the
+    learner fine-tunes a prior of that task from the arm's steps over ROS (the transitions in
+    the task's layout), and each point of the learning curve is scored on held-out rollouts
+    of pusher7_reach's own env."""
+    from offline_rl_core.commands.cli import main
+    from offline_rl_core.data.bag import read_transitions
+    from offline_rl_core.evaluation.rollouts import evaluate_policy
+    from offline_rl_core.runs.online_loop import EVAL_SEED
+    from offline_rl_core.serving.checkpoint import load_checkpoint
+    from offline_rl_core.serving.policy import load_policy
+    from offline_rl_core.task.spec import load_task
+
+    task = load_task("pusher7_reach")
+    bag, prior = tmp_path / "p7.db3", tmp_path / "prior"
+    assert main(["collect", "--task", "pusher7_reach", "--episodes", "4", "--expert-frac", "0.5", "--seed", "0",
+                 "--out", str(bag)]) == 0
+    assert main(["train", "--bag", str(bag), "--algo", "awac", "--steps", "50", "--eval-episodes", "0",
+                 "--out", str(prior)]) == 0
+    out = tmp_path / "online"
+    proc = subprocess.run([sys.executable, "-m", "offline_rl_core", "hil", "--online", "--task", "pusher7_reach",
+                           "--bag", str(bag), "--prior", str(prior / "policy.pt"), "--env-steps", "200",
+                           "--publish-every", "25", "--eval-every", "100", "--eval-episodes", "2", "--out", str(out)],
+                          env=ros_env, cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    summary = json.loads((out / "summary.json").read_text())
+    assert [p["env_steps"] for p in summary["curve"]] == [0, 100, 200]
+    final = load_checkpoint(out / "learner" / "policy.pt")
+    assert final["task"]["digest"] == task.digest and (final["obs_dim"], final["act_dim"]) == (task.obs_dim, 7)
+    # the curve's last point is the final weights scored on pusher7_reach's held-out resets
+    snapshot = sorted((out / "learner" / "snapshots").glob("policy_*.pt"))[-1]
+    ev = evaluate_policy(load_policy(snapshot, task), 2, EVAL_SEED, task=task)
+    assert (ev["successes"], ev["mean_final_dist"]) == (summary["curve"][-1]["successes"],
+                                                        summary["curve"][-1]["final_dist"])
+    session = read_transitions(out / "session.db3")
+    assert len(session) == 200 and session.layout.obs_dim == task.obs_dim and session.layout.act_dim == 7

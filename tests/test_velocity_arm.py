@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -215,3 +216,22 @@ def test_the_policy_node_drives_the_arm_over_ros(spawn, tmp_path):
         assert node.spin_until(lambda: arm.done, 30 + 3 * episodes), (arm.success, policy.output()[-2000:])
     assert arm.commands > 0 and arm.ignored == 0
     assert sum(arm.success) >= in_process - 2, (arm.success, in_process)
+
+
+def test_the_online_stage_refuses_a_task_no_sim_hosts_in_one_line(tmp_path, capsys):
+    """`offline-rl hil --online` scores its learning curve in the task's sim: a task without
+    one (this arm's) is one line, exit 2, before anything starts; so is `--in-process` (the
+    loop of pusher_reach's env) with another task."""
+    task_file, _, bag, _ = arm_files(tmp_path, 3, episodes=1, expert_frac=1.0)
+    out = tmp_path / "hil"
+    assert main(["hil", "--online", "--task", str(task_file), "--from-topics", "--bag", str(bag),
+                 "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"task velocity_arm_3 ({task_file}): the online stage runs in a sim" in err, err
+    assert not out.exists()
+    mix = Path(__file__).resolve().parents[1] / "bags" / "mix.db3"
+    assert main(["hil", "--online", "--in-process", "--task", "pusher7_reach", "--bag", str(mix),
+                 "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--in-process runs pusher_reach's env; task pusher7_reach runs over ROS" in err, err
+    assert not out.exists()

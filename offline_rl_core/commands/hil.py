@@ -40,11 +40,6 @@ def _run(args) -> int:
     _resolve_mode_flags(args)
     if args.online:
         return _run_online(args)
-    if args.task:
-        from ..task.spec import load_task
-
-        if load_task(args.task).digest != load_task().digest:
-            raise UserError(f"--task {args.task}: the offline rounds run pusher_reach; other tasks only with --online")
     cfg = HilConfig(
         out=args.out, rounds=args.rounds, episodes=args.episodes, prior=args.prior, bags=args.bag, task=args.task,
         seed=args.seed, prior_steps=args.prior_steps, steps=args.steps, correction_ratio=args.correction_ratio,

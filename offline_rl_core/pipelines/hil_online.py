@@ -43,10 +43,10 @@ from ..serving.policy import load_policy
 from ..serving.signing import make_session_keys
 from ..evaluation.stats import wilson_ci
 from ..data.transitions import SOURCE_HUMAN
+from ..task.spec import DEFAULT_TASK, TaskSpec, load_task
 
 DEFAULT_BAG = "bags/mix.db3"
 THRESHOLDS = (0.5, 0.8, 0.9, 0.95)
-EPISODE_STEPS = 100
 MAX_LEARNER_RESTARTS = 3
 REALTIME_THREAD_PRIORITY = 50  # as ros2_control's controller manager
 RECORDER_GRACE_S = 20.0  # after the sim's last episode, for the recorder to write it and end
@@ -72,18 +72,15 @@ class OnlineHilConfig:
     eval_seed: int = EVAL_SEED
     in_process: bool = False
     timeout: float = 4 * 3600.0
-    from_topics: bool = False  # the learner joins the task's raw topics (implied by another task)
+    from_topics: bool = False  # the learner joins the task's raw topics instead of pusher/transition
 
     @property
     def raw_topics(self) -> bool:
-        from ..task.spec import load_task
-
-        return self.from_topics or (self.task is not None and load_task(self.task).digest != load_task().digest)
+        return self.from_topics
 
     def validate(self) -> None:
-        if self.env_steps < EPISODE_STEPS or self.env_steps % EPISODE_STEPS:
-            raise UserError(f"--env-steps must be a positive multiple of {EPISODE_STEPS} (whole episodes), "
-                            f"got {self.env_steps}")
+        if self.env_steps < 1:
+            raise UserError(f"--env-steps must be >= 1 (whole episodes of the task), got {self.env_steps}")
         for name in ("utd", "publish_every", "eval_every", "eval_episodes"):
             if int(getattr(self, name)) < 1:
                 raise UserError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
@@ -110,14 +107,22 @@ class OnlineHilConfig:
         if self.prior and not Path(self.prior).exists():
             raise UserError(f"{self.prior}: no such checkpoint")
         if self.raw_topics and self.in_process:
-            raise UserError("--in-process runs the stage without ROS, on no topics; --from-topics (or --task) joins "
+            raise UserError("--in-process runs the stage without ROS, on no topics; --from-topics joins "
                             "a robot's topics over ROS")
-        from ..task.spec import load_task
 
-        task = load_task(self.task)
-        if (task.obs_dim, task.act_dim) != (8, 2) or task.sim.get("env") != "pusher_reach":
-            raise UserError(f"--task {self.task}: the learning curve is scored by held-out rollouts in the "
-                            "pusher-reach sim, which this task does not run in")
+    def check_task(self, task: TaskSpec) -> None:
+        """What the run's task must allow: a sim that hosts it (the arm of the session and the
+        held-out rollouts of its learning curve), whole episodes, and the in-process stage
+        only on pusher_reach (its loop steps that env)."""
+        if not task.sim:
+            raise UserError(f"task {task.name} ({task.source_file()}): the online stage runs in a sim and scores "
+                            "its learning curve on held-out rollouts there; the task has no sim section")
+        steps = task.episodes.max_steps
+        if self.env_steps < steps or self.env_steps % steps:
+            raise UserError(f"--env-steps must be a positive multiple of {steps} (whole episodes of task "
+                            f"{task.name}), got {self.env_steps}")
+        if self.in_process and task.digest != load_task(DEFAULT_TASK).digest:
+            raise UserError(f"--in-process runs pusher_reach's env; task {task.name} runs over ROS (drop --in-process)")
 
 
 def run_hil_online(cfg: OnlineHilConfig, log: Callable[[str], None] = lambda s: print(s, file=sys.stderr,
@@ -126,10 +131,15 @@ def run_hil_online(cfg: OnlineHilConfig, log: Callable[[str], None] = lambda s: 
     out = Path(cfg.out)
     from .hil import HilConfig, Loop, hil_session, resolve_prior, resolve_task
 
+    from ..runs.training_run import task_of_run
+
+    cfg.check_task(task_of_run(cfg.bags, cfg.task))  # before anything is started or written
     loop = Loop(HilConfig(out=str(out), seed=cfg.seed, bags=cfg.bags), log)
     t0 = time.monotonic()
     with hil_session(out, loop):
-        resolve_task(loop, cfg.task, cfg.bags, cfg.prior, out)
+        task = resolve_task(loop, cfg.task, cfg.bags, cfg.prior, out, any_task=True)
+        if task.digest != load_task(DEFAULT_TASK).digest:
+            cfg.task = loop.task_arg  # every later step (the nodes, the join, the rollouts) reads it from there
         prior_path, prior_from = (None, "none") if cfg.no_prior else resolve_prior(
             loop, cfg.prior, cfg.bags, cfg.seed, cfg.prior_steps, out, log, cfg.prior_algo)
         if cfg.in_process:
@@ -171,7 +181,7 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
     for stale in (learner_dir / "snapshots").glob("policy_*.pt"):
         stale.unlink()
     (learner_dir / "progress.jsonl").unlink(missing_ok=True)
-    episodes = cfg.env_steps // EPISODE_STEPS
+    episodes = cfg.env_steps // load_task(cfg.task).episodes.max_steps
     lockstep = cfg.mode == "lockstep"
     arguments = {
         "bag": cfg.bags[0], "prior": prior_path or "", "out": out, "task": loop.task_arg,
@@ -338,8 +348,6 @@ def _restart_learner(cfg, loop, launched, learner_dir: Path, out: Path, attempt:
             if cfg.raw_topics:
                 from ..data.raw_topics.build import read_bag
                 from ..data.raw_topics.spec import plan_for
-                from ..task.spec import load_task
-
                 plan = plan_for(load_task(cfg.task))
                 if len(read_bag(out / "session.db3", plan)[0].commands) >= needed:
                     break
@@ -409,7 +417,8 @@ def _score_snapshots(cfg: OnlineHilConfig, learner_dir: Path, session) -> list[d
     for path in snapshots:
         ckpt = load_checkpoint(path)
         n = int(ckpt.get("trained_through", 0))
-        ev = evaluate_policy(load_policy(path), cfg.eval_episodes, cfg.eval_seed)
+        task = load_task(cfg.task)
+        ev = evaluate_policy(load_policy(path, task), cfg.eval_episodes, cfg.eval_seed, task=task)
         lo, hi = wilson_ci(ev["successes"], ev["episodes"])
         window = human[previous:n]
         p = progress.get(n, {})
