@@ -85,8 +85,8 @@ def register(subparsers) -> None:
                    help="offline bag(s) of the prior (default: bags/mix.db3 here, else the project's)")
     p.add_argument("--task", metavar="NAME_OR_FILE",
                    help="the task: a built-in task or a task file, given to the sim, policy, corrector, learner and "
-                        "trainer (default: the one the bag records, else pusher_reach); with --online and a task "
-                        "other than pusher_reach, the learner joins its raw topics")
+                        "trainer (default: the one the bag records, else pusher_reach); --online runs any task "
+                        "with a sim, the rounds pusher_reach only")
     p.add_argument("--seed", type=seed_arg, default=d.seed, help="seed of training and of the corrector (default: %(default)s)")
     p.add_argument("--prior-steps", type=int, default=d.prior_steps, help="steps of the prior's training (default: %(default)s)")
     p.add_argument("--eval-episodes", type=int, default=d.eval_episodes,
@@ -129,6 +129,5 @@ def register(subparsers) -> None:
                    "(the reference; ablations)")
     o.add_argument("--from-topics", action="store_true", default=None,
                    help="the learner builds its transitions live from the task's raw topics (joint states, commands, "
-                        "goal), as a robot that publishes only standard topics has them; implied by a --task other than "
-                        "pusher_reach")
+                        "goal), as a robot that publishes only standard topics has them, instead of pusher/transition")
     p.set_defaults(func=_run)

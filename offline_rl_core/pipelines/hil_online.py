@@ -9,13 +9,14 @@ its pid.
 
 The learning curve is scored afterwards from the weights snapshots the learner kept
 every ``eval_every`` environment steps (deterministic policy, no corrector, held-out reset
-seeds): success without intervention against environment steps and against the
-learner's wall time, with the intervention rate and the critic's values of each window.
+seeds, in the task's own env): success without intervention against environment steps
+and against the learner's wall time, with the intervention rate and the critic's values
+of each window. Any task with a sim runs over ROS; ``in_process`` only pusher_reach.
 ``DIR/summary.json`` and ``DIR/online.png`` hold them. ``in_process`` runs the same stage
 in one process without ROS (``online_loop``): the reference the ROS run is measured
 against, and the fast way to run ablations.
 
-``from_topics`` (implied by a ``task`` other than pusher_reach): the learner builds its
+``from_topics``: the learner builds its
 transitions live from the task's raw topics, as from a robot that publishes only standard
 topics; the recorder records those topics (no pusher/transition) until the sim has run
 its episodes and the learner has taken every step, and the session's transitions are the
