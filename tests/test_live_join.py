@@ -122,3 +122,23 @@ def test_a_message_that_does_not_fit_the_task_is_refused_and_counted(tmp_path):
     command = next(m for m in bag_messages(bag, task) if m[0] == "/effort_controller/commands")
     why = live.add(*command, now=0.0)
     assert why.reason == "wrong length" and "another length" in why and live.counts.refused == {"wrong length": 1}
+
+
+@pytest.mark.parametrize("n", [3, 7])
+def test_the_log_of_an_n_joint_velocity_arm_joined_live_is_its_batch_join(tmp_path, n):
+    """The third arm (tests/velocity_arm.py): joint_states at 100 Hz in the broadcaster's
+    shuffled order, velocity_controller/commands without a header (receive stamps), a
+    JointState goal per episode, episodes ended by the time limit; taken message by message,
+    the live join gives the batch join's rows."""
+    import velocity_arm as va
+
+    task_file = tmp_path / f"arm{n}.yaml"
+    task_file.write_text(va.task_yaml(n))
+    task = load_task(task_file)
+    bag = tmp_path / f"arm{n}.db3"
+    va.record_bag(bag, task, n, episodes=3, expert_frac=0.34, seed=2)
+    learner = Learner(task)
+    for message in bag_messages(bag, task):
+        learner.take(*message)
+    assert_same_as_batch(learner, bag, task)
+    assert learner.rows().shape[0] > 0
