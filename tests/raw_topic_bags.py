@@ -157,3 +157,25 @@ def record_raw_bag(
                 tick += 5  # then a pause before the next episode's goal
             write("/pusher/reset", msgs.empty())
     assert tick >= episodes * MAX_STEPS
+
+
+def pusher_task(**sections):
+    """pusher_reach with some fields of its sections changed (``join={"stamps": "receive"}``)."""
+    from offline_rl_core.task.spec import load_task, task_from_dict
+
+    doc = load_task("pusher_reach").describe()
+    for key, value in sections.items():
+        doc[key] = {**doc[key], **value}
+    return task_from_dict(doc)
+
+
+def bag_messages(bag, task) -> list[tuple[str, str, bytes, int]]:
+    """(topic, type, payload, receive time) of the task's topics, in the bag's order: what a
+    learner subscribed to them takes off the wire."""
+    from offline_rl_core.data.bag import open_bag
+    from offline_rl_core.data.raw_topics import plan_for
+
+    wanted = {r.topic for r in plan_for(task).roles}
+    with open_bag(bag) as reader:
+        conns = [c for c in reader.connections if c.topic in wanted]
+        return [(c.topic, c.msgtype, bytes(raw), t) for c, t, raw in reader.messages(connections=conns)]

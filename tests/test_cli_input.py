@@ -131,8 +131,7 @@ def test_an_output_that_cannot_be_written_fails_in_one_line_before_the_work(tiny
 
 def test_dataset_checks_its_report_path_before_writing_the_bag(tiny, tmp_path, capsys):
     out_bag = tmp_path / "d2.db3"
-    argv = ["dataset", "--from-topics", str(REPO / "bags/pusher_topics.yaml"), str(tiny["bag"]), str(out_bag),
-            "--report", f"{tiny['text']}/r.json"]
+    argv = ["dataset", "--task", "pusher_reach", str(tiny["bag"]), str(out_bag), "--report", f"{tiny['text']}/r.json"]
     assert cli.main(argv) == 2
     _one_error_line(capsys, "--report", f"{tiny['text']} is a file, not a directory")
     assert not out_bag.exists()  # the rerun is not refused with "exists already"

@@ -242,6 +242,66 @@ def test_a_paced_actor_waits_for_the_learners_own_weights(offline, prior):
     assert np.array_equal(actor.act(np.zeros(8, np.float32), stamp=1010), a)  # one draw per state
 
 
+# ---------------------------------------------------------------- the learner on raw topics
+@pytest.fixture(scope="module")
+def raw_session(tmp_path_factory):
+    """A lockstep session of the sim as a robot logs it (joint states, target, fingertip,
+    commands), and its messages in the order a learner takes them."""
+    from raw_topic_bags import bag_messages, record_raw_bag
+
+    from offline_rl_core.task.spec import load_task
+
+    bag = tmp_path_factory.mktemp("raw") / "session.db3"
+    record_raw_bag(bag, episodes=2, expert_frac=0.5, seed=6, sim_like=True, duplicates=0.05)
+    return bag, bag_messages(bag, load_task("pusher_reach"))
+
+
+def _feed_raw(service, messages):
+    for topic, msgtype, payload, recv in messages:
+        assert service.receive_message(topic, msgtype, payload, recv) is None
+    service.last_poll = -np.inf  # not throttled: the messages came over a while
+    service.take_steps()
+
+
+def test_the_learner_on_raw_topics_trains_on_the_rows_of_the_batch_join(tmp_path, files, raw_session):
+    """Every step of the arm counts (also an episode's last, which has no transition), so
+    the versions stay in step with a paced actor; the rows are the batch join's."""
+    from offline_rl_core.data.raw_topics import transitions_from_topics
+    from offline_rl_core.learners.data import MemberData
+
+    d, _ = files
+    bag, messages = raw_session
+    service = _service(tmp_path, d / "offline.db3", d / "prior.pt", "raw", from_topics=True)
+    _feed_raw(service, messages)
+    _drain(service)
+    batch, report = transitions_from_topics(bag)
+    assert report.steps == 200 and len(batch) == 198
+    assert service.learner.n_steps == 199  # the last step waits for a state that never comes
+    assert service.learner.n_online == 198
+    assert service.learner.version == 19  # every publish_every (10) steps, transitions or not
+    expected = MemberData.columns(batch)
+    for name in ("obs", "action", "reward", "next_obs", "not_done", "human"):
+        got = getattr(service.learner.data, name)[0, service.learner.n_offline:service.learner.n_offline + 198]
+        assert np.array_equal(got.numpy(), expected[name]), name
+    assert service.status()["join"]["late"] == 0
+
+
+def test_a_learner_on_raw_topics_resumes_from_the_session_bag(tmp_path, files, raw_session):
+    d, _ = files
+    bag, messages = raw_session
+    whole = _service(tmp_path, d / "offline.db3", d / "prior.pt", "whole", from_topics=True)
+    _feed_raw(whole, messages)
+    _drain(whole)
+    first = _service(tmp_path, d / "offline.db3", d / "prior.pt", "run", from_topics=True)
+    _feed_raw(first, messages[:300])
+    _drain(first)
+    first.save()  # then it dies; the rest of the session goes by unseen
+    resumed = _service(tmp_path, d / "offline.db3", d / "prior.pt", "run", from_topics=True, resume=True,
+                       session_bag=str(bag))
+    assert 0 < first.learner.n_steps < resumed.learner.n_steps == whole.learner.n_steps == 199
+    _drain(resumed)
+    assert resumed.learner.version == whole.learner.version == 19
+    assert torch.equal(_flat(resumed.learner.weights()), _flat(whole.learner.weights()))
 def test_a_full_buffer_evicts_the_oldest_live_rows_and_keeps_the_offline_ones(offline, prior):
     """The online buffer is a ring over ``capacity`` (plus room for a lagging learner): it
     never raises, the offline rows stay, each update samples among the newest ``capacity``

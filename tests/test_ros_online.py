@@ -100,6 +100,36 @@ def test_a_killed_learner_restarts_and_the_session_ends_as_if_it_never_died(ros_
     _assert_same_weights(out / "learner" / "policy.pt", reference)
 
 
+@pytest.mark.slow
+def test_on_raw_topics_the_learner_trains_on_the_batch_join_of_the_sessions_recording(ros_env, tmp_path, prior):
+    """The stage against an arm that publishes only standard topics (--from-topics): the
+    learner joins the raw topics live, and its online buffer is, row for row and in order,
+    what `offline-rl dataset` builds from the passive recorder's bag of the same session;
+    the recording holds the raw topics and no transition."""
+    from offline_rl_core.data.bag.info import bag_info
+    from offline_rl_core.data.raw_topics import transitions_from_topics
+    from offline_rl_core.learners.data import MemberData
+
+    out = tmp_path / "online"
+    cmd = [sys.executable, "-m", "offline_rl_core", "hil", "--online", "--env-steps", "200", "--publish-every", "25",
+           "--eval-every", "100", "--eval-episodes", "2", "--prior", str(prior), "--out", str(out),
+           "--task", "pusher_reach", "--from-topics"]
+    proc = subprocess.run(cmd, env=ros_env, cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    topics = {t.name for t in bag_info(out / "session.db3").topics}
+    assert "/pusher/transition" not in topics and {"/pusher/state", "/pusher/target", "/pusher/command/policy"} <= topics
+    batch, report = transitions_from_topics(out / "session.db3", "pusher_reach")
+    state = torch.load(out / "learner" / "learner_state.pt", weights_only=True)
+    assert state["n_online"] == len(batch) == 198  # two episodes, each but its last step
+    assert state["n_steps"] == report.steps - 1 == 199  # the session's last step: no later state closes it
+    expected = MemberData.columns(batch)
+    for name in ("obs", "action", "reward", "next_obs", "not_done", "human"):
+        assert np.array_equal(state["online_rows"][name].numpy(), expected[name]), name
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["counts"]["steps"] == 198 and summary["counts"]["human"] == int(expected["human"].sum())
+    assert json.loads((out / "learner" / "live.json").read_text())["join"]["late"] == 0
+
+
 def test_the_learner_node_drops_bad_transitions_and_counts_them(spawn, tmp_path, prior):
     """Also under use_sim_time with no /clock (its work runs on the wall clock), and every
     weights version it publishes is signed with the session's key."""
@@ -216,3 +246,42 @@ def _read_all(fd, screen):
         if not data:
             return
         screen.append(data.decode(errors="replace"))
+
+
+@pytest.mark.slow
+def test_the_online_stage_runs_on_pusher7_reach(ros_env, tmp_path):
+    """`offline-rl hil --online --task pusher7_reach`: the sim hosts the 7-joint arm, the
+    learner fine-tunes a prior of that task from the arm's steps over ROS (the transitions in
+    the task's layout), and each point of the learning curve is scored on held-out rollouts
+    of pusher7_reach's own env."""
+    from offline_rl_core.commands.cli import main
+    from offline_rl_core.data.bag import read_transitions
+    from offline_rl_core.evaluation.rollouts import evaluate_policy
+    from offline_rl_core.runs.online_loop import EVAL_SEED
+    from offline_rl_core.serving.checkpoint import load_checkpoint
+    from offline_rl_core.serving.policy import load_policy
+    from offline_rl_core.task.spec import load_task
+
+    task = load_task("pusher7_reach")
+    bag, prior = tmp_path / "p7.db3", tmp_path / "prior"
+    assert main(["collect", "--task", "pusher7_reach", "--episodes", "4", "--expert-frac", "0.5", "--seed", "0",
+                 "--out", str(bag)]) == 0
+    assert main(["train", "--bag", str(bag), "--algo", "awac", "--steps", "50", "--eval-episodes", "0",
+                 "--out", str(prior)]) == 0
+    out = tmp_path / "online"
+    proc = subprocess.run([sys.executable, "-m", "offline_rl_core", "hil", "--online", "--task", "pusher7_reach",
+                           "--bag", str(bag), "--prior", str(prior / "policy.pt"), "--env-steps", "200",
+                           "--publish-every", "25", "--eval-every", "100", "--eval-episodes", "2", "--out", str(out)],
+                          env=ros_env, cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    summary = json.loads((out / "summary.json").read_text())
+    assert [p["env_steps"] for p in summary["curve"]] == [0, 100, 200]
+    final = load_checkpoint(out / "learner" / "policy.pt")
+    assert final["task"]["digest"] == task.digest and (final["obs_dim"], final["act_dim"]) == (task.obs_dim, 7)
+    # the curve's last point is the final weights scored on pusher7_reach's held-out resets
+    snapshot = sorted((out / "learner" / "snapshots").glob("policy_*.pt"))[-1]
+    ev = evaluate_policy(load_policy(snapshot, task), 2, EVAL_SEED, task=task)
+    assert (ev["successes"], ev["mean_final_dist"]) == (summary["curve"][-1]["successes"],
+                                                        summary["curve"][-1]["final_dist"])
+    session = read_transitions(out / "session.db3")
+    assert len(session) == 200 and session.layout.obs_dim == task.obs_dim and session.layout.act_dim == 7

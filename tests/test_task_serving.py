@@ -105,8 +105,9 @@ def test_a_malformed_task_field_is_one_line(arm, tmp_path, edit, message):
 
 
 def test_weights_messages_carry_the_task_and_another_tasks_are_refused(arm):
-    ckpt = load_checkpoint(arm["checkpoint"])
+
     signer = Signer.generate()
+    ckpt = load_checkpoint(arm["checkpoint"])
     data = encode_weights({**ckpt, "weights_version": 3}, signer)
     policy, problem = policy_from_weights_message("pusher-rl/weights", data, signer.verifier(), "learner/weights",
                                                   arm["task"])

@@ -16,7 +16,7 @@ from ..common.seeds import seed_arg
 OFFLINE_ONLY = ("rounds", "episodes", "steps", "correction_ratio", "beta", "patience", "hold_steps", "grace_steps",
                 "noise", "reaction_delay")
 ONLINE_ONLY = ("env_steps", "corrector", "mode", "prior_algo", "no_prior", "utd", "publish_every", "eval_every",
-               "in_process")
+               "in_process", "from_topics")
 
 
 def _resolve_mode_flags(args) -> None:
@@ -59,7 +59,7 @@ def _run_online(args) -> int:
         prior_algo=args.prior_algo,
         bags=args.bag, task=args.task, corrector=args.corrector, mode=args.mode, utd=args.utd,
         publish_every=args.publish_every, eval_every=args.eval_every, eval_episodes=args.eval_episodes,
-        eval_seed=args.eval_seed, in_process=args.in_process)
+        eval_seed=args.eval_seed, in_process=args.in_process, from_topics=args.from_topics)
     summary = run_hil_online(cfg)
     print(json.dumps({k: summary[k] for k in ("prior_success", "final_success", "final_ci", "to", "intervention_rate",
                                               "wall_seconds")}))
@@ -85,7 +85,8 @@ def register(subparsers) -> None:
                    help="offline bag(s) of the prior (default: bags/mix.db3 here, else the project's)")
     p.add_argument("--task", metavar="NAME_OR_FILE",
                    help="the task: a built-in task or a task file, given to the sim, policy, corrector, learner and "
-                        "trainer (default: the one the bag records, else pusher_reach)")
+                        "trainer (default: the one the bag records, else pusher_reach); --online runs any task "
+                        "with a sim, the rounds pusher_reach only")
     p.add_argument("--seed", type=seed_arg, default=d.seed, help="seed of training and of the corrector (default: %(default)s)")
     p.add_argument("--prior-steps", type=int, default=d.prior_steps, help="steps of the prior's training (default: %(default)s)")
     p.add_argument("--eval-episodes", type=int, default=d.eval_episodes,
@@ -126,4 +127,7 @@ def register(subparsers) -> None:
                    help=f"environment steps between points of the learning curve (default: {od.eval_every})")
     o.add_argument("--in-process", action="store_true", default=None, help="the same stage in one process, without ROS "
                    "(the reference; ablations)")
+    o.add_argument("--from-topics", action="store_true", default=None,
+                   help="the learner builds its transitions live from the task's raw topics (joint states, commands, "
+                        "goal), as a robot that publishes only standard topics has them, instead of pusher/transition")
     p.set_defaults(func=_run)

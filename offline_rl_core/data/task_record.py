@@ -65,6 +65,18 @@ def task_of_bag(path: str | os.PathLike, given: str | os.PathLike | TaskSpec | N
     return task
 
 
+def chosen_task(task: str | os.PathLike | TaskSpec | None, from_topics: str | os.PathLike | None
+                ) -> str | os.PathLike | TaskSpec | None:
+    """The task of ``--task`` and ``--from-topics TASK`` (which must be the same task when both
+    are given: a name and the path of the same file agree)."""
+    if task is None or from_topics is None:
+        return task if task is not None else from_topics
+    if load_task(task).digest != load_task(from_topics).digest:
+        name = task.name if isinstance(task, TaskSpec) else task
+        raise UserError(f"--task {name} and --from-topics {from_topics} name different tasks; give one")
+    return task
+
+
 def check_layout_fits(path: str | os.PathLike, obs_dim: int, act_dim: int, task: TaskSpec) -> None:
     """Refuse (one line naming the bag and both layouts) transitions whose sizes are not the task's."""
     if (obs_dim, act_dim) != (task.obs_dim, task.act_dim):

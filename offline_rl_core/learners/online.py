@@ -3,12 +3,17 @@
 Transitions arrive one by one (the arm's own steps and a person's takeovers) and are
 appended to an online buffer that sits beside the offline bag; every gradient step
 draws ``offline_ratio`` of its batch from the offline rows and the rest from the online
-ones (RLPD / HIL-SERL's symmetric sampling), and ``utd`` steps are owed per arrived
-transition. New weights are cut every ``publish_every`` transitions.
+ones (RLPD / HIL-SERL's symmetric sampling), and ``utd`` steps are owed per environment
+step. New weights are cut every ``publish_every`` environment steps.
+
+An environment step is a transition, except where a stream of raw topics holds a step
+whose transition cannot be built (an episode's last, when the state after it is never
+published): it is counted (``add(empty, steps=1)``), so versions stay in step with the
+arm (a paced actor waits for version ``n // publish_every`` at its n-th state).
 
 Everything is scheduled by counts, not by clocks: update j samples only among the
-first ``j // utd + 1`` online transitions, and weights version v is cut after exactly
-``utd * v * publish_every`` updates. So a run that receives the same transitions gives
+online transitions of the first ``j // utd + 1`` environment steps, and weights version v
+is cut after exactly ``utd * v * publish_every`` updates. So a run that receives the same transitions gives
 the same weights however fast or slow the learner was, and an actor that waits for
 version v (lockstep over ROS) makes the whole procedure reproducible.
 
@@ -120,20 +125,37 @@ class OnlineLearner:
                                      settings.capacity, ring)
         self.step_once = make_step(self.learner.update, self.data, (1, cfg.batch_size), cfg.device, cfg.cuda_graph,
                                    cfg.threads)
-        self.n_online = 0
+        self.n_online = 0  # online transitions
         self.n_human_seen = 0  # live transitions a person chose, evicted ones included
+        self.n_steps = 0  # environment steps (transitions, and steps that made none)
+        self.step_rows: list[int] | None = None  # online transitions through each step, once they differ
         self.updates = 0
         self.version = 0
         self.losses: dict[str, float] = {}
         self.train_seconds = 0.0
 
     # ------------------------------------------------------------------ data
-    def add(self, rows: Transitions) -> None:
-        """Append live transitions (already checked: finite, known layout)."""
+    def add(self, rows: Transitions, steps: int | None = None) -> None:
+        """Append live transitions (already checked: finite, known layout), the transitions
+        of the last of ``steps`` environment steps (default: one step per transition)."""
+        steps = len(rows) if steps is None else int(steps)
+        if steps < len(rows):
+            raise ValueError(f"{len(rows)} transitions cannot come from {steps} steps")
         if len(rows):
             self.data.append(rows)
             self.n_online += len(rows)
             self.n_human_seen += int((rows.source == SOURCE_HUMAN).sum())
+        if self.step_rows is None and steps != len(rows):
+            self.step_rows = list(range(1, self.n_steps + 1))  # one transition per step so far
+        if self.step_rows is not None:
+            self.step_rows += [self.n_online - len(rows)] * (steps - 1) + [self.n_online] * min(steps, 1)
+        self.n_steps += steps
+
+    def rows_through(self, steps: int) -> int:
+        """Online transitions of the first ``steps`` environment steps (those that arrived)."""
+        if self.step_rows is None:
+            return min(steps, self.n_online)
+        return self.step_rows[min(steps, self.n_steps) - 1] if steps > 0 else 0
 
     @property
     def n_human(self) -> int:
@@ -151,7 +173,7 @@ class OnlineLearner:
 
     @property
     def updates_owed(self) -> int:
-        return self.settings.utd * self.n_online - self.updates
+        return self.settings.utd * self.n_steps - self.updates
 
     # ------------------------------------------------------------------ training
     def train(self, max_updates: int | None = None, until_version: bool = True) -> int:
@@ -165,7 +187,7 @@ class OnlineLearner:
         t0 = time.perf_counter()
         with torch_threads(intra_op_threads(self.cfg.threads)):
             for _ in range(todo):
-                bound = self.updates // self.settings.utd + 1
+                bound = self.rows_through(self.updates // self.settings.utd + 1)
                 losses = self.step_once(self.sampler.next(bound))
                 self.updates += 1
             self.losses = {k: float(v.float().mean()) for k, v in losses.items()}
@@ -227,6 +249,8 @@ class OnlineLearner:
             "sample_generator": self.sample_gen.get_state(),
             "n_online": self.n_online,
             "n_human": self.n_human_seen,
+            "n_steps": self.n_steps,
+            "step_rows": None if self.step_rows is None else torch.tensor(self.step_rows, dtype=torch.int64),
             "updates": self.updates,
             "train_version": self.version,
             # the online rows still held, oldest first (the first is transition n_online - len)
@@ -256,6 +280,9 @@ class OnlineLearner:
         human = state.get("n_human")  # saved since the buffer became a ring; before, every row was held
         self.n_human_seen = int(rows["human"].sum()) if human is None else int(human)
         self.updates, self.version = int(state["updates"]), int(state["train_version"])
+        self.n_steps = int(state.get("n_steps", n))  # states saved before steps were counted: one per row
+        steps = state.get("step_rows")
+        self.step_rows = None if steps is None else [int(v) for v in steps]
 
     def _held_slots(self) -> torch.Tensor:
         held = self.held_online()

@@ -4,7 +4,12 @@ weights versions, save, resume.
 The node (``ros2 run learner node``) only moves messages: each raw ``/pusher/transition``
 goes to :meth:`LearnerService.receive`, a timer calls :meth:`LearnerService.work`, and
 every weights version it returns is published for the acting policy node
-(``serving.weights.encode_weights``). Files under ``out``:
+(``serving.weights.encode_weights``). With ``from_topics`` the transitions are built from the
+task's raw topics instead (a robot that publishes only standard topics): each message of
+them goes to :meth:`LearnerService.receive_message`, and the live join
+(``data.raw_topics.LiveJoin``) hands over the environment steps, with their transitions,
+that no later message can change: the rows `offline-rl dataset` builds from the session's
+bag. Files under ``out``:
 
 - ``policy.pt``: the latest weights version, a checkpoint any tool loads (atomic);
 - ``learner_state.pt``: everything needed to resume (networks, optimisers, generators,
@@ -15,8 +20,9 @@ every weights version it returns is published for the acting policy node
 
 Resuming (``resume``): the saved state is loaded, and with a ``session_bag`` (the
 passive recorder's bag of the same session) the transitions that arrived after the save
-are read back from it, so a learner killed mid-run loses nothing of the session and
-continues exactly where an uninterrupted one would be.
+are read back from it (raw topics: the bag's messages go through the live join first,
+and the steps already trained on are skipped), so a learner killed mid-run loses nothing
+of the session and continues exactly where an uninterrupted one would be.
 """
 
 from __future__ import annotations
@@ -31,7 +37,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..common.atomic import atomic_path
+from ..common.atomic import atomic_path, write_json_atomic
 from ..data.bag.cdr import TransitionDecodeError, decode_transition_payloads
 from ..common.errors import UserError
 from ..learners.config import TrainConfig
@@ -41,7 +47,12 @@ from ..common.output_paths import check_output_dir
 from ..serving.checkpoint import checkpoint_task, load_checkpoint, save_checkpoint
 from ..serving.policy import policy_for_task
 from ..common.rejections import Rejection, RejectionCounter
-from ..data.transitions import LAYOUT_SLICES, SOURCE_NAMES, Transitions
+from ..data.raw_topics.live import LiveJoin, LiveSettings
+from ..data.transitions import PUSHER_LAYOUT, SOURCE_NAMES, Layout, Transitions
+from ..task.spec import TaskSpec
+
+
+LIVE_POLL_PERIOD_S = 0.02
 
 
 @dataclass
@@ -55,29 +66,32 @@ class LearnerServiceConfig:
     session_bag: str | None = None  # the session's recording: transitions missed while down
     snapshot_every: int = 0  # live transitions between kept copies of the weights (0: none)
     task: str | None = None  # a built-in task or a task file; None: the prior's, else the bags'
+    from_topics: bool = False  # build the live transitions from the task's raw topics
+    live: LiveSettings = field(default_factory=LiveSettings)
     settings: OnlineSettings = field(default_factory=OnlineSettings)
     train: TrainConfig = field(default_factory=lambda: TrainConfig(algo="sac"))
 
 
-def check_row(row: np.ndarray) -> Rejection | None:
-    """Why a decoded transition row must not be trained on, or None."""
+def check_row(row: np.ndarray, layout: Layout = PUSHER_LAYOUT) -> Rejection | None:
+    """Why a decoded transition row of ``layout`` (the task's) must not be trained on, or None."""
+    slices = layout.slices
     if not np.all(np.isfinite(row)):
-        bad = [label for label, sl in LAYOUT_SLICES.items() if not np.all(np.isfinite(row[sl]))]
+        bad = [label for label, sl in slices.items() if not np.all(np.isfinite(row[sl]))]
         return Rejection("non-finite", f"non-finite {', '.join(bad)}")
-    action = row[LAYOUT_SLICES["action"]]
+    action = row[slices["action"]]
     if np.any(np.abs(action) > 1.0 + 1e-6):
         return Rejection("out of range", "action outside [-1, 1]")
-    wild = [label for label in ("obs", "reward", "next_obs") if np.any(np.abs(row[LAYOUT_SLICES[label]]) > VALUE_LIMIT)]
+    wild = [label for label in ("obs", "reward", "next_obs") if np.any(np.abs(row[slices[label]]) > VALUE_LIMIT)]
     if wild:
         return Rejection("out of range", f"{', '.join(wild)} beyond ±{VALUE_LIMIT:g}")
     flags = [label for label in ("terminated", "truncated", "success")
-             if row[LAYOUT_SLICES[label]][0] not in (0.0, 1.0)]
+             if row[slices[label]][0] not in (0.0, 1.0)]
     if flags:
         return Rejection("out of range", f"{', '.join(flags)} not 0 or 1")
-    counters = [label for label in ("episode", "step") if not _count(row[LAYOUT_SLICES[label]][0])]
+    counters = [label for label in ("episode", "step") if not _count(row[slices[label]][0])]
     if counters:
         return Rejection("out of range", f"{', '.join(counters)} not a count")
-    source = row[LAYOUT_SLICES["source"]][0]
+    source = row[slices["source"]][0]
     if source != int(source) or int(source) not in SOURCE_NAMES:
         return Rejection("unknown source", f"unknown source {source:g}")
     return None
@@ -98,7 +112,14 @@ class LearnerService:
         prior = load_checkpoint(cfg.prior) if cfg.prior else None  # validated as the policy node validates it
         given = cfg.task or (checkpoint_task(prior) if prior is not None and "task" in prior else None)
         self.task = task_of_run(cfg.bags, given)
-        offline, _ = load_bags(cfg.bags, task=self.task)
+        self.layout = Layout(self.task.obs_dim, self.task.act_dim)
+        offline = self._offline(cfg.bags, cfg.from_topics, self.task, load_bags)
+        # the live join of the task's raw topics (None: the transitions come on pusher/transition)
+        self.live = LiveJoin(self.task, cfg.live) if cfg.from_topics else None
+        self.idle_since = time.monotonic()  # when training last stopped (the live join's quiet rule)
+        self.skip_steps = 0  # steps the live join hands over again after a resume (trained on already)
+        self.last_poll = -math.inf
+        self.live_file_due = False
         if prior is not None:
             policy_for_task(prior, cfg.prior, self.task)  # a prior of another task: one line naming both
             if prior["hidden"] != cfg.train.hidden:
@@ -124,34 +145,100 @@ class LearnerService:
                                                                              "train_s": 0.0})
         self.weights = self.learner.weights()  # the version the actor should be acting on
 
+    @staticmethod
+    def _offline(bags: list[str], from_topics: bool, task: TaskSpec, load_bags) -> Transitions:
+        """The offline bags: their transitions, or (raw topics) those joined from a bag
+        that holds none."""
+        if not from_topics:
+            return load_bags(bags, task=task)[0]
+        from ..data.bag.reader import open_bag, transition_topic
+
+        parts = []
+        for bag in bags:
+            with open_bag(bag) as reader:
+                joined = transition_topic(reader) is None
+            parts.append(load_bags([bag], from_topics=joined or None, task=task)[0])
+        if len(parts) == 1:
+            return parts[0]
+        offset = 0
+        for part in parts:  # episode ids unique across bags, as load_bags keeps them
+            part.episode = part.episode - part.episode.min() + offset
+            offset = int(part.episode.max()) + 1
+        return Transitions.concatenate(parts)
+
     # ---------------------------------------------------------------- input
     def receive(self, raw: bytes) -> Rejection | None:
         """One raw ``/pusher/transition``; returns why it was rejected (counted), or None."""
         try:
-            row = decode_transition_payloads([bytes(raw)])[0]
+            row = decode_transition_payloads([bytes(raw)], self.layout)[0]
         except TransitionDecodeError as exc:
             rejection = Rejection("bad layout", f"bad layout: {exc}")
         else:
-            rejection = check_row(row)
+            rejection = check_row(row, self.layout)
         if rejection is not None:
             self.rejected.add(rejection)
             return rejection
-        self.learner.add(Transitions.from_rows(row[None]))
+        self.learner.add(Transitions.from_rows(row[None], self.layout))
         self.received += 1
         return None
+
+    def receive_message(self, topic: str, msgtype: str, raw: bytes, recv_ns: int) -> Rejection | None:
+        """One message of the task's raw topics (``topic`` as ``live.topics()`` names it),
+        received at ``recv_ns`` (the node's clock); returns why it was refused (counted), or None."""
+        rejection = self.live.add(topic, msgtype, raw, recv_ns, time.monotonic())
+        if rejection is not None:
+            self.rejected.add(rejection)
+        return rejection
+
+    def take_steps(self, ended: bool = False, quiet: bool | None = None) -> int:
+        """Hand the environment steps the live join holds as final to the learner (each with
+        its transition, or none); returns how many. ``quiet``: everything published has
+        arrived (default: the live join's quiet rule)."""
+        if self.live is None:
+            return 0
+        now = time.monotonic()
+        if now - self.last_poll < LIVE_POLL_PERIOD_S and not ended and quiet is None:
+            return 0  # a join of the window costs milliseconds: at most once a control period
+        self.last_poll = now
+        steps = self.live.poll(now, self.idle_since, ended=ended, quiet=quiet)
+        if len(steps) == 0:
+            return 0
+        self.live_file_due = True
+        rows = steps.transitions.to_rows() if len(steps.transitions) else np.zeros((0, self.layout.width), np.float32)
+        k = 0
+        for has_row in steps.has_row:
+            row = rows[k] if has_row else None
+            k += bool(has_row)
+            if self.skip_steps:
+                self.skip_steps -= 1
+                continue
+            rejection = None if row is None else check_row(row, self.layout)
+            if rejection is not None:
+                self.rejected.add(rejection)
+                row = None  # still a step of the arm: the versions stay in step with it
+            self.learner.add(Transitions.from_rows(row[None] if row is not None else rows[:0], self.layout), steps=1)
+            self.received += row is not None
+        return len(steps)
 
     # ---------------------------------------------------------------- work
     def work(self, budget_s: float = 0.02) -> list[dict]:
         """Train for about ``budget_s`` seconds (or until nothing is owed); returns the
         weights versions cut meanwhile, oldest first."""
         versions = []
+        self.take_steps()
         deadline = time.perf_counter() + budget_s
+        trained = False
         while self.learner.updates_owed > 0 and time.perf_counter() < deadline:
+            trained = True
             self.learner.train(max_updates=8)
             if self.learner.version_due():
                 self.weights = {**self.learner.cut_version(), "cut_unix": time.time()}
                 versions.append(self.weights)
                 self._on_version(self.weights)
+        if trained:
+            self.idle_since = time.monotonic()
+        if self.live is not None and self.live_file_due and not self.learner.updates_owed:
+            self._write_live_file()
         if time.monotonic() - self.last_save >= self.cfg.save_every:
             self.save()
         return versions
@@ -174,7 +261,25 @@ class LearnerService:
     def _write_policy(self, weights: dict) -> None:
         save_checkpoint(self.out / "policy.pt", weights)
 
+    def _write_live_file(self) -> None:
+        """``live.json``: the steps taken from the raw topics and trained on (a pipeline
+        waits on it for the learner to have the whole session before stopping it)."""
+        self.live_file_due = False
+        write_json_atomic(self.out / "live.json", {"steps": self.learner.n_steps, "transitions": self.learner.n_online,
+                                                   "updates": self.learner.updates, "join": self.live.counts.as_dict()})
+
     # ---------------------------------------------------------------- persistence
+    def close(self) -> Path:
+        """On the way out: the steps whose messages have all come (nothing is in flight any
+        more; a learner busy training till the end never saw the stream fall quiet), then the
+        resume point."""
+        self.take_steps(quiet=True)
+        path = self.save()
+        if self.live is not None:
+            self.log(f"learner: closed at {self.learner.n_steps} environment steps, {self.learner.n_online} "
+                     f"transitions; live join {json.dumps(self.live.counts.as_dict())}")
+        return path
+
     def save(self) -> Path:
         path = self.out / "learner_state.pt"
         with atomic_path(path) as tmp, open(tmp, "wb") as f:
@@ -193,23 +298,42 @@ class LearnerService:
             self.learner.restore(state)
         except (OSError, RuntimeError, ValueError, KeyError) as exc:
             raise UserError(f"{path}: cannot resume from it ({str(exc).splitlines()[0][:160]})") from None
-        saved = self.learner.n_online
+        saved = self.learner.n_steps
         caught_up = 0
-        if self.cfg.session_bag:
+        if self.cfg.session_bag and self.live is not None:
+            self.skip_steps = saved
+            self._feed_session_bag(self.cfg.session_bag)
+            before = self.learner.n_steps
+            self.take_steps()
+            caught_up = self.learner.n_steps - before
+        elif self.cfg.session_bag:
             from ..data.bag import read_transitions
 
             session = read_transitions(self.cfg.session_bag)
             rows = session.to_rows()[saved:]
             for row in rows:
-                if check_row(row) is None:
-                    self.learner.add(Transitions.from_rows(row[None]))
+                if check_row(row, self.layout) is None:
+                    self.learner.add(Transitions.from_rows(row[None], self.layout))
                     caught_up += 1
         self.log(f"learner: resumed from {path} at {saved} transitions, {self.learner.updates} updates, "
                  f"weights version {self.learner.version}" + (f"; {caught_up} more read back from "
                                                               f"{self.cfg.session_bag}" if self.cfg.session_bag else ""))
 
+    def _feed_session_bag(self, path) -> None:
+        """The session's recording into the live join, as if its messages had just arrived."""
+        from ..data.bag.reader import open_bag
+
+        wanted = {r.topic for r in self.live.topics()}
+        with open_bag(path) as reader:
+            connections = [c for c in reader.connections if c.topic in wanted]
+            now = time.monotonic()
+            for conn, stamp, raw in reader.messages(connections=connections):
+                self.live.add(conn.topic, conn.msgtype, bytes(raw), stamp, now)
+
     def status(self) -> dict:
         learner = self.learner
-        return {"received": learner.n_online, "evicted": learner.n_evicted, "updates": learner.updates, "owed": learner.updates_owed,
+        live = {"steps": learner.n_steps, "join": self.live.counts.as_dict()} if self.live is not None else {}
+        return {"received": learner.n_online, **live, "evicted": learner.n_evicted, "updates": learner.updates,
+                "owed": learner.updates_owed,
                 "weights_version": learner.version, "rejected": dict(self.rejected.counts),
                 "train_s": round(learner.train_seconds, 2), **{k: round(v, 5) for k, v in learner.losses.items()}}

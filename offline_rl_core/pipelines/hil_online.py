@@ -9,11 +9,18 @@ its pid.
 
 The learning curve is scored afterwards from the weights snapshots the learner kept
 every ``eval_every`` environment steps (deterministic policy, no corrector, held-out reset
-seeds): success without intervention against environment steps and against the
-learner's wall time, with the intervention rate and the critic's values of each window.
+seeds, in the task's own env): success without intervention against environment steps
+and against the learner's wall time, with the intervention rate and the critic's values
+of each window. Any task with a sim runs over ROS; ``in_process`` only pusher_reach.
 ``DIR/summary.json`` and ``DIR/online.png`` hold them. ``in_process`` runs the same stage
 in one process without ROS (``online_loop``): the reference the ROS run is measured
 against, and the fast way to run ablations.
+
+``from_topics``: the learner builds its
+transitions live from the task's raw topics, as from a robot that publishes only standard
+topics; the recorder records those topics (no pusher/transition) until the sim has run
+its episodes and the learner has taken every step, and the session's transitions are the
+batch join of that recording (``offline-rl dataset``), which are the ones trained on.
 """
 
 from __future__ import annotations
@@ -37,10 +44,10 @@ from ..serving.policy import load_policy
 from ..serving.signing import make_session_keys
 from ..evaluation.stats import wilson_ci
 from ..data.transitions import SOURCE_HUMAN
+from ..task.spec import DEFAULT_TASK, TaskSpec, load_task
 
 DEFAULT_BAG = "bags/mix.db3"
 THRESHOLDS = (0.5, 0.8, 0.9, 0.95)
-EPISODE_STEPS = 100
 MAX_LEARNER_RESTARTS = 3
 REALTIME_THREAD_PRIORITY = 50  # as ros2_control's controller manager
 RECORDER_GRACE_S = 20.0  # after the sim's last episode, for the recorder to write it and end
@@ -66,11 +73,15 @@ class OnlineHilConfig:
     eval_seed: int = EVAL_SEED
     in_process: bool = False
     timeout: float = 4 * 3600.0
+    from_topics: bool = False  # the learner joins the task's raw topics instead of pusher/transition
+
+    @property
+    def raw_topics(self) -> bool:
+        return self.from_topics
 
     def validate(self) -> None:
-        if self.env_steps < EPISODE_STEPS or self.env_steps % EPISODE_STEPS:
-            raise UserError(f"--env-steps must be a positive multiple of {EPISODE_STEPS} (whole episodes), "
-                            f"got {self.env_steps}")
+        if self.env_steps < 1:
+            raise UserError(f"--env-steps must be >= 1 (whole episodes of the task), got {self.env_steps}")
         for name in ("utd", "publish_every", "eval_every", "eval_episodes"):
             if int(getattr(self, name)) < 1:
                 raise UserError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
@@ -96,6 +107,23 @@ class OnlineHilConfig:
                 raise no_such_bag(bag)
         if self.prior and not Path(self.prior).exists():
             raise UserError(f"{self.prior}: no such checkpoint")
+        if self.raw_topics and self.in_process:
+            raise UserError("--in-process runs the stage without ROS, on no topics; --from-topics joins "
+                            "a robot's topics over ROS")
+
+    def check_task(self, task: TaskSpec) -> None:
+        """What the run's task must allow: a sim that hosts it (the arm of the session and the
+        held-out rollouts of its learning curve), whole episodes, and the in-process stage
+        only on pusher_reach (its loop steps that env)."""
+        if not task.sim:
+            raise UserError(f"task {task.name} ({task.source_file()}): the online stage runs in a sim and scores "
+                            "its learning curve on held-out rollouts there; the task has no sim section")
+        steps = task.episodes.max_steps
+        if self.env_steps < steps or self.env_steps % steps:
+            raise UserError(f"--env-steps must be a positive multiple of {steps} (whole episodes of task "
+                            f"{task.name}), got {self.env_steps}")
+        if self.in_process and task.digest != load_task(DEFAULT_TASK).digest:
+            raise UserError(f"--in-process runs pusher_reach's env; task {task.name} runs over ROS (drop --in-process)")
 
 
 def run_hil_online(cfg: OnlineHilConfig, log: Callable[[str], None] = lambda s: print(s, file=sys.stderr,
@@ -104,10 +132,15 @@ def run_hil_online(cfg: OnlineHilConfig, log: Callable[[str], None] = lambda s: 
     out = Path(cfg.out)
     from .hil import HilConfig, Loop, hil_session, resolve_prior, resolve_task
 
+    from ..runs.training_run import task_of_run
+
+    cfg.check_task(task_of_run(cfg.bags, cfg.task))  # before anything is started or written
     loop = Loop(HilConfig(out=str(out), seed=cfg.seed, bags=cfg.bags), log)
     t0 = time.monotonic()
     with hil_session(out, loop):
-        resolve_task(loop, cfg.task, cfg.bags, cfg.prior, out)
+        task = resolve_task(loop, cfg.task, cfg.bags, cfg.prior, out, any_task=True)
+        if task.digest != load_task(DEFAULT_TASK).digest:
+            cfg.task = loop.task_arg  # every later step (the nodes, the join, the rollouts) reads it from there
         prior_path, prior_from = (None, "none") if cfg.no_prior else resolve_prior(
             loop, cfg.prior, cfg.bags, cfg.seed, cfg.prior_steps, out, log, cfg.prior_algo)
         if cfg.in_process:
@@ -149,7 +182,7 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
     for stale in (learner_dir / "snapshots").glob("policy_*.pt"):
         stale.unlink()
     (learner_dir / "progress.jsonl").unlink(missing_ok=True)
-    episodes = cfg.env_steps // EPISODE_STEPS
+    episodes = cfg.env_steps // load_task(cfg.task).episodes.max_steps
     lockstep = cfg.mode == "lockstep"
     arguments = {
         "bag": cfg.bags[0], "prior": prior_path or "", "out": out, "task": loop.task_arg,
@@ -160,6 +193,8 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
         # realtime: the nodes that answer the arm go first (where the user may use SCHED_FIFO)
         "thread_priority": 0 if lockstep else REALTIME_THREAD_PRIORITY, "reset_seed": TRAIN_SEED_BASE + 10000 * cfg.seed, "episodes": episodes,
         "snapshot_every": cfg.eval_every, "corrector": cfg.corrector,
+        "from_topics": "true" if cfg.raw_topics else "false",
+        "record_topics": _record_topics(cfg) if cfg.raw_topics else "",
         # a person's corrector runs in the foreground, on this terminal (below)
         "with_corrector": "true" if cfg.corrector == "scripted" else "false",
     }
@@ -171,6 +206,7 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
         f"{cfg.corrector} corrector, learner utd {cfg.utd}, weights every {cfg.publish_every} steps -> {out} "
         f"(ROS_DOMAIN_ID {loop.env['ROS_DOMAIN_ID']})")
     ready = {"learner": "learning from", "policy": "serving", "recorder": "recording"}
+    stopped_recorder = False
     if lockstep:
         ready["mux"] = "mux lockstep"
     launched = loop.launch("online.launch.yaml", arguments, out / "logs", ready=ready, timeout=120.0)
@@ -188,6 +224,11 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
             proc = launched[name]
             if proc.running() or launched.finished() is not None:
                 continue
+            if name == "sim" and proc.poll() == 0 and cfg.raw_topics:
+                # the sim ran its episodes: once the learner has every step, the recording ends
+                _wait_for_the_learner(cfg, launched, learner_dir, None, log)
+                stopped_recorder = launched["recorder"].stop(signal.SIGINT, timeout=60.0) is not None
+                break
             if name == "sim" and proc.poll() == 0:
                 # the sim ran its episodes: the recorder ends once it has written the last one
                 sim_done = sim_done or time.monotonic()
@@ -208,11 +249,13 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
                 f"{time.monotonic() - started:6.0f} s  "
                 f"critic loss {progress.get('critic_loss', float('nan')):.4f}  "
                 f"Q {progress.get('q_policy', float('nan')):+.3f}")
+        if stopped_recorder:
+            break
         time.sleep(0.5)
     ended = launched.finished()
-    rc = 0 if ended is None else ended.poll()
+    rc = 0 if ended is None or stopped_recorder else ended.poll()
     wall = time.monotonic() - started
-    if ended is not None and rc == 0:
+    if ended is not None and rc == 0 and not cfg.raw_topics:
         _wait_for_the_learner(cfg, launched, learner_dir, out / "session.db3", log)
     loop.stop_all()  # the learner saves its resume point and final weights on the way out
     if person is not None:
@@ -221,9 +264,7 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
         raise UserError(f"the recorder failed (exit {rc}); see {out / 'logs' / 'recorder.log'}")
     log(f"hil online: session done in {wall:.0f} s; scoring the learner's snapshots on {cfg.eval_episodes} "
         f"held-out resets each")
-    from ..data.bag import read_transitions
-
-    session = read_transitions(out / "session.db3")
+    session = session_transitions(cfg, out / "session.db3")
     curve = _score_snapshots(cfg, learner_dir, session)
     human = session.source == SOURCE_HUMAN
     counts = {"steps": len(session), "human": int(human.sum()),
@@ -233,13 +274,51 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
     return {"curve": curve, "counts": counts, "learner_seconds": round(wall, 2), "where": "over ROS"}
 
 
-def _wait_for_the_learner(cfg, launched, learner_dir: Path, session_bag: Path, log, timeout: float = 300.0) -> None:
-    """The session is recorded: let the learner cut the version that holds its last whole
-    ``publish_every`` transitions before it is stopped (a restarted learner can be behind),
-    so the final weights are those of a learner that never stopped."""
+def session_transitions(cfg: OnlineHilConfig, bag: Path):
+    """The session's transitions: those the sim published, or (raw topics) the batch join of
+    the recording, which are the ones the learner trained on."""
+    if cfg.raw_topics:
+        from ..data.raw_topics import transitions_from_topics
+
+        return transitions_from_topics(bag, cfg.task)[0]
     from ..data.bag import read_transitions
 
-    recorded = len(read_transitions(session_bag))
+    return read_transitions(bag)
+
+
+def _record_topics(cfg: OnlineHilConfig) -> str:
+    """The recorder's --topics for a raw-topic session: the task's topics (those of a known
+    type subscribed from the start: the session's first states are in the bag) and its
+    description."""
+    from ..data.raw_topics import plan_for
+    from ..data.task_record import TASK_TOPIC
+    from ..task.spec import load_task
+
+    roles = plan_for(load_task(cfg.task)).roles
+    return (f"--topics {' '.join([*(r.given for r in roles), TASK_TOPIC.lstrip('/')])} "
+            f"--types {' '.join(f'{r.given}:{r.types[0]}' for r in roles if r.types and len(r.types) == 1)}")
+
+
+def _wait_for_the_learner(cfg, launched, learner_dir: Path, session_bag: Path | None, log,
+                          timeout: float = 300.0) -> None:
+    """The session is recorded: let the learner cut the version that holds its last whole
+    ``publish_every`` environment steps before it is stopped (a restarted learner can be
+    behind), so the final weights are those of a learner that never stopped. Raw topics:
+    every step but the session's last (which only a later state could close) is live."""
+    if session_bag is None:
+        recorded = cfg.env_steps - 1
+        deadline = time.monotonic() + timeout
+        while launched["learner"].running() and time.monotonic() < deadline:
+            try:  # the learner has taken (and trained on) every step from the topics
+                if json.loads((learner_dir / "live.json").read_text())["steps"] >= recorded:
+                    break
+            except (OSError, ValueError, KeyError):
+                pass
+            time.sleep(0.2)
+    else:
+        from ..data.bag import read_transitions
+
+        recorded = len(read_transitions(session_bag))
     last = recorded - recorded % cfg.publish_every
     deadline = time.monotonic() + timeout
     while launched["learner"].running() and time.monotonic() < deadline:
@@ -267,7 +346,13 @@ def _restart_learner(cfg, loop, launched, learner_dir: Path, out: Path, attempt:
     deadline = time.monotonic() + 30.0
     while needed and time.monotonic() < deadline:
         try:
-            if len(read_transitions(out / "session.db3")) >= needed:
+            if cfg.raw_topics:
+                from ..data.raw_topics.build import read_bag
+                from ..data.raw_topics.spec import plan_for
+                plan = plan_for(load_task(cfg.task))
+                if len(read_bag(out / "session.db3", plan)[0].commands) >= needed:
+                    break
+            elif len(read_transitions(out / "session.db3")) >= needed:
                 break
         except UserError:
             pass  # not readable yet
@@ -333,7 +418,8 @@ def _score_snapshots(cfg: OnlineHilConfig, learner_dir: Path, session) -> list[d
     for path in snapshots:
         ckpt = load_checkpoint(path)
         n = int(ckpt.get("trained_through", 0))
-        ev = evaluate_policy(load_policy(path), cfg.eval_episodes, cfg.eval_seed)
+        task = load_task(cfg.task)
+        ev = evaluate_policy(load_policy(path, task), cfg.eval_episodes, cfg.eval_seed, task=task)
         lo, hi = wilson_ci(ev["successes"], ev["episodes"])
         window = human[previous:n]
         p = progress.get(n, {})

@@ -37,7 +37,7 @@ from .plots import plot_training_curve
 from .prior import plan_training
 from ..serving.checkpoint import load_checkpoint, save_checkpoint
 from ..data.raw_topics import transitions_from_topics
-from ..data.task_record import check_layout_fits, task_of_bag
+from ..data.task_record import check_layout_fits, chosen_task, task_of_bag
 from ..data.transitions import Transitions
 from ..serving.policy import policy_for_task
 from ..task.spec import DEFAULT_TASK, TaskSpec, load_task
@@ -51,9 +51,9 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     d = TrainConfig()
     parser.add_argument("--bag", action="append", required=True, metavar="PATH",
                         help="rosbag2 bag (directory, .db3 or .mcap) with /pusher/transition; repeat to merge bags")
-    parser.add_argument("--from-topics", metavar="SPEC",
-                        help="build the transitions from each bag's raw robot topics as this YAML spec says "
-                             "(see `offline-rl dataset --help`, e.g. bags/pusher_topics.yaml)")
+    parser.add_argument("--from-topics", metavar="TASK", nargs="?", const=True, default=None,
+                        help="build the transitions from each bag's raw robot topics as the task file says "
+                             "(see `offline-rl dataset --help`); `--from-topics TASK` is `--from-topics --task TASK`")
     parser.add_argument("--task", metavar="NAME_OR_FILE",
                         help="the task of the bags: a built-in task (pusher_reach, ...) or a task file (YAML); "
                              "default: the one the bags record, else pusher_reach")
@@ -120,29 +120,36 @@ def task_of_run(paths: list[str], given: str | os.PathLike | TaskSpec | None = N
     return tasks[0] if tasks else load_task(given)
 
 
-def load_bags(paths: list[str], from_topics: str | None = None, task: TaskSpec | None = None,
+def load_bags(paths: list[str], from_topics: bool | str | None = None,
+              task: str | os.PathLike | TaskSpec | None = None,
               workers: int | None = None) -> tuple[Transitions, list[dict]]:
     """Read and merge bags; episode ids are offset so they stay unique per bag. A path may
     be a directory of bags or a glob (a fleet, ``data/fleet.py``): its bags are decoded in
     ``workers`` processes (default: as many as pay for themselves).
-    ``from_topics``: a raw-topic spec; the transitions are built from each bag's raw topics.
-    ``task``: the transitions must have its sizes (one line naming the bag otherwise)."""
+    ``from_topics``: build the transitions from each bag's raw topics as its task says (a
+    task name or file here is the same as ``task``). ``task``: the task of the bags (default:
+    the one each bag records, else pusher_reach); the transitions must have its sizes (one
+    line naming the bag otherwise)."""
+    if isinstance(from_topics, (str, os.PathLike)):
+        task = chosen_task(task, from_topics)
     paths = expand_bags(paths)
     if not from_topics:
         data, summary = read_fleet(paths, workers)
         if task is not None:
             check_layout_fits(paths[0] if len(paths) == 1 else f"{len(paths)} bags ({paths[0]}, ...)",
-                              data.layout.obs_dim, data.layout.act_dim, task)
+                              data.layout.obs_dim, data.layout.act_dim, load_task(task))
         return data, summary
     parts, summary, offset = [], [], 0
     for path in paths:
-        data, spec = transitions_from_topics(path, from_topics)
-        if task is not None:
-            check_layout_fits(path, data.layout.obs_dim, data.layout.act_dim, task)
+        of_bag = task_of_bag(path, task)
+        data, report = transitions_from_topics(path, of_bag)
+        if parts and data.layout != parts[0].layout:
+            raise UserError(f"{path}: its transitions ({data.layout.describe()}) are not those of {paths[0]} "
+                            f"({parts[0].layout.describe()}); train on bags of one task")
         data.episode = data.episode - data.episode.min() + offset
         offset = int(data.episode.max()) + 1
         parts.append(data)
-        summary.append({**bag_summary(path, data), "from_topics": spec.as_dict()})
+        summary.append({**bag_summary(path, data), "from_topics": report.as_dict()})
     return (parts[0] if len(parts) == 1 else Transitions.concatenate(parts)), summary
 
 
@@ -168,7 +175,7 @@ def run_training(
     log: Callable[[str], None] = lambda s: print(s, file=sys.stderr),
     resume: bool = False,
     resume_every: float = 1.0,
-    from_topics: str | None = None,
+    from_topics: bool | str | None = None,
     auto: bool = False,
     budget_s: float | None = None,
     steps: int | None = None,
@@ -185,6 +192,8 @@ def run_training(
     out = check_output_dir(out_dir, "--out")
     if eval_episodes < 0:
         raise UserError(f"--eval-episodes must be >= 0, got {eval_episodes}")
+    if isinstance(from_topics, (str, os.PathLike)):
+        task = chosen_task(task, from_topics)
     task = task_of_run(bags, task)
     if dataset is not None:
         data, bags_read = dataset

@@ -15,7 +15,7 @@ from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, Qo
 from rosbags.rosbag2 import Writer
 
 from ...common.errors import UserError
-from ...task.spec import TaskSpec
+from ...task.spec import TaskSpec, load_task
 from ..task_record import TASK_MSGTYPE, TASK_TOPIC, encode_task_message
 from ..transitions import PUSHER_LAYOUT, Layout, Transitions
 from .cdr import TRANSITION_MSGTYPE, TRANSITION_TOPIC, encode_transition_blob, message_size
@@ -57,6 +57,9 @@ def write_transitions(
 ) -> None:
     """Write transitions as a rosbag2 bag with one ``/pusher/transition`` message per row.
 
+    ``task``: a TaskSpec the bag records on ``/task_description`` (``data.task_record``),
+    except the chapter's pusher_reach, whose bags record none.
+
     ``path``: ``x.db3`` or ``x.mcap`` gives a single self-describing storage file, any other
     path a bag directory whose storage is ``storage`` ('sqlite3', the default, or 'mcap').
     An existing bag at ``path`` is replaced atomically; on any error it is left untouched and
@@ -81,6 +84,7 @@ def write_transitions(
             period_ns = TRANSITION_PERIOD_NS
             if task is not None:
                 period_ns = round(task.control_period * 1e9)
+            if task is not None and task.digest != load_task().digest:  # pusher_reach's bags keep their bytes
                 record = writer.add_connection(TASK_TOPIC, TASK_MSGTYPE, typestore=typestore(),
                                                offered_qos_profiles=[_latched_qos()])
                 writer.write(record, TRANSITION_START_NS, encode_task_message(task))

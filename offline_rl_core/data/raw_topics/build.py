@@ -1,28 +1,33 @@
-"""Transitions from a bag of raw robot topics: states, commands and a goal, joined by stamp.
+"""Transitions from a bag of raw robot topics: states, commands, a goal and tracked points,
+joined by stamp as a task file says.
 
 The steps, each on whole arrays:
 
-1. Read the spec's topics (payloads and receive times) and decode them (``messages``).
-   Stamps are the header stamps, or the bag's receive times with ``stamps: receive``.
+1. Read the task's topics (payloads and receive times) and decode them (``streams``).
+   Stamps are the header stamps, or the bag's receive times with ``join.stamps: receive``.
 2. Duplicates: messages of a topic with the same stamp. The first received is kept, the
    others counted (and how many of them differ from the kept one).
-3. States get their target (the latest at or before the state's stamp, give or take the
-   join tolerance) and fingertip (the one with the state's stamp, nearest within the
-   tolerance; planar forward kinematics when the bag has no fingertip topic, or lacks the
-   state's). A state without a target cannot be observed and is dropped.
-4. Episodes: a new one starts where the target moves (more than ``target_change``), after a
-   message on the reset topic (by receive order), or after a gap over ``max_gap``.
-5. Each command joins one state: the one with its stamp (``match: exact``) or the nearest
-   within ``tolerance``; when several commands join one state the nearest is kept. A
-   command with no state, or superseded, is dropped and counted; none is ever filled in.
+3. States get their goal (the latest at or before the state's stamp, give or take the
+   join tolerance) and each tracked point (the one with the state's stamp, nearest within
+   the tolerance; the point's forward kinematics when its topic is not in the bag or lacks
+   the state's). A state without a goal cannot be observed and is dropped.
+4. Episodes: a new one starts where the goal moves (more than ``episodes.goal_change``),
+   after a message on the reset topic (by receive order), after a gap over
+   ``episodes.max_gap``, or at a state more than ``episodes.max_steps`` periods after the
+   episode's first (the time limit).
+5. Each command joins one state: the one with its stamp (``join.match: exact``) or the
+   nearest within ``join.tolerance``; when several commands join one state the nearest is
+   kept. A command with no state, or superseded, is dropped and counted; none is ever
+   filled in. A joined command is one environment step of the recording.
 6. A joined command makes a transition to the state one control period later (give or take
-   ``period_tolerance``) in the same episode; without one (the episode's last state, a
-   dropped message) it is counted and dropped.
-7. Reward, success latch and episode end: ``env.score_steps`` (the pusher's rule), the
+   ``join.period_tolerance``) in the same episode; without one (the episode's last state,
+   a dropped message) it is counted and dropped.
+7. Observation, reward, success latch and episode end: the task's (``task.features``), the
    step index from the stamps (``round((t - episode start) / period)``).
 
-Observations use ``env.batch_observations`` on the joint positions, velocities, target and
-fingertip exactly as published, so a sim bag gives the sim's own transitions bit for bit.
+The observation is computed from the joint positions, velocities, goal and points exactly as
+published, so a sim bag gives the sim's own transitions bit for bit. ``join(...)`` (steps 2-7
+on decoded arrays) is also what the live join (``live``) runs on its window of a stream.
 """
 
 from __future__ import annotations
@@ -33,22 +38,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ..bag import TRANSITION_TOPIC, open_bag
-from ...task.pusher_reach import (
-    SUCCESS_TOL, StepScore, batch_observations, fingertip_from_joints, planar_distances, score_steps,
-)
 from ...common.errors import UserError
-from ..transitions import SOURCE_BY_NAME, SOURCE_POLICY, Transitions, source_from_tag
-from .messages import (
-    FLOAT64_MULTI_ARRAY, HAS_HEADER, JOINT_STATE, POINT_STAMPED, Decoded, MessageDecodeError, decode_messages,
-)
-from .spec import SOURCE_AUTO, TopicSpec, load_spec
-
-
-
-def source_of_topic(topic: str) -> int | None:
-    """The source a command topic names (``.../command/expert`` ...), None for another."""
-    return SOURCE_BY_NAME.get(topic.rstrip("/").rsplit("/", 1)[-1])
+from ...task import features
+from ...task.spec import TaskSpec
+from ..bag import TRANSITION_TOPIC, open_bag
+from ..transitions import Transitions
+from .messages import MessageDecodeError
+from .spec import JoinPlan, plan_for
+from .streams import Mismatch, Rows, decode_rows, has_header
 
 
 @dataclass
@@ -56,54 +53,55 @@ class JoinReport:
     """What the join found: every message is counted once, in one row of its topic."""
 
     bag: str
-    spec: str
-    fingertip: str = "forward kinematics"  # or the fingertip topic used
+    task: str
+    points: dict = field(default_factory=dict)  # point -> where it came from (its topic, kinematics)
     command_topics: dict = field(default_factory=dict)  # topic -> messages
     states: dict = field(default_factory=dict)
     commands: dict = field(default_factory=dict)
-    targets: dict = field(default_factory=dict)
-    fingertips: dict = field(default_factory=dict)
+    goals: dict = field(default_factory=dict)
+    point_topics: dict = field(default_factory=dict)  # point -> counts of its topic
     resets: int = 0
     episodes: int = 0
     episode_starts: dict = field(default_factory=dict)  # what started each new episode
+    steps: int = 0  # joined commands: the environment steps the recording holds
     transitions: int = 0
+    ignored: dict = field(default_factory=dict)  # topic -> why it was not read
 
     def as_dict(self) -> dict:
-        return {
-            "bag": self.bag, "spec": self.spec, "fingertip": self.fingertip, "command_topics": self.command_topics,
-            "states": self.states,
-            "commands": self.commands, "targets": self.targets, "fingertips": self.fingertips,
-            "resets": self.resets, "episodes": self.episodes, "episode_starts": self.episode_starts,
-            "transitions": self.transitions,
-        }
+        return {k: getattr(self, k) for k in ("bag", "task", "points", "command_topics", "states", "commands",
+                                               "goals", "point_topics", "resets", "episodes", "episode_starts",
+                                               "steps", "transitions", "ignored")}
 
     def format(self) -> str:
         """The report as a few lines of text (what `offline-rl dataset` prints)."""
         st, cmd = self.states, self.commands
         lines = [
-            f"{self.bag} (spec: {self.spec})",
-            f"  states      {_messages_text(st)}, {st['malformed']} malformed, {st['without_target']} without a target; "
-            f"{st['kept']} kept",
-            f"  commands    {_messages_text(cmd)}, {cmd['malformed']} malformed; "
-            f"joined {cmd['exact'] + cmd['within_tolerance']} ({cmd['exact']} exact, {cmd['within_tolerance']} within "
-            f"tolerance), dropped {cmd['without_state']} without a state, {cmd['superseded']} with another command "
-            f"nearer the same state, {cmd['no_next_state']} without a next state, {cmd['after_termination']} after "
-            f"termination; {cmd['clipped']} clipped to [-1, 1]",
-            f"              on {', '.join(f'{t} ({n})' for t, n in self.command_topics.items())}",
-            f"  targets     {_messages_text(self.targets)}",
+            f"{self.bag} (task: {self.task})",
+            f"  states      {_messages_text(st)}, {st['malformed']} malformed, {st['without_goal']} without a goal"
+            + (f", {st['without_point']} without a tracked point" if st.get("without_point") else "")
+            + f"; {st['kept']} kept",
+            f"  commands    {_messages_text(cmd)}, {cmd['malformed']} malformed ({cmd['wrong_length']} of another "
+            f"length); joined {cmd['exact'] + cmd['within_tolerance']} ({cmd['exact']} exact, "
+            f"{cmd['within_tolerance']} within tolerance), dropped {cmd['without_state']} without a state, "
+            f"{cmd['superseded']} with another command nearer the same state, {cmd['no_next_state']} without a "
+            f"next state, {cmd['after_termination']} after termination; {cmd['clipped']} clipped to [-1, 1]",
+            f"              on {', '.join(f'{t} ({n})' for t, n in self.command_topics.items())}"
+            + "".join(f"; not {t}: {why}" for t, why in self.ignored.items()),
+            f"  goals       {_messages_text(self.goals)}",
         ]
-        if self.fingertips:
-            lines.append(f"  fingertips  {_messages_text(self.fingertips)}; "
-                         f"{self.fingertips['states_without']} states without one (planar kinematics)")
-        lines.append(f"  fingertip   from {self.fingertip}")
+        for name, counts in self.point_topics.items():
+            lines.append(f"  {name:<11} {_messages_text(counts)}; {counts['states_without']} states without one")
+        for name, source in self.points.items():
+            lines.append(f"  {name:<11} from {source}")
         starts = ", ".join(f"{n} by {_START_CAUSE[k]}" for k, n in self.episode_starts.items())
         lines.append(f"  episodes    {self.episodes} (new episodes started: {starts})"
                      + (f"; {self.resets} reset messages" if self.resets else ""))
-        lines.append(f"  transitions {self.transitions}")
+        lines.append(f"  transitions {self.transitions} of {self.steps} steps")
         return "\n".join(lines)
 
 
-_START_CAUSE = {"target": "a target change", "gap": "a time gap", "reset": "a reset message"}
+_START_CAUSE = {"goal": "a goal change", "gap": "a time gap", "reset": "a reset message",
+                "time_limit": "the time limit"}
 
 
 def _messages_text(counts: dict) -> str:
@@ -111,95 +109,156 @@ def _messages_text(counts: dict) -> str:
             f"({counts['duplicates_differing']} differing)")
 
 
-def transitions_from_topics(bag: str | os.PathLike, spec: TopicSpec | str | os.PathLike | None) -> tuple[Transitions, JoinReport]:
-    """The transitions of a raw-topic bag under ``spec`` (a TopicSpec, a YAML path or None
-    for the defaults), and the report of the join. UserError for a missing topic, a wrong
-    type, an unknown joint, or a bag that yields no transition."""
-    if not isinstance(spec, TopicSpec):
-        spec = load_spec(spec)
-    bag = Path(bag)
-    topics = _read_topics(bag, spec)
-    return _Join(bag, spec, topics).run()
+def _counts_text(counts: dict) -> str:
+    return ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in counts.items())
 
+
+def transitions_from_topics(bag: str | os.PathLike, task: TaskSpec | str | os.PathLike | None = None
+                            ) -> tuple[Transitions, JoinReport]:
+    """The transitions of a raw-topic bag as ``task`` says (a TaskSpec, a built-in name or a
+    task file; None: the task the bag records, else pusher_reach), and the report of the
+    join. UserError for a missing topic, a wrong type, a joint the messages lack, a command
+    of the wrong length, or a bag that yields no transition."""
+    from ..task_record import task_of_bag
+
+    bag = Path(bag)
+    task = task_of_bag(bag, task)
+    plan = plan_for(task)
+    streams, report = read_bag(bag, plan)
+    try:
+        result = join(plan, streams, report, point_kinematics(task))
+    except JoinEmpty as exc:
+        raise UserError(f"{bag}: {exc}") from None
+    return result.data, report
+
+
+# ------------------------------------------------------------------ reading a bag
 
 @dataclass
-class _Topic:
-    name: str
-    msgtype: str
-    recv_ns: np.ndarray  # int64 bag timestamps, in bag order
-    payloads: list
+class Streams:
+    """A recording's decoded topics by role (commands of every command topic merged, in
+    arrival order)."""
+
+    states: Rows
+    commands: Rows
+    goal: Rows
+    points: dict  # point name -> Rows (points with a topic that was heard)
+    resets: np.ndarray  # int64 receive times of reset messages
 
 
-def _read_topics(bag: Path, spec: TopicSpec) -> dict[str, _Topic]:
-    """The spec's topics from the bag: type-checked, with payloads and receive times."""
-    where = spec.path or "the default spec"
-    commands = (JOINT_STATE, FLOAT64_MULTI_ARRAY)
-    wanted = [  # (spec field, topic, accepted types, required)
-        ("state.topic", spec.state_topic, (JOINT_STATE,), True),
-        *(("command.topic", topic, commands, False) for topic in spec.command_topics),
-        ("target.topic", spec.target_topic, (POINT_STAMPED,), True),
-        ("fingertip.topic", spec.fingertip_topic, (POINT_STAMPED,), False),
-        ("episodes.reset_topic", spec.reset_topic, None, True),
-    ]
+def read_bag(bag: Path, plan: JoinPlan) -> tuple[Streams, JoinReport]:
+    """The task's topics from the bag, type-checked and decoded (UserError naming the topic
+    and the task field for anything that does not fit)."""
+    task = plan.task
+    report = JoinReport(str(bag), task.source_file())
     with open_bag(bag) as reader:
         types: dict[str, set] = {}
         for c in reader.connections:
             types.setdefault(c.topic, set()).add(c.msgtype)
         have = ", ".join(sorted(types)) or "none"
         hint = ""
-        if TRANSITION_TOPIC in types and spec.state_topic not in types:
+        if TRANSITION_TOPIC in types and plan.state_topic not in types:
             hint = f"; it holds {TRANSITION_TOPIC}: train on it without --from-topics"
-        if not any(topic in types for topic in spec.command_topics):
-            raise UserError(f"{bag}: no command topic ({', '.join(spec.command_topics)}: spec {where}, field command.topic); "
-                            f"the bag has: {have}{hint}")
+        commands = plan.of_role("command", "action")
+        if not any(r.topic in types for r in commands):
+            raise UserError(f"{bag}: no command topic ({', '.join(r.topic for r in commands)}: {plan.where}, fields "
+                            f"robot.command.topic and robot.command.action_topics); the bag has: {have}{hint}")
         found = {}
-        for label, topic, accepted, required in wanted:
-            if topic is None:
+        for role in plan.roles:
+            if role.topic not in types:
+                if role.required:
+                    raise UserError(f"{bag}: no topic {role.topic} ({plan.where}, field {role.field}); "
+                                    f"the bag has: {have}{hint}")
                 continue
-            if topic not in types:
-                if not required:
-                    continue
-                raise UserError(f"{bag}: no topic {topic} (spec {where}, field {label}); the bag has: {have}{hint}")
-            got = sorted(types[topic])
-            if accepted is not None and (len(got) != 1 or got[0] not in accepted):
-                raise UserError(f"{bag}: {topic} has type {', '.join(got)}; spec field {label} needs {' or '.join(accepted)}")
-            if spec.stamps == "header" and accepted is not None and not HAS_HEADER[got[0]]:
-                raise UserError(f"{spec.path or 'spec'}: field stamps is header, but {topic} ({got[0]}) has no header; "
-                                "set stamps: receive to join by the bag's receive times")
-            found[topic] = got[0]
+            got = sorted(types[role.topic])
+            if role.types is not None and len(got) != 1:
+                raise UserError(f"{bag}: {role.topic} has several types ({', '.join(got)}); {plan.where} field "
+                                f"{role.field} needs {' or '.join(role.types)}")
+            found[role.topic] = got[0]
+        headed = [r.topic for r in commands if r.topic in found and has_header(found[r.topic])]
+        for role in commands:
+            if role.topic in found and not plan.receive_stamps and not has_header(found[role.topic]) and headed:
+                # joined by header stamps, a command without one cannot be placed; the
+                # action topics (which have one) hold the arm's commands
+                report.ignored[role.topic] = f"{found.pop(role.topic)} has no header (join.stamps: header)"
         recv: dict[str, list] = {t: [] for t in found}
         data: dict[str, list] = {t: [] for t in found}
         connections = [c for c in reader.connections if c.topic in found]
         for conn, stamp, raw in reader.messages(connections=connections):
             recv[conn.topic].append(stamp)
             data[conn.topic].append(raw)
-    return {t: _Topic(t, found[t], np.array(recv[t], np.int64), data[t]) for t in found}
+
+    decoded: dict[str, Rows] = {}
+    for topic, msgtype in found.items():
+        role = plan.role_of(topic)
+        try:
+            decoded[topic] = decode_rows(plan, role, msgtype, data[topic], recv[topic])
+        except MessageDecodeError as exc:
+            raise UserError(f"{bag}: {topic}: not a readable {msgtype}: {exc}") from None
+        except Mismatch as exc:
+            raise UserError(f"{bag}: {exc}") from None
+    for role in commands:
+        rows = decoded.get(role.topic)
+        if rows is not None and len(rows) and rows.wrong_length == len(rows):
+            raise UserError(f"{bag}: {role.topic}: every command holds another number of values than the "
+                            f"{task.act_dim} joints of {plan.where} field robot.command.joints "
+                            f"({', '.join(task.command.joints)})")
+    report.command_topics = {r.topic: len(decoded[r.topic]) for r in commands if r.topic in decoded}
+    parts = [decoded[r.topic] for r in commands if r.topic in decoded]
+    merged = Rows.concat(parts, task.act_dim)
+    merged = merged.take(np.argsort(merged.recv, kind="stable"))  # arrival order across topics
+    points = {r.name: decoded[r.topic] for r in plan.of_role("point") if r.topic in decoded}
+    resets = [decoded[r.topic].recv for r in plan.of_role("reset") if r.topic in decoded]
+    return Streams(decoded[plan.state_topic], merged, decoded[plan.goal_topic], points,
+                   np.sort(resets[0]) if resets else np.zeros(0, np.int64)), report
 
 
-def _decode(bag: Path, topic: _Topic) -> list[Decoded]:
-    try:
-        return decode_messages(topic.payloads, topic.msgtype)
-    except MessageDecodeError as exc:
-        raise UserError(f"{bag}: {topic.name}: not a readable {topic.msgtype}: {exc}") from None
+def point_kinematics(task: TaskSpec):
+    """The task's forward kinematics of its tracked points (None when no point has any);
+    ``site:`` / ``body:`` points need the task's MuJoCo model (``task.envs.task_model``)."""
+    from ...task.kinematics import PointKinematics
+
+    kinds = [p.kinematics for p in task.points if p.kinematics is not None]
+    if not kinds:
+        return None
+    model = None
+    if any(k != "planar_two_link" for k in kinds):
+        try:
+            from ...task.envs import task_model
+        except ImportError:  # the model hosting of task.envs is not in this build
+            raise UserError(f"{task.source_file()}: points with site:/body: kinematics need the task's MuJoCo "
+                            "model (offline_rl_core.task.envs), which this build lacks") from None
+        model = task_model(task)
+        if model is None:
+            raise UserError(f"{task.source_file()}: points with site:/body: kinematics need a MuJoCo model "
+                            "(field sim.model)")
+    return PointKinematics(task, model)
 
 
-def _nearest(sorted_t: np.ndarray, query: np.ndarray, tolerance_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """For each query stamp, the index of the nearest stamp in ``sorted_t`` (the earlier on
-    a tie), its distance in ns and whether that is within the tolerance."""
-    if sorted_t.size == 0:
-        zeros = np.zeros(query.shape, np.int64)
-        return zeros, zeros, np.zeros(query.shape, bool)
-    right = np.searchsorted(sorted_t, query)
-    left = np.clip(right - 1, 0, None)
-    right = np.clip(right, 0, sorted_t.size - 1)
-    d_left = np.abs(query - sorted_t[left])
-    d_right = np.abs(sorted_t[right] - query)
-    pick = np.where(d_right < d_left, right, left)
-    dist = np.minimum(d_left, d_right)
-    return pick, dist, dist <= tolerance_ns
+# ------------------------------------------------------------------ the join
+
+class JoinEmpty(ValueError):
+    """The streams hold no usable state, or no transition."""
 
 
-def _first_per_stamp(stamp: np.ndarray, content: np.ndarray) -> tuple[np.ndarray, int, int]:
+@dataclass
+class JoinResult:
+    """The transitions, and per kept state what the live join needs to tell a final outcome
+    from one a later message could change."""
+
+    data: Transitions
+    step_of_row: np.ndarray  # int64: the environment step (joined command, from 0) of each transition
+    state_t: np.ndarray  # int64 stamps of the kept states (sorted)
+    episode_key: np.ndarray  # int64: the stamp of each kept state's episode's first state
+    cmd_t: np.ndarray  # int64: the stamp of the command a state kept (-1: none)
+    cmd_dist: np.ndarray  # int64 ns from that command to the state (-1: none)
+    next_t: np.ndarray  # int64: the state one period later (-1: none), in this episode or not
+    next_dist: np.ndarray  # int64 ns from it to one period later
+    row_of_state: np.ndarray  # int64: the transition of each kept state (-1: none)
+    unobserved_t: np.ndarray  # int64 stamps of states dropped for a missing goal or point
+
+
+def first_per_stamp(stamp: np.ndarray, content: np.ndarray) -> tuple[np.ndarray, int, int]:
     """Rows to keep (the first received of each stamp, in stamp order), the number of
     duplicates and how many of those differ (bit for bit) from the row kept."""
     order = np.lexsort((np.arange(stamp.size), stamp))
@@ -216,221 +275,198 @@ def _first_per_stamp(stamp: np.ndarray, content: np.ndarray) -> tuple[np.ndarray
     return kept, int(dup.size), differing
 
 
-class _Join:
-    def __init__(self, bag: Path, spec: TopicSpec, topics: dict[str, _Topic]):
-        self.bag, self.spec, self.topics = bag, spec, topics
-        self.report = JoinReport(str(bag), str(spec.path) if spec.path else "defaults")
+def nearest(sorted_t: np.ndarray, query: np.ndarray, tolerance_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For each query stamp, the index of the nearest stamp in ``sorted_t`` (the earlier on
+    a tie), its distance in ns and whether that is within the tolerance."""
+    if sorted_t.size == 0:
+        zeros = np.zeros(query.shape, np.int64)
+        return zeros, zeros, np.zeros(query.shape, bool)
+    right = np.searchsorted(sorted_t, query)
+    left = np.clip(right - 1, 0, None)
+    right = np.clip(right, 0, sorted_t.size - 1)
+    d_left = np.abs(query - sorted_t[left])
+    d_right = np.abs(sorted_t[right] - query)
+    pick = np.where(d_right < d_left, right, left)
+    dist = np.minimum(d_left, d_right)
+    return pick, dist, dist <= tolerance_ns
 
-    def stamps(self, topic: _Topic, decoded: list[Decoded]) -> np.ndarray:
-        out = np.empty(len(topic.payloads), np.int64)
-        for d in decoded:
-            out[d.rows] = topic.recv_ns[d.rows] if self.spec.stamps == "receive" else d.stamp_ns
-        return out
 
-    # ------------------------------------------------------------------ topics
-    def joint_columns(self, topic: _Topic, names: tuple[str, ...], count: int, order: tuple[str, ...], label: str):
-        """Column of each spec joint in an array of ``count`` values named ``names`` (or, when
-        the message names none, given in ``order``); None if the row does not fit."""
-        if names:
-            missing = [j for j in self.spec.joints if j not in names]
-            if missing:
-                raise UserError(f"{self.bag}: {topic.name}: joint {missing[0]!r} (spec field {label}) is not among "
-                                f"the message's joint names [{', '.join(names)}]")
-            return [names.index(j) for j in self.spec.joints] if count == len(names) else None
-        return [order.index(j) for j in self.spec.joints] if count == len(order) else None
+def _unique_rows(rows: Rows, section: dict) -> Rows:
+    """One row per stamp, usable ones, in stamp order; counted into ``section``."""
+    content = np.hstack([rows.values, rows.source[:, None].astype(np.float64)])
+    kept, dups, differing = first_per_stamp(rows.stamp, content)
+    section.update(messages=len(rows), duplicates=dups, duplicates_differing=differing,
+                   malformed=int((~rows.ok[kept]).sum()))
+    return rows.take(kept[rows.ok[kept]])
 
-    def read_states(self):
-        topic = self.topics[self.spec.state_topic]
-        decoded = _decode(self.bag, topic)
-        n = len(topic.payloads)
-        stamp = self.stamps(topic, decoded)
-        qpos = np.zeros((n, 2))
-        qvel = np.zeros((n, 2))
-        ok = np.zeros(n, bool)
-        for d in decoded:
-            counts = {key: count for key, _, count in d.layout.arrays}
-            pos_cols = self.joint_columns(topic, d.layout.names, counts["position"], self.spec.joints, "state.joints")
-            vel_cols = self.joint_columns(topic, d.layout.names, counts["velocity"], self.spec.joints, "state.joints")
-            if pos_cols is None or vel_cols is None:
-                continue
-            qpos[d.rows] = d.arrays["position"][:, pos_cols]
-            qvel[d.rows] = d.arrays["velocity"][:, vel_cols]
-            ok[d.rows] = True
-        finite = np.isfinite(qpos).all(axis=1) & np.isfinite(qvel).all(axis=1)
-        kept, dups, differing = _first_per_stamp(stamp, np.hstack([qpos, qvel]))
-        malformed = kept[~(ok & finite)[kept]]
-        self.report.states = {"messages": n, "duplicates": dups, "duplicates_differing": differing,
-                              "malformed": int(malformed.size)}
-        kept = kept[(ok & finite)[kept]]
-        return stamp[kept], topic.recv_ns[kept], qpos[kept], qvel[kept]
 
-    def read_points(self, topic_name: str, section: dict) -> tuple[np.ndarray, np.ndarray]:
-        """Stamps (sorted, one per stamp) and xy of a PointStamped topic."""
-        topic = self.topics[topic_name]
-        decoded = _decode(self.bag, topic)
-        stamp = self.stamps(topic, decoded)
-        xy = np.zeros((len(topic.payloads), 2))
-        for d in decoded:
-            xy[d.rows] = d.arrays["point"][:, :2]
-        kept, dups, differing = _first_per_stamp(stamp, xy)
-        finite = np.isfinite(xy[kept]).all(axis=1)
-        section.update(messages=len(topic.payloads), duplicates=dups, duplicates_differing=differing,
-                       malformed=int((~finite).sum()))
-        kept = kept[finite]
-        return stamp[kept], xy[kept]
-
-    def read_command_topic(self, topic: _Topic):
-        """Stamps, values (in state.joints order), sources and usability of one command topic."""
-        spec = self.spec
-        decoded = _decode(self.bag, topic)
-        n = len(topic.payloads)
-        value = np.zeros((n, 2))
-        topic_source = source_of_topic(topic.name)
-        source = np.full(n, SOURCE_POLICY if topic_source is None else topic_source)
-        if spec.source != SOURCE_AUTO:
-            source[:] = SOURCE_BY_NAME[spec.source]
-        ok = np.zeros(n, bool)
-        for d in decoded:
-            if topic.msgtype == FLOAT64_MULTI_ARRAY:
-                _, _, count = d.layout.arrays[0]
-                data = d.arrays["data"][:, d.layout.data_offset:]
-                cols = self.joint_columns(topic, (), count - d.layout.data_offset, spec.command_joints, "command.joints")
-            else:
-                _, _, count = d.layout.arrays[2]
-                data = d.arrays["effort"]
-                cols = self.joint_columns(topic, d.layout.names, count, spec.command_joints, "command.joints")
-                tagged = source_from_tag(d.layout.frame_id)
-                if spec.source == SOURCE_AUTO and topic_source is None and tagged is not None:
-                    source[d.rows] = tagged
-            if cols is None:
-                continue
-            value[d.rows] = data[:, cols]
-            ok[d.rows] = True
-        return self.stamps(topic, decoded), value, source, ok
-
-    def read_commands(self):
-        spec = self.spec
-        topics = [self.topics[t] for t in spec.command_topics if t in self.topics]
-        parts = [self.read_command_topic(topic) for topic in topics]
-        stamp, value, source, ok = (np.concatenate([p[i] for p in parts]) for i in range(4))
-        arrival = np.argsort(np.concatenate([t.recv_ns for t in topics]), kind="stable")  # across topics
-        stamp, value, source, ok = stamp[arrival], value[arrival], source[arrival], ok[arrival]
-        n = stamp.size
-        action64 = value * spec.command_scale
-        ok &= np.isfinite(action64).all(axis=1)
-        kept, dups, differing = _first_per_stamp(stamp, np.hstack([value, source[:, None].astype(np.float64)]))
-        malformed = int((~ok[kept]).sum())
-        kept = kept[ok[kept]]
-        clipped = int((np.abs(action64[kept]) > 1.0).any(axis=1).sum())
-        self.report.command_topics = {t.name: len(t.payloads) for t in topics}
-        self.report.commands = {"messages": n, "duplicates": dups, "duplicates_differing": differing,
-                                "malformed": malformed, "clipped": clipped}
-        action = np.clip(action64[kept], -1.0, 1.0).astype(np.float32)  # as the sim does: clip, then float32
-        return stamp[kept], action, source[kept]
-
-    # ------------------------------------------------------------------ the join
-    def run(self) -> tuple[Transitions, JoinReport]:
-        spec, report = self.spec, self.report
-        tol = spec.join_tolerance_ns
-        t_state, recv_state, qpos, qvel = self.read_states()
-        t_target, target_xy = self.read_points(spec.target_topic, report.targets)
-
-        # 3. target and fingertip of each state
-        k = np.searchsorted(t_target, t_state + tol, side="right") - 1
-        has_target = k >= 0
-        report.states["without_target"] = int((~has_target).sum())
-        t_state, recv_state, qpos, qvel, k = (a[has_target] for a in (t_state, recv_state, qpos, qvel, k))
-        target = target_xy[k]
-        if t_state.size == 0:
-            raise UserError(f"{self.bag}: no usable state on {spec.state_topic} (with a target from {spec.target_topic}); "
-                            f"{_counts_text(report.states)}")
-        fingertip = np.empty((t_state.size, 2))
-        has_tip = np.zeros(t_state.size, bool)
-        if spec.fingertip_topic in self.topics:
-            report.fingertip = spec.fingertip_topic
-            t_tip, tip_xy = self.read_points(spec.fingertip_topic, report.fingertips)
-            j, _, has_tip = _nearest(t_tip, t_state, tol)
-            fingertip[has_tip] = tip_xy[j[has_tip]]
-            report.fingertips["states_without"] = int((~has_tip).sum())
-        for i in np.flatnonzero(~has_tip):  # the policy node's planar kinematics, value for value
-            fingertip[i] = fingertip_from_joints(qpos[i])
-
-        # 4. episodes
-        starts = {"target": np.zeros(t_state.size, bool), "gap": np.zeros(t_state.size, bool)}
-        moved = target[1:] - target[:-1]
-        if spec.target_change > 0:
-            starts["target"][1:] = np.hypot(moved[:, 0], moved[:, 1]) > spec.target_change
+def _episode_starts(plan: JoinPlan, t: np.ndarray, recv: np.ndarray, goal: np.ndarray, resets: np.ndarray
+                    ) -> tuple[np.ndarray, dict]:
+    """Where each episode starts (bool per state) and the states each cause started."""
+    ep = plan.task.episodes
+    n = t.size
+    starts = {"goal": np.zeros(n, bool), "gap": np.zeros(n, bool)}
+    if n > 1:
+        if ep.goal_change > 0:
+            starts["goal"][1:] = features.distances(goal[1:], goal[:-1]) > ep.goal_change
         else:
-            starts["target"][1:] = (moved != 0).any(axis=1)
-        starts["gap"][1:] = np.diff(t_state) > spec.max_gap_ns
-        if spec.reset_topic is not None:
-            resets = np.sort(self.topics[spec.reset_topic].recv_ns)
-            report.resets = int(resets.size)
-            seen = np.searchsorted(resets, recv_state, side="right")
-            starts["reset"] = np.zeros(t_state.size, bool)
-            starts["reset"][1:] = seen[1:] != seen[:-1]
-        new = np.zeros(t_state.size, bool)
+            starts["goal"][1:] = (goal[1:] != goal[:-1]).any(axis=1)
+        starts["gap"][1:] = np.diff(t) > plan.max_gap_ns
+    if plan.task.episodes.reset_topic is not None:
+        seen = np.searchsorted(resets, recv, side="right")
+        starts["reset"] = np.zeros(n, bool)
+        starts["reset"][1:] = seen[1:] != seen[:-1]
+    new = np.zeros(n, bool)
+    if n:
         new[0] = True
-        for mask in starts.values():
-            new |= mask
-        episode = np.cumsum(new) - 1
-        first_state = np.flatnonzero(new)
-
-        # 5. commands to states
-        t_cmd, action, source = self.read_commands()
-        s, dist, joined = _nearest(t_state, t_cmd, tol)
-        c = np.flatnonzero(joined)
-        c = c[np.lexsort((t_cmd[c], dist[c], s[c]))]  # per state: nearest first, then earliest
-        keep = np.ones(c.size, bool)
-        keep[1:] = s[c][1:] != s[c][:-1]
-        superseded = int((~keep).sum())
-        c = c[keep]
-        report.commands.update(exact=int((dist[c] == 0).sum()), within_tolerance=int((dist[c] > 0).sum()),
-                               without_state=int((~joined).sum()), superseded=superseded)
-        c = c[np.argsort(s[c], kind="stable")]
-        a = s[c]  # the state each kept command acts on
-
-        # 6. the state one period later, in the same episode
-        b, _, has_next = _nearest(t_state, t_state[a] + spec.period_ns, spec.period_tolerance_ns)
-        has_next &= episode[b] == episode[a]
-        report.commands["no_next_state"] = int((~has_next).sum())
-        c, a, b = c[has_next], a[has_next], b[has_next]
-
-        # 7. reward, success latch, episode end: the pusher's rule on the next state
-        dist_state = planar_distances(target, fingertip)
-        hit = (dist_state < SUCCESS_TOL) & ~new  # the sim latches success only after a step
-        hits_so_far = np.cumsum(hit)
-        before_episode = np.where(first_state > 0, hits_so_far[first_state - 1], 0)[episode]
-        success_before = hits_so_far[a] - before_episode[a] > 0
-        step = np.rint((t_state[a] - t_state[first_state[episode[a]]]) / spec.period_ns).astype(np.int64)
-        score = score_steps(target[b], fingertip[b], step + 1, success_before, spec.terminate_on_success)
-        alive = ~(success_before & spec.terminate_on_success)
-        report.commands["after_termination"] = int((~alive).sum())
-        c, a, b, step, score = c[alive], a[alive], b[alive], step[alive], StepScore._make(f[alive] for f in score)
-        if c.size == 0:
-            raise UserError(f"{self.bag}: no transitions could be built from {spec.state_topic} and the commands; "
-                            f"commands: {_counts_text(report.commands)}")
-
-        obs_all = batch_observations(qpos, qvel, target, fingertip)
-        used_episodes, episode_id = np.unique(episode[a], return_inverse=True)
-        data = Transitions(
-            obs=obs_all[a],
-            action=action[c],
-            reward=score.reward.astype(np.float32),
-            next_obs=obs_all[b],
-            terminated=score.terminated,
-            truncated=score.truncated,
-            success=score.success,
-            episode=episode_id.astype(np.int64),
-            step=step,
-            source=source[c].astype(np.int64),
-        )
-        report.states["kept"] = int(t_state.size)
-        report.episodes = int(used_episodes.size)
-        report.episode_starts = {k: int(v.sum()) for k, v in starts.items()}
-        report.transitions = len(data)
-        return data, report
+    for mask in starts.values():
+        new |= mask
+    # the time limit: a state more than max_steps periods after its episode's first starts the next
+    limit = np.zeros(n, bool)
+    firsts = list(np.flatnonzero(new)) + [n]
+    for lo, hi in zip(firsts[:-1], firsts[1:]):
+        first = lo
+        while True:
+            steps = np.rint((t[first:hi] - t[first]) / plan.period_ns)
+            over = np.flatnonzero(steps > ep.max_steps)
+            if over.size == 0:
+                break
+            first += int(over[0])
+            limit[first] = True
+    starts["time_limit"] = limit & ~new
+    return new | limit, starts
 
 
-def _counts_text(counts: dict) -> str:
-    return ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in counts.items())
+def join(plan: JoinPlan, s: Streams, report: JoinReport, kinematics=None, allow_empty: bool = False) -> JoinResult:
+    """Steps 2-7 on decoded streams. JoinEmpty when no state is usable, or (unless
+    ``allow_empty``: the live join's window) no transition can be built."""
+    task = plan.task
+    tol = plan.tolerance_ns
+    n_joints = len(task.state.joints)
+
+    # 2. one state per stamp
+    states = _unique_rows(s.states, report.states)
+    goals = _unique_rows(s.goal, report.goals)
+    t_state, recv_state = states.stamp, states.recv
+
+    # 3. the goal and points of each state
+    k = np.searchsorted(goals.stamp, t_state + tol, side="right") - 1
+    observed = k >= 0
+    report.states["without_goal"] = int((~observed).sum())
+    vectors = {"goal": goals.values[np.clip(k, 0, None)] if len(goals) else np.zeros((k.size, task.goal.size))}
+    without_point = np.zeros(t_state.size, bool)
+    for p in task.points:
+        values = np.full((t_state.size, len(p.axes)), np.nan)
+        heard = np.zeros(t_state.size, bool)
+        rows = s.points.get(p.name)
+        if rows is not None:
+            counts = report.point_topics.setdefault(p.name, {})
+            rows = _unique_rows(rows, counts)
+            j, _, heard = nearest(rows.stamp, t_state, tol)
+            values[heard] = rows.values[j[heard]]
+            counts["states_without"] = int((~heard & observed).sum())
+            report.points[p.name] = p.topic if p.kinematics is None else f"{p.topic}, else {p.kinematics}"
+        else:
+            report.points[p.name] = p.kinematics
+        if p.kinematics is not None:
+            for i in np.flatnonzero(~heard & observed):  # the policy node's kinematics, value for value
+                values[i] = kinematics.point(p, states.values[i, :n_joints])
+        else:
+            without_point |= ~heard
+        vectors[p.name] = values
+    without_point &= observed
+    report.states["without_point"] = int(without_point.sum())
+    keep = observed & ~without_point
+    unobserved_t = t_state[~keep]
+    t_state, recv_state = t_state[keep], recv_state[keep]
+    positions, velocities = states.values[keep, :n_joints], states.values[keep, n_joints:]
+    vectors = {name: v[keep] for name, v in vectors.items()}
+    if t_state.size == 0:
+        raise JoinEmpty(f"no usable state on {plan.state_topic} (with a goal from {plan.goal_topic}); "
+                        f"{_counts_text(report.states)}")
+
+    # 4. episodes
+    new, starts = _episode_starts(plan, t_state, recv_state, vectors["goal"], s.resets)
+    report.resets = int(s.resets.size)
+    episode = np.cumsum(new) - 1
+    first_state = np.flatnonzero(new)
+
+    # 5. commands to states
+    commands = _unique_rows(s.commands, report.commands)
+    report.commands["wrong_length"] = s.commands.wrong_length
+    t_cmd, action64, source = commands.stamp, commands.values, commands.source
+    report.commands["clipped"] = int((np.abs(action64) > 1.0).any(axis=1).sum())
+    action = np.clip(action64, -1.0, 1.0).astype(np.float32)  # as the sim does: clip, then float32
+    state_of, dist, joined = nearest(t_state, t_cmd, tol)
+    c = np.flatnonzero(joined)
+    # per state: a command of the project's action topics before the controller's (they say
+    # who acted: the mux's output, where a policy node also sends its own proposal to the
+    # controller), then the nearest, then the earliest
+    c = c[np.lexsort((t_cmd[c], dist[c], commands.rank[c], state_of[c]))]
+    first = np.ones(c.size, bool)
+    first[1:] = state_of[c][1:] != state_of[c][:-1]
+    report.commands.update(exact=int((dist[c[first]] == 0).sum()), within_tolerance=int((dist[c[first]] > 0).sum()),
+                           without_state=int((~joined).sum()), superseded=int((~first).sum()))
+    c = c[first]
+    c = c[np.argsort(state_of[c], kind="stable")]
+    a = state_of[c]  # the state each kept command acts on; one step each
+    step_index = np.arange(c.size)
+
+    # 6. the state one period later, in the same episode
+    b, next_dist, has_next = nearest(t_state, t_state[a] + plan.period_ns, plan.period_tolerance_ns)
+    candidate = has_next.copy()
+    has_next &= episode[b] == episode[a]
+    report.commands["no_next_state"] = int((~has_next).sum())
+    live = {"cmd_t": np.full(t_state.size, -1, np.int64), "cmd_dist": np.full(t_state.size, -1, np.int64),
+            "next_t": np.full(t_state.size, -1, np.int64), "next_dist": np.zeros(t_state.size, np.int64)}
+    # how far a command nearer (or of an action topic, for the controller's) could still come
+    live["cmd_t"][a], live["cmd_dist"][a] = t_cmd[c], np.where(commands.rank[c] > 0, tol, dist[c])
+    live["next_t"][a[candidate]], live["next_dist"][a[candidate]] = t_state[b[candidate]], next_dist[candidate]
+    c, a, b, step_index = c[has_next], a[has_next], b[has_next], step_index[has_next]
+
+    # 7. reward, success latch, episode end: the task's rule on the next state
+    dist_state = features.distances(features.vector(task, task.reward.distance[0], positions, vectors),
+                                    features.vector(task, task.reward.distance[1], positions, vectors))
+    # success latches on a step's result, as the sim latches it: at states a command acts on
+    # or a step ends in, never at an episode's first (a driver's states between two
+    # commands of a slower controller are neither)
+    control = np.zeros(t_state.size, bool)
+    control[state_of[joined]] = True
+    control[b] = True
+    hit = (dist_state < task.reward.success_within) & ~new & control
+    hits_so_far = np.cumsum(hit)
+    before_episode = np.where(first_state > 0, hits_so_far[first_state - 1], 0)[episode]
+    success_before = hits_so_far[a] - before_episode[a] > 0
+    step = np.rint((t_state[a] - t_state[first_state[episode[a]]]) / plan.period_ns).astype(np.int64)
+    score = features.score(task, positions[b], {n: v[b] for n, v in vectors.items()}, step + 1, success_before)
+    alive = ~(success_before & task.reward.terminate_on_success)
+    report.commands["after_termination"] = int((~alive).sum())
+    c, a, b, step, step_index = c[alive], a[alive], b[alive], step[alive], step_index[alive]
+    score = features.StepScore._make(f[alive] for f in score)
+    report.states["kept"] = int(t_state.size)
+    report.episode_starts = {key: int(v.sum()) for key, v in starts.items()}
+    report.steps = int(report.commands["exact"] + report.commands["within_tolerance"])
+
+    obs_all = features.observe(task, positions, velocities, vectors)
+    used_episodes, episode_id = np.unique(episode[a], return_inverse=True)
+    data = Transitions(
+        obs=obs_all[a],
+        action=action[c],
+        reward=score.reward.astype(np.float32),
+        next_obs=obs_all[b],
+        terminated=score.terminated,
+        truncated=score.truncated,
+        success=score.success,
+        episode=episode_id.reshape(-1).astype(np.int64),
+        step=step,
+        source=source[c].astype(np.int64),
+    )
+    report.episodes = int(used_episodes.size)
+    report.transitions = len(data)
+    row_of_state = np.full(t_state.size, -1, np.int64)
+    row_of_state[a] = np.arange(a.size)
+    if c.size == 0 and not allow_empty:
+        raise JoinEmpty(f"no transitions could be built from {plan.state_topic} and the commands; "
+                        f"commands: {_counts_text(report.commands)}")
+    return JoinResult(data, step_index.astype(np.int64), t_state, t_state[first_state[episode]], live["cmd_t"],
+                      live["cmd_dist"], live["next_t"], live["next_dist"], row_of_state, unobserved_t)

@@ -1,4 +1,5 @@
-"""Decoding a topic's raw CDR messages with numpy: JointState, PointStamped, Float64MultiArray.
+"""Decoding a topic's raw CDR messages with numpy: JointState, PointStamped, PoseStamped,
+Float64MultiArray.
 
 A robot's driver publishes the same joint names and frame id in every message, so all
 messages of a topic share one byte layout and differ only in their stamps and numbers.
@@ -24,8 +25,9 @@ import numpy as np
 
 JOINT_STATE = "sensor_msgs/msg/JointState"
 POINT_STAMPED = "geometry_msgs/msg/PointStamped"
+POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 FLOAT64_MULTI_ARRAY = "std_msgs/msg/Float64MultiArray"
-HAS_HEADER = {JOINT_STATE: True, POINT_STAMPED: True, FLOAT64_MULTI_ARRAY: False}
+HAS_HEADER = {JOINT_STATE: True, POINT_STAMPED: True, POSE_STAMPED: True, FLOAT64_MULTI_ARRAY: False}
 
 MAX_LAYOUTS = 32  # per group of equal-length payloads, before walking row by row
 _CHUNK_BYTES = 8 << 20  # payload bytes stacked into one matrix at a time
@@ -131,6 +133,15 @@ def _walk_point_stamped(w: _Walker) -> Layout:
     return Layout(w.little, stamp, frame_id, (), (("point", x, 3),))
 
 
+def _walk_pose_stamped(w: _Walker) -> Layout:
+    stamp = w.stamp()
+    frame_id = w.string()
+    x = w.f64()
+    for _ in range(6):  # position y, z and the orientation quaternion follow, aligned
+        w.f64()
+    return Layout(w.little, stamp, frame_id, (), (("point", x, 3), ("orientation", x + 24, 4)))
+
+
 def _walk_float64_multi_array(w: _Walker) -> Layout:
     labels = []
     for _ in range(w.u32()):
@@ -143,6 +154,7 @@ def _walk_float64_multi_array(w: _Walker) -> Layout:
 WALKERS: dict[str, Callable[[_Walker], Layout]] = {
     JOINT_STATE: _walk_joint_state,
     POINT_STAMPED: _walk_point_stamped,
+    POSE_STAMPED: _walk_pose_stamped,
     FLOAT64_MULTI_ARRAY: _walk_float64_multi_array,
 }
 
@@ -169,6 +181,8 @@ def decode_messages(payloads: Sequence[bytes], msgtype: str) -> list[Decoded]:
     if n == 0:
         return []
     walker = WALKERS[msgtype]
+    if n == 1:  # one message as it arrives (the live join): its walk gives every offset
+        return [_decode_one(bytes(payloads[0]), walker)]
     lengths = np.fromiter(map(len, payloads), np.int64, n)
     parts: dict[Layout, list[tuple[np.ndarray, np.ndarray]]] = {}  # layout -> [(rows, matrix)]
     for size in np.unique(lengths):
@@ -197,6 +211,21 @@ def decode_messages(payloads: Sequence[bytes], msgtype: str) -> list[Decoded]:
             {key: np.concatenate(v)[order] for key, v in arrays.items()},
         ))
     return out
+
+
+def _decode_one(payload: bytes, walker) -> Decoded:
+    try:
+        layout = walker(_Walker(payload))
+    except MessageDecodeError as exc:
+        raise MessageDecodeError(f"message 1: {exc}") from None
+    end = "<" if layout.little_endian else ">"
+    stamp = None
+    if layout.stamp is not None:
+        sec, nanosec = struct.unpack_from(end + "iI", payload, layout.stamp)
+        stamp = np.array([sec * 1_000_000_000 + nanosec], np.int64)
+    arrays = {key: np.frombuffer(payload, end + "f8", count, off).astype(np.float64).reshape(1, count)
+              for key, off, count in layout.arrays}
+    return Decoded(layout, np.zeros(1, np.int64), stamp, arrays)
 
 
 def _read_stamps(mat: np.ndarray, layout: Layout) -> np.ndarray:

@@ -20,6 +20,13 @@ about (throttled), never trained on. The learner trains on the wall clock: with
 ``use_sim_time`` its work still runs (the sim's clock waits for the policy, which waits
 for the learner's weights).
 
+``--from-topics`` (``-p from_topics:=true``, with ``-p task:=NAME_OR_FILE``): a robot that
+publishes only standard topics. The learner subscribes to the task's raw topics (its
+joint states, its controller's commands and the project's action topics, the goal, the
+tracked points, the reset topic) and builds the transitions live with the same join as
+``offline-rl dataset`` (``offline_rl_core.data.raw_topics.LiveJoin``); its first weights
+wait until the state and goal topics are heard, so a paced actor never outruns it.
+
 The logic lives in ``offline_rl_core.nodes.learner_service``; this node only moves messages.
 """
 
@@ -34,11 +41,13 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float32MultiArray, MultiArrayDimension, UInt8MultiArray
 
+from offline_rl_core.data.raw_topics.live import LiveSettings
 from offline_rl_core.learners.config import TrainConfig
 from offline_rl_core.learners.online import OnlineSettings
 from offline_rl_core.nodes.learner_service import LearnerService, LearnerServiceConfig
 from offline_rl_core.serving.signing import load_signer
 from offline_rl_core.serving.weights import WEIGHTS_LABEL, encode_weights
+from pusher_common.message_types import message_class
 from pusher_common.node_main import run_node
 from pusher_common.params import Param, Settings
 from pusher_common.status import NodeStatus
@@ -52,6 +61,8 @@ WEIGHTS_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, durab
 
 _T = TrainConfig(algo="sac")
 _O = OnlineSettings()
+_L = LiveSettings()
+DISCOVERY_PERIOD_S = 0.5  # the reset topic, whose type the task leaves open, is subscribed once seen
 PARAMS = [
     Param("bag", [], "offline bag(s) sampled beside the live data (repeat the flag)", read_only=True, flag="--bag",
           kind=list),
@@ -89,6 +100,13 @@ PARAMS = [
     Param("resume", False, "continue from OUT/learner_state.pt", read_only=True, flag="--resume"),
     Param("session_bag", None, "the session's recording, to read back transitions missed while down (with --resume)",
           read_only=True, flag="--session-bag", kind=str),
+    Param("from_topics", False, "build the live transitions from the task's raw topics (joint states, commands, goal) "
+          "instead of pusher/transition", read_only=True, flag="--from-topics"),
+    Param("lateness", _L.lateness, "raw topics: seconds of stamps a silent topic (a goal sent once an episode) is taken "
+          "complete behind the joint states", low=0.0, high=60.0, read_only=True, flag="--lateness"),
+    Param("quiet", _L.quiet, "raw topics: seconds with nothing new, while idle, after which everything published is "
+          "taken to have arrived (a lockstep arm waiting for the learner)", low=0.001, high=10.0, read_only=True,
+          flag="--quiet"),
 ]
 
 
@@ -112,23 +130,64 @@ class Learner(Node):
                                   capacity=s.capacity)
         self.service = LearnerService(LearnerServiceConfig(
             bags=list(s.bag), out=s.out, prior=s.prior or None, task=s.task or None, seed=s.seed,
-            save_every=s.save_every, resume=s.resume,
-            session_bag=s.session_bag or None, snapshot_every=s.snapshot_every, settings=settings, train=train),
+            save_every=s.save_every, resume=s.resume, session_bag=s.session_bag or None,
+            snapshot_every=s.snapshot_every, from_topics=s.from_topics,
+            live=LiveSettings(lateness=s.lateness, quiet=s.quiet), settings=settings, train=train),
             log=self.get_logger().info)
         self.weights_pub = self.create_publisher(UInt8MultiArray, "~/weights", WEIGHTS_QOS)
         self.status = NodeStatus(self, fields=self.service.status, counter=self.service.rejected,
                                  diagnosis=StatusDiagnosis(checks=(learner_checks,), idle=lambda st: (
                                      f"weights version {st['weights_version']}, {st['updates']} updates")))
-        self.create_subscription(Float32MultiArray, "pusher/transition", self.on_transition, TRANSITION_QOS,
-                                 raw=True)
-        # wall-clock work, also under use_sim_time: a timer on sim time would wait for a
+        self.raw_subs: dict[str, object] = {}  # topic -> subscription (raw topics)
+        self.first_published = False
+        # wall-clock timers, also under use_sim_time: a timer on sim time would wait for a
         # clock that waits for these weights
-        self.create_timer(0.002, self.work, clock=Clock(clock_type=ClockType.STEADY_TIME))
-        self.publish(self.service.weights)
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        if s.from_topics:
+            self.subscribe_raw_topics()
+            self.create_timer(DISCOVERY_PERIOD_S, self.subscribe_raw_topics, clock=steady)
+            what = f"the raw topics of task {self.service.task.name}"
+        else:
+            self.create_subscription(Float32MultiArray, "pusher/transition", self.on_transition, TRANSITION_QOS,
+                                     raw=True)
+            what = "live transitions"
+            self.publish_first()
+        self.create_timer(0.002, self.work, clock=steady)
         self.get_logger().info(
-            f"learning from {len(s.bag)} bag(s) + live transitions; weights version "
+            f"learning from {len(s.bag)} bag(s) + {what}; weights version "
             f"{self.service.weights['weights_version']} on {self.weights_pub.topic_name}; "
-            f"utd {s.utd}, new weights every {s.publish_every} transitions")
+            f"utd {s.utd}, new weights every {s.publish_every} environment steps")
+
+    def subscribe_raw_topics(self) -> None:
+        """The task's topics: each with its message class (the reset topic's from the graph, once seen)."""
+        graph = None
+        for role in self.service.live.topics():
+            if role.topic in self.raw_subs:
+                continue
+            msgtype = role.types[0] if role.types else None
+            if msgtype is None:
+                graph = graph if graph is not None else dict(self.get_topic_names_and_types())
+                seen = graph.get(self.resolve_topic_name(role.given), [])
+                msgtype = seen[0] if len(seen) == 1 else None
+            msg_class = message_class(msgtype) if msgtype else None
+            if msg_class is None:
+                continue
+            self.raw_subs[role.topic] = self.create_subscription(
+                msg_class, role.given, lambda raw, t=role.topic, m=msgtype: self.on_raw(t, m, raw), TRANSITION_QOS,
+                raw=True)
+
+    def on_raw(self, topic: str, msgtype: str, raw: bytes) -> None:
+        self.status.took(topic)
+        rejection = self.service.receive_message(topic, msgtype, raw, self.get_clock().now().nanoseconds)
+        if rejection is not None:
+            self.status.warn(topic, rejection)
+
+    def publish_first(self) -> None:
+        """The first weights: at once for pusher/transition; with raw topics once the
+        state and goal topics are heard (a paced actor acts on them: no step may be missed)."""
+        if not self.first_published:
+            self.first_published = True
+            self.publish(self.service.weights)
 
     def on_transition(self, raw: bytes) -> None:
         self.status.took("pusher/transition")
@@ -137,6 +196,8 @@ class Learner(Node):
             self.status.warn("pusher/transition", rejection)
 
     def work(self) -> None:
+        if not self.first_published and self.service.live.heard_stream():
+            self.publish_first()
         for weights in self.service.work(budget_s=0.02):
             self.publish(weights)
 
@@ -146,7 +207,7 @@ class Learner(Node):
         self.weights_pub.publish(msg)
 
     def close(self) -> None:
-        self.service.save()
+        self.service.close()
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -38,8 +38,6 @@ protocol); this node subscribes, publishes and writes the bag.
 
 from __future__ import annotations
 
-import importlib
-import re
 import sys
 import time
 from collections import deque
@@ -62,6 +60,7 @@ from offline_rl_core.task.pusher_reach import JOINT_NAMES
 from offline_rl_core.common.errors import UserError
 from offline_rl_core.common.output_paths import check_output_dir
 from offline_rl_core.data.transitions import SOURCE_EXPERT, SOURCE_NAMES, SOURCE_RANDOM
+from pusher_common.message_types import MESSAGE_TYPE, message_class
 from pusher_common.node_main import run_node
 from pusher_common.params import Param, Settings
 from pusher_common.spin import spin_until_future_complete
@@ -78,7 +77,6 @@ LOOP_TYPES = {
     COMMAND: ("sensor_msgs/msg/JointState", JointState),
 }
 DISCOVERY_PERIOD_S = 0.5
-MESSAGE_TYPE = re.compile(r"[A-Za-z][A-Za-z0-9_]*/msg/[A-Za-z][A-Za-z0-9_]*")
 BEFORE_CLOCK_BYTES = 64 << 20  # what may wait for the first /clock under use_sim_time
 # Derived views of what the bag holds anyway (the arm as markers: from its joint states; the
 # nodes' health): recorded when named in `topics`, not by "every topic", so a session's
@@ -105,6 +103,9 @@ PARAMS = (
           "at start)", read_only=True, flag="--make-parents"),
     Param("topics", [], "topics to record (relative names resolve in the node's namespace); none: every topic when "
           "passive, the loop's when driving", read_only=True, flag="--topics", kind=list),
+    Param("types", [], "TOPIC:TYPE pairs (e.g. joint_states:sensor_msgs/msg/JointState) to record from the start, "
+          "subscribed reliable at once rather than when discovery finds their publishers: a session's first messages "
+          "are in the bag however slowly discovery goes", read_only=True, flag="--types", kind=list),
     Param("flush_interval", 1.0, "seconds between writes to disk: a kill loses at most this much (at most 1 s, "
           "the recorder's promise)", low=0.001, high=1.0, flag="--flush-interval"),
     Param("min_free_space", 128 << 20, "stop recording (the bag closed whole, exit 1) when the bag's file system "
@@ -115,17 +116,6 @@ PARAMS = (
           low=0.0, flag="--max-bag-duration"),
 )
 TRANSITION_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
-
-
-def message_class(msgtype: str):
-    """The Python class of 'pkg/msg/Name', or None when it is not one or its package is not installed."""
-    if not MESSAGE_TYPE.fullmatch(msgtype):
-        return None
-    package, _, name = msgtype.split("/")
-    try:
-        return getattr(importlib.import_module(f"{package}.msg"), name)
-    except Exception:  # noqa: BLE001 - whatever importing a package named by discovery raises
-        return None
 
 
 def _qos_time(duration) -> QosTime:
@@ -211,6 +201,15 @@ class Recorder(Node):
             loop = (TRANSITION,) if self.record_all or self.transition_topic in self.wanted else ()
         for topic in loop:
             self.subscribe(self.resolve(topic), *LOOP_TYPES[topic], TRANSITION_QOS if topic == TRANSITION else 10)
+        for pair in s.types or ():
+            topic, _, msgtype = pair.partition(":")
+            msg_class = message_class(msgtype)
+            if not topic or msg_class is None:
+                raise UserError(f"--types {pair}: expected TOPIC:TYPE with an installed type, e.g. "
+                                "joint_states:sensor_msgs/msg/JointState")
+            self.wanted.add(self.resolve(topic))
+            if self.resolve(topic) not in self.subs:
+                self.subscribe(self.resolve(topic), msgtype, msg_class, TRANSITION_QOS)
         if self.active:
             # who acted is the topic, as the sim reads it: pusher/command/expert or .../random
             self.command_pubs = {source: self.create_publisher(JointState, f"{COMMAND}/{SOURCE_NAMES[source]}", 10)
@@ -463,13 +462,15 @@ def spin_recorder(executor, node: Recorder) -> None:
 
 
 def expand_topics(argv: list[str]) -> list[str]:
-    """``--topics a b c`` (as ``ros2 bag record`` takes it) -> ``--topics a --topics b ...``."""
+    """``--topics a b c`` (as ``ros2 bag record`` takes it) -> ``--topics a --topics b ...``
+    (``--types`` likewise)."""
     out, i = [], 0
     while i < len(argv):
         out.append(argv[i])
         if argv[i] == "--ros-args":
             return out + argv[i + 1 :]
-        if argv[i] == "--topics":
+        flag = argv[i]
+        if flag in ("--topics", "--types"):
             i += 1
             names = []
             while i < len(argv) and not argv[i].startswith("-"):
@@ -477,7 +478,7 @@ def expand_topics(argv: list[str]) -> list[str]:
                 i += 1
             out.pop()
             for name in names or [""]:
-                out += ["--topics", name] if name else ["--topics"]
+                out += [flag, name] if name else [flag]
             continue
         i += 1
     return out

@@ -1,0 +1,144 @@
+"""The live join: a recording's messages handed to ``LiveJoin`` one by one, as a learner takes
+them off the wire, give the transitions the batch join (`offline-rl dataset`) builds from the
+bag, row for row and bit for bit, in the same order, also when a lockstep sim waits for the
+learner and when the topics' messages arrive interleaved differently from the bag."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from offline_rl_core.data.raw_topics import LiveJoin, transitions_from_topics
+from offline_rl_core.data.raw_topics.live import LiveSettings
+from offline_rl_core.data.transitions import Transitions
+from offline_rl_core.task.spec import load_task
+
+from raw_topic_bags import RAW_TOPICS, bag_messages, pusher_task, record_raw_bag
+
+QUIET = LiveSettings().quiet
+
+
+class Learner:
+    """What the learner service does with a LiveJoin: take messages, poll, keep the steps."""
+
+    def __init__(self, task, settings=None):
+        self.live = LiveJoin(task, settings)
+        self.parts, self.steps, self.now = [], 0, 0.0
+
+    def take(self, topic, msgtype, payload, recv):
+        self.now += 1e-4
+        assert self.live.add(topic, msgtype, payload, recv, self.now) is None
+        self.poll()
+
+    def poll(self, idle: bool = False, ended: bool = False):
+        if idle:  # the learner had nothing to do for a while: nothing more was on the wire
+            self.now += 2 * QUIET
+        out = self.live.poll(self.now, ended=ended)
+        self.steps += len(out)
+        if len(out.transitions):
+            self.parts.append(out.transitions)
+
+    def rows(self) -> np.ndarray:
+        return Transitions.concatenate(self.parts).to_rows() if self.parts else np.zeros((0, 0), np.float32)
+
+
+def bits(rows):
+    return np.ascontiguousarray(rows, np.float32).view(np.uint32)
+
+
+def assert_same_as_batch(learner: Learner, bag, task):
+    batch, report = transitions_from_topics(bag, task)
+    learner.poll(idle=True)
+    before = learner.steps
+    learner.poll(ended=True)  # the end of the session: nothing more comes
+    assert learner.steps - before <= 1  # the last step: only the end says it has no next state
+    live = learner.rows()
+    assert live.shape == batch.to_rows().shape
+    assert np.array_equal(bits(live), bits(batch.to_rows()))
+    assert learner.steps == report.steps
+    assert learner.live.counts.late == 0
+
+
+def test_a_paced_lockstep_session_joined_live_is_the_batch_join_of_its_bag(tmp_path):
+    """The sim's lockstep stream (republished states and resent commands included) where the
+    policy answers state n only once the learner holds n steps (the online stage's pacing):
+    the live join never deadlocks, and its rows are the bag's batch join."""
+    bag = tmp_path / "session.db3"
+    record_raw_bag(bag, episodes=3, expert_frac=0.34, seed=4, sim_like=True, duplicates=0.1)
+    task = load_task("pusher_reach")
+    learner = Learner(task)
+    states, pace = set(), 25
+    for topic, msgtype, payload, recv in bag_messages(bag, task):
+        if topic == "/pusher/state":
+            states.add(recv)  # one per stamp in a sim bag; duplicates share the stamp's tick
+        if topic.startswith("/pusher/command"):
+            n = len({s // 20_000_000 for s in states}) - 1  # the state this command answers
+            if n % pace == 0:
+                for _ in range(3):  # the learner goes idle until it holds the steps before state n
+                    if learner.steps >= n:
+                        break
+                    learner.poll(idle=True)
+                assert learner.steps >= n, f"deadlock at state {n}: {learner.steps} steps"
+        learner.take(topic, msgtype, payload, recv)
+    assert_same_as_batch(learner, bag, task)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_topics_interleaved_otherwise_than_in_the_bag_give_the_same_rows(tmp_path, seed):
+    """A robot's log (states, goal and commands only; 10 % lost, stamps jittered, some sent
+    twice) delivered with each message up to 15 ms late, each topic still in order: the same
+    rows as the batch join."""
+    bag = tmp_path / "robot.db3"
+    record_raw_bag(bag, episodes=3, expert_frac=0.5, seed=3, sim_like=True, topics=RAW_TOPICS, drop=0.1,
+                   jitter_ns=3_000_000, duplicates=0.05)
+    task = pusher_task(join={"tolerance": 0.008, "period_tolerance": 0.008})
+    rng = np.random.default_rng(seed)
+    messages = bag_messages(bag, task)
+    delivery = np.array([recv for *_, recv in messages], np.int64) + rng.integers(0, 15_000_000, len(messages))
+    for topic in {m[0] for m in messages}:  # each topic in its own order
+        idx = [i for i, m in enumerate(messages) if m[0] == topic]
+        delivery[idx] = np.maximum.accumulate(delivery[idx])
+    learner = Learner(task)
+    for i in np.argsort(delivery, kind="stable"):
+        learner.take(*messages[i])
+    assert_same_as_batch(learner, bag, task)
+
+
+def test_commands_without_a_header_joined_live_by_receive_time(tmp_path):
+    bag = tmp_path / "torque.db3"
+    record_raw_bag(bag, episodes=2, expert_frac=0.5, seed=5, sim_like=False, torque_commands=True)
+    task = pusher_task(join={"stamps": "receive"})
+    learner = Learner(task)
+    for message in bag_messages(bag, task):
+        learner.take(*message)
+    assert_same_as_batch(learner, bag, task)
+
+
+def test_a_message_that_does_not_fit_the_task_is_refused_and_counted(tmp_path):
+    bag = tmp_path / "torque.db3"
+    record_raw_bag(bag, episodes=1, expert_frac=1.0, seed=0, sim_like=False, torque_commands=True)
+    task = pusher_task(join={"stamps": "receive"}, command={"joints": ["shoulder"], "scale": [0.5], "offset": [0.0]})
+    live = LiveJoin(task)
+    command = next(m for m in bag_messages(bag, task) if m[0] == "/effort_controller/commands")
+    why = live.add(*command, now=0.0)
+    assert why.reason == "wrong length" and "another length" in why and live.counts.refused == {"wrong length": 1}
+
+
+@pytest.mark.parametrize("n", [3, 7])
+def test_the_log_of_an_n_joint_velocity_arm_joined_live_is_its_batch_join(tmp_path, n):
+    """The third arm (tests/velocity_arm.py): joint_states at 100 Hz in the broadcaster's
+    shuffled order, velocity_controller/commands without a header (receive stamps), a
+    JointState goal per episode, episodes ended by the time limit; taken message by message,
+    the live join gives the batch join's rows."""
+    import velocity_arm as va
+
+    task_file = tmp_path / f"arm{n}.yaml"
+    task_file.write_text(va.task_yaml(n))
+    task = load_task(task_file)
+    bag = tmp_path / f"arm{n}.db3"
+    va.record_bag(bag, task, n, episodes=3, expert_frac=0.34, seed=2)
+    learner = Learner(task)
+    for message in bag_messages(bag, task):
+        learner.take(*message)
+    assert_same_as_batch(learner, bag, task)
+    assert learner.rows().shape[0] > 0
