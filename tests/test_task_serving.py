@@ -105,7 +105,6 @@ def test_a_malformed_task_field_is_one_line(arm, tmp_path, edit, message):
 
 
 def test_weights_messages_carry_the_task_and_another_tasks_are_refused(arm):
-
     signer = Signer.generate()
     ckpt = load_checkpoint(arm["checkpoint"])
     data = encode_weights({**ckpt, "weights_version": 3}, signer)
