@@ -265,3 +265,89 @@ def test_ctrl_c_and_a_second_one_never_crash_the_recorder_or_cut_its_bag(spawn, 
     finally:
         busy.kill()
         busy.wait()
+
+
+# ---------------------------------------------------------------- watchdog and e-stop
+
+def _latest_status(node, name: str, seen: list):
+    from std_msgs.msg import String
+
+    return node.create_subscription(String, f"/{name}/status", lambda m: seen.append(json.loads(m.data)), 10)
+
+
+def test_sigkill_of_the_policy_driving_the_controller_zeroes_the_sims_torque(spawn, tmp_path):
+    """The policy node drives the realtime sim through its effort controller topic; killed
+    with SIGKILL (no goodbye), the sim's watchdog applies zero torque and latches the fault."""
+    from sensor_msgs.msg import JointState
+
+    from offline_rl_core.serving.checkpoint import save_checkpoint
+
+    served = save_checkpoint(tmp_path / "policy.pt", _checkpoint(0))
+    sim = spawn([sys.executable, "-m", "pusher_sim.node", "--ros-args",
+                 "-p", "effort_topic:=effort_controller/commands"], "sim")
+    policy = spawn([sys.executable, "-m", "pusher_policy.node", "--ros-args", "-p", f"checkpoint:={served}"], "policy")
+    efforts, statuses = [], []
+    with probe_node() as node:
+        node.create_subscription(JointState, "/pusher/state", lambda m: efforts.append(list(m.effort)), 100)
+        _latest_status(node, "sim", statuses)
+        # the policy drives: the applied torque is its (nonzero) command
+        assert node.spin_until(lambda: sum(any(e) for e in efforts[-5:]) == 5, 60), sim.output() + policy.output()
+        os.kill(policy.pid, signal.SIGKILL)
+        killed_at = len(efforts)
+        assert node.spin_until(lambda: any(not any(e) for e in efforts[killed_at:]), 10), sim.output()
+        first_zero = next(i for i in range(killed_at, len(efforts)) if not any(efforts[i]))
+        assert node.spin_until(lambda: len(efforts) > first_zero + 5, 10)
+        assert all(not any(e) for e in efforts[first_zero:])  # and stays zero: no one commands
+        assert node.spin_until(lambda: statuses and statuses[-1]["faults"].get("watchdog", {}).get("trips"), 10), \
+            statuses[-1:]
+    assert statuses[-1]["faults"]["watchdog"]["silent"] is True
+    assert sim.stop() == 0
+
+
+def test_the_estop_engages_the_sim_and_policy_and_only_estop_reset_releases_them(spawn, tmp_path):
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import Bool
+    from std_srvs.srv import Trigger
+
+    from offline_rl_core.serving.checkpoint import save_checkpoint
+
+    served = save_checkpoint(tmp_path / "policy.pt", _checkpoint(0))
+    sim = spawn([sys.executable, "-m", "pusher_sim.node", "--ros-args",
+                 "-p", "effort_topic:=effort_controller/commands"], "sim")
+    policy = spawn([sys.executable, "-m", "pusher_policy.node", "--ros-args", "-p", f"checkpoint:={served}"], "policy")
+    efforts, actions, sim_status, policy_status = [], [], [], []
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    with probe_node() as node:
+        node.create_subscription(JointState, "/pusher/state", lambda m: efforts.append(list(m.effort)), 100)
+        node.create_subscription(JointState, "/policy/action", actions.append, 100)
+        _latest_status(node, "sim", sim_status)
+        _latest_status(node, "policy", policy_status)
+        estop = node.create_publisher(Bool, "/estop", latched)
+        reset = node.create_client(Trigger, "/estop/reset")
+        assert node.spin_until(lambda: sum(any(e) for e in efforts[-5:]) == 5, 60), sim.output() + policy.output()
+        estop.publish(Bool(data=True))
+        assert node.spin_until(lambda: sim_status and sim_status[-1]["estop"]["engaged"] and policy_status
+                               and policy_status[-1]["estop"]["engaged"], 10), (sim_status[-1:], policy_status[-1:])
+        engaged_at, answered_at = len(efforts), len(actions)
+        assert node.spin_until(lambda: len(efforts) > engaged_at + 10, 10)
+        assert all(not any(e) for e in efforts[engaged_at:])  # the safe command, every tick
+        assert len(actions) == answered_at  # the policy answers nothing
+        assert node.spin_until(lambda: policy_status[-1]["rejected"].get("estop"), 10)
+
+        def call():
+            assert reset.wait_for_service(timeout_sec=10)
+            future = reset.call_async(Trigger.Request())
+            assert node.spin_until(future.done, 10)
+            return future.result()
+
+        refused = call()  # the button is still down
+        assert not refused.success and "still held" in refused.message
+        estop.publish(Bool(data=False))  # released on the topic: still engaged
+        node.spin_for(0.5)
+        assert sim_status[-1]["estop"]["engaged"] and not any(efforts[-1])
+        assert node.spin_until(lambda: call().success and not sim_status[-1]["estop"]["engaged"]
+                               and not policy_status[-1]["estop"]["engaged"], 20), (sim_status[-1], policy_status[-1])
+        # released: the policy drives again
+        assert node.spin_until(lambda: len(actions) > answered_at and any(efforts[-1]), 20), policy.output()
+    assert sim.stop() == 0

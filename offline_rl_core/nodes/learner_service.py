@@ -36,6 +36,7 @@ from ..data.bag.cdr import TransitionDecodeError, decode_transition_payloads
 from ..common.errors import UserError
 from ..learners.config import TrainConfig
 from ..learners.online import OnlineLearner, OnlineSettings, PriorMismatch
+from .estop import EStopLatch
 from .joint_messages import VALUE_LIMIT
 from ..common.output_paths import check_output_dir
 from ..serving.checkpoint import checkpoint_task, load_checkpoint, save_checkpoint
@@ -108,6 +109,7 @@ class LearnerService:
         except PriorMismatch as exc:
             raise UserError(f"{cfg.prior}: {exc}") from None
         self.rejected = RejectionCounter()  # live transitions refused, by reason (never trained on)
+        self.estop = EStopLatch()  # while engaged, every live transition is dropped (counted as estop)
         self.received = 0  # live transitions accepted since this process started
         self.started = time.monotonic()
         self.last_save = time.monotonic()
@@ -127,6 +129,10 @@ class LearnerService:
     # ---------------------------------------------------------------- input
     def receive(self, raw: bytes) -> Rejection | None:
         """One raw ``/pusher/transition``; returns why it was rejected (counted), or None."""
+        if self.estop.engaged:  # the arm applies the safe command: those steps say nothing of the policy
+            rejection = Rejection("estop", "a transition while the e-stop is engaged: not trained on")
+            self.rejected.add(rejection)
+            return rejection
         try:
             row = decode_transition_payloads([bytes(raw)])[0]
         except TransitionDecodeError as exc:
@@ -212,4 +218,5 @@ class LearnerService:
         learner = self.learner
         return {"received": learner.n_online, "evicted": learner.n_evicted, "updates": learner.updates, "owed": learner.updates_owed,
                 "weights_version": learner.version, "rejected": dict(self.rejected.counts),
+                "estop": self.estop.as_dict(),
                 "train_s": round(learner.train_seconds, 2), **{k: round(v, 5) for k, v in learner.losses.items()}}

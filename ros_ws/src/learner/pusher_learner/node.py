@@ -16,7 +16,8 @@ transitions that arrived while it was down from ``--session-bag`` (the session's
 recording). ``~/status`` (``std_msgs/String``, JSON, once a second; ``pusher_common.status``):
 counts, losses, rejections by reason. A transition with a non-finite value, an action
 outside [-1, 1], a value out of range or an unknown layout is dropped, counted and warned
-about (throttled), never trained on. The learner trains on the wall clock: with
+about (throttled), never trained on; so is every transition that comes while the e-stop is
+engaged (``estop``, released only by ``estop/reset``: ``pusher_common.estop``). The learner trains on the wall clock: with
 ``use_sim_time`` its work still runs (the sim's clock waits for the policy, which waits
 for the learner's weights).
 
@@ -39,6 +40,7 @@ from offline_rl_core.learners.online import OnlineSettings
 from offline_rl_core.nodes.learner_service import LearnerService, LearnerServiceConfig
 from offline_rl_core.serving.signing import load_signer
 from offline_rl_core.serving.weights import WEIGHTS_LABEL, encode_weights
+from pusher_common.estop import EStopInput
 from pusher_common.node_main import run_node
 from pusher_common.params import Param, Settings
 from pusher_common.status import NodeStatus
@@ -116,6 +118,7 @@ class Learner(Node):
             log=self.get_logger().info)
         self.weights_pub = self.create_publisher(UInt8MultiArray, "~/weights", WEIGHTS_QOS)
         self.status = NodeStatus(self, fields=self.service.status, counter=self.service.rejected)
+        self.estop = EStopInput(self, latch=self.service.estop)
         self.create_subscription(Float32MultiArray, "pusher/transition", self.on_transition, TRANSITION_QOS,
                                  raw=True)
         # wall-clock work, also under use_sim_time: a timer on sim time would wait for a
