@@ -347,3 +347,18 @@ def test_the_slew_limiter_ramps_a_far_command_and_passes_near_ones():
     ramp.restart(np.zeros(2))  # after an e-stop: from the safe command
     assert ramp.limit([-1.0, 0.0]).tolist() == pytest.approx([-0.25, 0.0])
     assert SlewLimiter(None).limit([1.0, -1.0]).tolist() == [1.0, -1.0]
+
+
+def test_a_producers_actions_are_kept_inside_the_joint_limits_so_none_is_refused():
+    from offline_rl_core.nodes.command_limits import action_bounds, within_limits
+    from offline_rl_core.nodes.joint_messages import action_from_command, command_from_action
+    from offline_rl_core.task.spec import load_task
+
+    task = _position_task(position_limits={"shoulder": [-1.5, 0.3]})
+    low, high = action_bounds(task)
+    assert low.tolist() == pytest.approx([-0.5, -1.0]) and high.tolist() == pytest.approx([0.1, 1.0])
+    rng = np.random.default_rng(0)
+    for action in np.tanh(rng.normal(0, 2, (200, 2))).astype(np.float32):  # exploration's samples
+        kept = within_limits(task, action)
+        assert action_from_command(task, command_from_action(task.command, kept))[1] is None
+    assert within_limits(load_task("pusher_reach"), np.float32([0.9, -1.0])).tolist() == pytest.approx([0.9, -1.0])

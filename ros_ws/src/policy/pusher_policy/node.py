@@ -73,6 +73,7 @@ from std_msgs.msg import Float64MultiArray, String, UInt8MultiArray  # noqa: E40
 from offline_rl_core.serving.actor import Actor  # noqa: E402
 from offline_rl_core.common.errors import UserError  # noqa: E402
 from offline_rl_core.nodes.background_loads import BackgroundLoads  # noqa: E402
+from offline_rl_core.nodes.command_limits import action_bounds, within_limits  # noqa: E402
 from offline_rl_core.nodes.joint_messages import command_from_action  # noqa: E402
 from offline_rl_core.nodes.watchdog import CommandWatchdog, safe_action  # noqa: E402
 from offline_rl_core.nodes.observation import ObservationBuilder, kinematics_model  # noqa: E402
@@ -163,6 +164,9 @@ class PolicyServer(Node):
         self.loads_ready = self.create_guard_condition(self.on_loaded)
         self.loads = BackgroundLoads(self.loads_ready.trigger, max_pending=WEIGHTS_QOS.depth, name="policy-loads")
         self.watchdog = CommandWatchdog(self.task.command_timeout)
+        # the task's joint limits as an action range: every answer (exploring too) stays inside
+        self.bounds = action_bounds(self.task) if self.task.safety.position_limits or \
+            self.task.safety.velocity_limits else None
         self.position = None  # the latest state's joint positions (a safe command that holds them)
         self.status = NodeStatus(self, fields=lambda: {"answered": self.answered,
                                                        "weights_version": self.policy.weights_version,
@@ -356,6 +360,8 @@ class PolicyServer(Node):
         if problem:
             self.status.reject(self.task.state.topic, problem)
             return
+        if self.bounds is not None:
+            action = within_limits(self.task, action, self.bounds)
         joints = list(self.task.command.joints)
         out = JointState(name=joints, effort=[float(a) for a in action])
         out.header.stamp = header_stamp
