@@ -26,7 +26,8 @@ a bad stamp, is not forwarded: it is counted by reason on ``~/status``
 
 Safety: with the task's ``safety.slew`` each forwarded action moves at most that far from
 the one before (``offline_rl_core.nodes.command_limits``). Realtime: when neither the policy
-nor the human sent a valid action within the task's ``safety.command_timeout``, the mux sends
+nor the human sent a valid action within the task's ``safety.command_timeout`` (a person's
+hold counts as a command for its ``hold_ms``), the mux sends
 the task's safe command once on ``pusher/command/policy`` (``offline_rl_core.nodes.watchdog``)
 and latches the fault on ``~/status``; while the e-stop is engaged (``estop``, released only
 by ``estop/reset``) it sends the safe command and forwards nothing (counted as ``estop``), in
@@ -203,8 +204,11 @@ class Mux(Node):
             self.position = joints[0]
 
     def check_watchdog(self) -> None:
+        now = self.steady_now()
+        if self.arbiter.holding(self.now()):
+            self.watchdog.fed(now)  # a person's hold is a command for its whole length (hold_ms)
         silent_before = self.watchdog.silent
-        if self.watchdog.check(self.steady_now()) and not silent_before:
+        if self.watchdog.check(now) and not silent_before:
             self.get_logger().error(f"no valid action for {self.watchdog.timeout_s * 1000:.0f} ms: sending the "
                                     f"safe command ({self.task.safe_command})", throttle_duration_sec=2.0)
             self.send_safe()
