@@ -189,8 +189,10 @@ def test_policy_node_survives_fuzzed_states_targets_fingertips_and_weights(spawn
     signer = load_signer(keys.signing_key)
     weights = {"v1": encode_weights({**good, "weights_version": 1}, signer)}
     broken = broken_weights(good, signer)
+    # lockstep: the test paces the states, and counts one controller command per answer (no watchdog's)
     proc = spawn([sys.executable, "-m", "pusher_policy.node", "--ros-args", "-p", f"checkpoint:={served}",
-                  "-p", "weights_topic:=learner/weights", "-p", f"weights_key:={keys.public_key}"], "policy")
+                  "-p", "weights_topic:=learner/weights", "-p", f"weights_key:={keys.public_key}",
+                  "-p", "mode:=lockstep"], "policy")
     rng = np.random.default_rng(13)
     actions, torques, provenance = [], [], {}
     expected = Counter()
