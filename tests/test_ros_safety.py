@@ -351,3 +351,49 @@ def test_the_estop_engages_the_sim_and_policy_and_only_estop_reset_releases_them
         # released: the policy drives again
         assert node.spin_until(lambda: len(actions) > answered_at and any(efforts[-1]), 20), policy.output()
     assert sim.stop() == 0
+
+
+def test_the_policy_node_sends_its_controller_the_safe_command_when_its_states_stop(spawn, tmp_path):
+    """A forward controller holds the last command: when the states stop coming (the arm's
+    driver, the network), the policy node driving it sends zero torque once, fault latched."""
+    from geometry_msgs.msg import PointStamped
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import Float64MultiArray
+
+    from offline_rl_core.serving.checkpoint import save_checkpoint
+
+    served = save_checkpoint(tmp_path / "policy.pt", _checkpoint(0))
+    policy = spawn([sys.executable, "-m", "pusher_policy.node", "--ros-args", "-p", f"checkpoint:={served}"], "policy")
+    torques, statuses = [], []
+    with probe_node() as node:
+        node.create_subscription(Float64MultiArray, "/effort_controller/commands",
+                                 lambda m: torques.append(list(m.data)), 100)
+        _latest_status(node, "policy", statuses)
+        pubs = {t: node.create_publisher(m, f"/{t}", 10) for t, m in (
+            ("pusher/target", PointStamped), ("pusher/fingertip", PointStamped), ("pusher/state", JointState))}
+        assert node.spin_until(lambda: all(p.get_subscription_count() for p in pubs.values())
+                               and node.count_publishers("/effort_controller/commands"), 60), policy.output()
+        stamp = [START]
+
+        def send_state():
+            stamp[0] += TICK
+            sec, nsec = divmod(stamp[0], 10**9)
+            for topic in ("pusher/target", "pusher/fingertip"):
+                msg = PointStamped()
+                msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nsec
+                msg.point.x, msg.point.y = 0.1, 0.05
+                pubs[topic].publish(msg)
+            msg = JointState(name=["shoulder", "elbow"], position=[0.3, -1.2], velocity=[0.5, -0.1])
+            msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nsec
+            pubs["pusher/state"].publish(msg)
+
+        while not node.spin_until(lambda: len(torques) >= 3, 0.05):  # the policy drives
+            send_state()
+        answered = len(torques)
+        send_state()  # the last state: answered with a nonzero torque
+        assert node.spin_until(lambda: len(torques) > answered, 10) and any(torques[-1]), torques[-3:]
+        # the states stop: the controller's next command is zero torque, and the fault is latched
+        last = len(torques)
+        assert node.spin_until(lambda: len(torques) > last, 10), policy.output()
+        assert torques[last] == [0.0, 0.0]
+        assert node.spin_until(lambda: statuses and statuses[-1]["faults"].get("watchdog"), 10), statuses[-1:]
