@@ -43,8 +43,8 @@ it sent the controller no command within the task's ``safety.command_timeout`` (
 stopped, or it stalls), it sends the task's safe command once (zero effort or velocity; the
 last state's position held) and latches the fault on ``~/status``. In ``mode`` lockstep the
 sim waits for each answer, so a silence is no fault. While the e-stop is engaged (``estop``,
-released only by ``estop/reset``) it answers no state (counted as ``estop``) and the
-controller gets the safe command.
+released only by ``estop/reset``) it answers no state (counted as ``estop``) and, in
+realtime, the controller gets the safe command.
 
 Checkpoint files and weights messages are read, checked and decoded on a worker thread
 (``offline_rl_core.nodes.background_loads``), never on the thread that answers states;
@@ -370,17 +370,13 @@ class PolicyServer(Node):
             self.publish_provenance(paired.stamp)
         if self.command_pub is not None and self.command_pub.get_subscription_count():
             self.publish_command(command_from_action(self.task.command, action), header_stamp)
-            self.watchdog.fed(self.steady_now())
+            self.watchdog.fed(time.monotonic())
         self.answered += 1
 
     # -------------------------------------------------------------- safety
-    @staticmethod
-    def steady_now() -> float:
-        return Clock(clock_type=ClockType.STEADY_TIME).now().nanoseconds / 1e9
-
     def check_watchdog(self) -> None:
         silent_before = self.watchdog.silent
-        if self.watchdog.check(self.steady_now()) and not silent_before:
+        if self.watchdog.check(time.monotonic()) and not silent_before:
             self.get_logger().error(f"sent the controller nothing for {self.watchdog.timeout_s * 1000:.0f} ms: "
                                     f"sending the safe command ({self.task.safe_command})", throttle_duration_sec=2.0)
             self.send_safe()
@@ -390,9 +386,11 @@ class PolicyServer(Node):
         self.send_safe()
 
     def send_safe(self) -> None:
-        """Send the controller the task's safe command (once: a forward controller holds it)."""
+        """Send the controller the task's safe command (once: a forward controller holds it). Not
+        in lockstep: the sim steps only on an answer, so answering nothing stops the arm."""
         action = safe_action(self.task, self.position)
-        if self.command_pub is None or action is None or not self.command_pub.get_subscription_count():
+        if self.settings.mode != "realtime" or self.command_pub is None or action is None or \
+                not self.command_pub.get_subscription_count():
             return
         self.publish_command(command_from_action(self.task.command, action), self.get_clock().now().to_msg())
 
