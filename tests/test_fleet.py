@@ -62,8 +62,9 @@ def test_a_bag_folder_that_lost_its_metadata_is_one_bag_not_a_fleet(tmp_path):
     write_transitions(bag, collect_transitions(1, 0.5, 0))
     (bag / "metadata.yaml").unlink()
     assert expand_bags([bag]) == [str(bag)]
-    with pytest.raises(UserError, match="no metadata.yaml"):
-        read_fleet(expand_bags([bag]))
+    data, summaries = read_fleet(expand_bags([bag]))  # its storage files are read as one bag
+    assert same(data, one_after_another([str(bag)]))
+    assert [s["path"] for s in summaries] == [str(bag)]
 
 
 def test_names_that_give_no_bag_are_refused_naming_them(tmp_path):

@@ -46,7 +46,7 @@ def test_run_finds_the_single_executable_and_reports_unknown_packages(installed)
 @pytest.mark.ros
 def test_run_execs_so_the_started_pid_is_the_node(spawn, ros_env):
     sim = spawn(ros2("run", "sim", "node", "--ros-args", "-p", "mode:=lockstep"), "sim")
-    assert sim.wait_for_output("lockstep pusher-reach", timeout=30), sim.output()
+    assert sim.wait_for_output("lockstep pusher_reach", timeout=30), sim.output()
     cmdline = Path(f"/proc/{sim.pid}/cmdline").read_bytes().split(b"\0")
     assert any(part.endswith(b"lib/sim/node") for part in cmdline), cmdline
     assert sim.stop(signal.SIGINT) == 0
@@ -56,7 +56,7 @@ def test_run_execs_so_the_started_pid_is_the_node(spawn, ros_env):
 @pytest.mark.slow
 def test_topic_list_echo_hz_against_a_realtime_sim(spawn, ros_env):
     sim = spawn(ros2("run", "sim", "node", "--ros-args", "-p", "mode:=realtime"), "sim")
-    assert sim.wait_for_output("realtime pusher-reach", timeout=30), sim.output()
+    assert sim.wait_for_output("realtime pusher_reach", timeout=30), sim.output()
     hz = spawn(ros2("topic", "hz", "/pusher/state"), "hz")
     assert hz.wait_for_output("average rate", timeout=30), hz.output()
 
@@ -103,7 +103,7 @@ def test_a_graph_that_was_slow_to_discover_is_waited_for_as_long_again():
 
 def test_node_list_and_param_list_get_set_describe(spawn, ros_env):
     sim = spawn(ros2("run", "sim", "node", "--ros-args", "-p", "mode:=lockstep", "-p", "seed:=3"), "sim")
-    assert sim.wait_for_output("lockstep pusher-reach", timeout=30), sim.output()
+    assert sim.wait_for_output("lockstep pusher_reach", timeout=30), sim.output()
     assert "/sim" in run("node", "list", "--spin-time", "2", env=ros_env).stdout.splitlines()
 
     listed = run("param", "list", "/sim", env=ros_env)

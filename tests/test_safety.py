@@ -84,7 +84,9 @@ def test_loads_run_on_the_worker_in_order_and_what_waits_is_bounded():
 def _bag_with_pending(path, n=20_000):
     from offline_rl_core.data.bag import BagWriter
 
-    bag = BagWriter(path, flush_interval=1.0)
+    # the background flusher must not empty the buffer first (a loaded machine takes over a
+    # second to write 20,000 messages): every message is pending when the test closes the bag
+    bag = BagWriter(path, flush_interval=3600.0)
     bag.add_topic("/notes", "std_msgs/msg/String")
     payload = bytes([0, 1, 0, 0, 6, 0, 0, 0]) + b"hello\x00"
     for i in range(n):

@@ -24,6 +24,7 @@ from offline_rl_core.serving.checkpoint import (
     checkpoint_task, checkpoint_to_bytes, load_checkpoint, save_checkpoint, task_field,
 )
 from offline_rl_core.serving.policy import load_policy
+from offline_rl_core.serving.signing import Signer
 from offline_rl_core.serving.weights import encode_weights, policy_from_weights_message
 from offline_rl_core.task.pusher_reach import observation_from_joints
 from offline_rl_core.task.spec import load_task
@@ -105,10 +106,13 @@ def test_a_malformed_task_field_is_one_line(arm, tmp_path, edit, message):
 
 def test_weights_messages_carry_the_task_and_another_tasks_are_refused(arm):
     ckpt = load_checkpoint(arm["checkpoint"])
-    data = encode_weights({**ckpt, "weights_version": 3})
-    policy, problem = policy_from_weights_message("pusher-rl/weights", data, "learner/weights", arm["task"])
+    signer = Signer.generate()
+    data = encode_weights({**ckpt, "weights_version": 3}, signer)
+    policy, problem = policy_from_weights_message("pusher-rl/weights", data, signer.verifier(), "learner/weights",
+                                                  arm["task"])
     assert problem is None and policy.weights_version == 3 and policy.checkpoint["task"] == ckpt["task"]
-    policy, problem = policy_from_weights_message("pusher-rl/weights", data, "learner/weights", load_task())
+    policy, problem = policy_from_weights_message("pusher-rl/weights", data, signer.verifier(), "learner/weights",
+                                                  load_task())
     assert policy is None and problem.reason == "bad weights" and "the task here is pusher_reach" in problem
 
 
