@@ -91,7 +91,7 @@ def _count(value: float) -> bool:
 
 class LearnerService:
     def __init__(self, cfg: LearnerServiceConfig, log=print):
-        from ..runs.training_run import load_bags, task_of_run
+        from ..runs.training_run import estop_dropped_of, load_bags, task_of_run
 
         self.cfg, self.log = cfg, log
         self.out = check_output_dir(cfg.out, "parameter out:")  # before the bags load: a bad path is refused at once
@@ -99,7 +99,10 @@ class LearnerService:
         prior = load_checkpoint(cfg.prior) if cfg.prior else None  # validated as the policy node validates it
         given = cfg.task or (checkpoint_task(prior) if prior is not None and "task" in prior else None)
         self.task = task_of_run(cfg.bags, given)
-        offline, _ = load_bags(cfg.bags, task=self.task)
+        offline, bags_read = load_bags(cfg.bags, task=self.task)
+        self.offline_estop_dropped = estop_dropped_of(bags_read)  # None: no offline bag records the e-stop
+        if self.offline_estop_dropped is not None:
+            log(f"offline half: left out {self.offline_estop_dropped} transitions recorded while the e-stop was engaged")
         if prior is not None:
             policy_for_task(prior, cfg.prior, self.task)  # a prior of another task: one line naming both
             if prior["hidden"] != cfg.train.hidden:
@@ -219,4 +222,5 @@ class LearnerService:
         return {"received": learner.n_online, "evicted": learner.n_evicted, "updates": learner.updates, "owed": learner.updates_owed,
                 "weights_version": learner.version, "rejected": dict(self.rejected.counts),
                 "estop": self.estop.as_dict(),
+                **({} if self.offline_estop_dropped is None else {"offline_estop_dropped": self.offline_estop_dropped}),
                 "train_s": round(learner.train_seconds, 2), **{k: round(v, 5) for k, v in learner.losses.items()}}
