@@ -364,3 +364,57 @@ def test_a_producers_actions_are_kept_inside_the_joint_limits_so_none_is_refused
         kept = within_limits(task, action)
         assert action_from_command(task, command_from_action(task.command, kept))[1] is None
     assert within_limits(load_task("pusher_reach"), np.float32([0.9, -1.0])).tolist() == pytest.approx([0.9, -1.0])
+
+
+# ---------------------------------------------------------------- soft limits on the measured state
+
+def _limited_effort_task(**safety):
+    """pusher_reach (an effort interface) with joint limits on its measured state."""
+    from offline_rl_core.task.spec import load_task, task_from_dict
+
+    doc = load_task("pusher_reach").describe()
+    doc["safety"] = safety
+    return task_from_dict(doc)
+
+
+def test_an_effort_beyond_the_measured_limits_is_refused_outward_and_taken_back_inward():
+    from offline_rl_core.nodes.state_limits import StateLimits
+
+    limits = StateLimits(_limited_effort_task(position_limits=[[-1.0, 1.0], [-2.0, 2.0]], velocity_limits=[5.0, 5.0]))
+    inside, beyond_high = [0.0, 0.0], [1.2, 0.0]
+    assert limits.check(np.float32([1.0, 1.0]), inside, [0.0, 0.0]) is None
+    refused = limits.check(np.float32([0.3, 0.0]), beyond_high, [0.0, 0.0])
+    assert refused.reason == "beyond limits" and "shoulder" in refused and "position limits" in refused
+    assert limits.check(np.float32([-0.3, 1.0]), beyond_high, [0.0, 0.0]) is None  # back inside: taken
+    assert limits.check(np.float32([0.0, 0.0]), beyond_high, [0.0, 0.0]) is None  # no effort: taken
+    assert limits.check(np.float32([0.0, -0.5]), [0.0, -2.5], [0.0, 0.0]).reason == "beyond limits"
+    too_fast = limits.check(np.float32([0.0, 0.5]), inside, [0.0, 6.0])
+    assert too_fast.reason == "beyond limits" and "velocity_limits" in too_fast
+    assert limits.check(np.float32([0.0, -0.5]), inside, [0.0, 6.0]) is None  # braking: taken
+    assert not StateLimits(_limited_effort_task()).active  # pusher_reach as shipped: no limits, nothing checked
+
+
+def test_a_realtime_sim_stops_pushing_a_joint_past_its_limit_and_takes_a_command_back():
+    from offline_rl_core.nodes.sim_loop import SimLoop
+
+    probe = SimLoop("realtime", task=_limited_effort_task())
+    probe.start_episode()
+    start = float(probe.env.joint_positions[0])  # the same seed resets the arm to the same pose
+    high = start + 0.2
+    loop = SimLoop("realtime", task=_limited_effort_task(position_limits=[[start - 1.0, high], [-9.0, 9.0]]))
+    loop.start_episode()
+    outward = np.float32([1.0, 0.0])
+    assert loop.beyond_state_limits(outward) is None  # the reset pose is inside
+    loop.command(None, outward, 2, now=None)
+    tick, state = 0, None
+    # no clock: the watchdog is not in this test
+    while loop.limit_steps == 0:  # full torque until the shoulder passes its high limit
+        tick += 1
+        assert tick < 200, "the shoulder never reached its limit under full torque"
+        state = loop.tick(now=None).next_state
+    assert state.position[0] > high and loop.beyond_state_limits(outward).reason == "beyond limits"
+    assert loop.tick(now=None).next_state.torque.tolist() == [0.0, 0.0]  # held outward: safe applied
+    back = np.float32([-1.0, 0.0])
+    assert loop.beyond_state_limits(back) is None
+    loop.command(None, back, 2, now=None)
+    assert loop.tick(now=None).next_state.torque.tolist() == [-0.5, 0.0]

@@ -40,6 +40,7 @@ from ..task.envs import make_env
 from ..task.pusher_reach import CONTROL_HZ, MAX_STEPS
 from ..task.spec import JOINT_STATE, TaskSpec, load_task
 from .estop import EStopLatch
+from .state_limits import StateLimits
 from .watchdog import CommandWatchdog, safe_action
 
 TICK_NS = 1_000_000_000 // CONTROL_HZ  # pusher_reach's 20 ms (a task's own: SimLoop.tick_ns)
@@ -106,6 +107,8 @@ class SimLoop:
         self.watchdog = CommandWatchdog(self.task.command_timeout)
         self.estop = EStopLatch()
         self.safe_steps = 0  # realtime ticks that applied the safe command
+        self.state_limits = StateLimits(self.task)  # effort interface: soft limits on the measured state
+        self.limit_steps = 0  # realtime ticks whose held command pushed a joint further out: the safe one applied
 
     # ------------------------------------------------------------ episodes
     @property
@@ -187,6 +190,11 @@ class SimLoop:
         silent = now is not None and self.watchdog.check(now)
         return self.estop.engaged or silent
 
+    def beyond_state_limits(self, action: np.ndarray) -> Rejection | None:
+        """Why ``action`` may not be applied where the arm is now (it pushes a joint further
+        beyond the task's position or velocity limits); None where it may."""
+        return self.state_limits.check(action, self.env.joint_positions, self.env.joint_velocities)
+
     def safe_action(self) -> np.ndarray:
         """The task's safe command as an action: zero effort or velocity, or the position now."""
         return safe_action(self.task, self.env.joint_positions)
@@ -198,6 +206,9 @@ class SimLoop:
         self.ticks += 1
         if self.safe(now):
             self.safe_steps += 1
+            return self._step(self.safe_action(), self.held_source)
+        if self.beyond_state_limits(self.held_action) is not None:  # taken inside, but the arm has gone out since
+            self.limit_steps += 1
             return self._step(self.safe_action(), self.held_source)
         return self._step(self.held_action, self.held_source)
 

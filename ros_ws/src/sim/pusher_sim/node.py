@@ -36,7 +36,11 @@ says), or while the e-stop is engaged (``estop``, released only by ``estop/reset
 tick applies the task's safe command (zero effort or velocity; the position held), and
 ``~/status`` carries the latched fault (``faults``) and the e-stop (``estop``). In lockstep
 the arm steps only on a command; while the e-stop is engaged every command is refused
-(counted as ``estop``).
+(counted as ``estop``). For an effort interface with ``safety.position_limits`` /
+``velocity_limits`` (``offline_rl_core.nodes.state_limits``), a command whose effort pushes a
+joint further beyond them, where the arm is measured now, is refused (counted as ``beyond
+limits``) and one back inside is taken; a held command that has come to push outward applies
+the safe command on those ticks (``limit_steps`` on ``~/status``).
 
 Lockstep: a stamped command steps the arm when its stamp is the current state's. A
 Float64MultiArray has no header, so it cannot name the state it answers: the first one that
@@ -147,7 +151,8 @@ class PusherSim(Node):
                                                        "episodes_done": len(self.loop.results),
                                                        "faults": self.loop.faults(),
                                                        "estop": self.loop.estop.as_dict(),
-                                                       "safe_steps": self.loop.safe_steps})
+                                                       "safe_steps": self.loop.safe_steps,
+                                                       "limit_steps": self.loop.limit_steps})
         self.estop = EStopInput(self, latch=self.loop.estop, on_engage=self.loop.estop_engaged,
                                 on_reset=self.loop.reset_faults)
         self.tripped = 0  # watchdog trips logged so far
@@ -299,7 +304,7 @@ class PusherSim(Node):
                 self.loop.stamped_commands = True  # a stamped command came, even if refused
             self.status.reject(topic, problem)
             return
-        if self.refused_for_estop(topic):
+        if self.refused_for_estop(topic) or self.refused_for_state_limits(topic, action):
             return
         if source is None:
             source = source_from_tag(msg.header.frame_id)
@@ -317,6 +322,17 @@ class PusherSim(Node):
                                                      "releases it)"))
         return True
 
+    def refused_for_state_limits(self, topic: str, action, stamped: bool = True) -> bool:
+        """An effort that pushes a joint further beyond the task's limits, where the arm is
+        now, is refused (counted as ``beyond limits``); one that brings it back is taken."""
+        problem = self.loop.beyond_state_limits(action)
+        if problem is None:
+            return False
+        if self.mode == "lockstep" and stamped:
+            self.loop.stamped_commands = True  # a stamped command came, even if refused
+        self.status.reject(topic, problem)
+        return True
+
     def warn_tag_deprecated(self) -> None:
         # a method of its own: rclpy ties a log call's filters (once, throttle) to its caller
         self.get_logger().warning("a source tag in header.frame_id is deprecated; publish on "
@@ -328,7 +344,7 @@ class PusherSim(Node):
         if self.finished.done():
             return
         action, problem = action_from_command(self.task, msg.data)
-        if problem is None and self.refused_for_estop(topic):
+        if problem is None and (self.refused_for_estop(topic) or self.refused_for_state_limits(topic, action, stamped=False)):
             return
         if problem is None:
             step, problem = self.loop.command_unstamped(action, SOURCE_POLICY, time.monotonic())
@@ -352,7 +368,7 @@ class PusherSim(Node):
         if problem:
             self.status.reject(topic, problem)
             return
-        if self.refused_for_estop(topic):
+        if self.refused_for_estop(topic) or self.refused_for_state_limits(topic, action):
             return
         self.publish_step(self.loop.command(stamp_key(stamp), action, SOURCE_POLICY, time.monotonic()))
 
