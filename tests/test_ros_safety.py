@@ -397,3 +397,44 @@ def test_the_policy_node_sends_its_controller_the_safe_command_when_its_states_s
         assert node.spin_until(lambda: len(torques) > last, 10), policy.output()
         assert torques[last] == [0.0, 0.0]
         assert node.spin_until(lambda: statuses and statuses[-1]["faults"].get("watchdog"), 10), statuses[-1:]
+
+
+def test_the_mux_refuses_an_effort_that_pushes_a_joint_further_beyond_its_limit(spawn, tmp_path):
+    """Soft limits on the measured state: with the shoulder beyond its position limit, an
+    action pushing it further out is refused (counted as beyond limits), one back is forwarded."""
+    from sensor_msgs.msg import JointState
+
+    from offline_rl_core.task.spec import load_task
+
+    doc = load_task("pusher_reach").describe()
+    doc["safety"] = {"position_limits": [[-0.5, 0.5], [-3.0, 3.0]]}
+    task_file = tmp_path / "limited.yaml"
+    task_file.write_text(json.dumps(doc))
+    mux = spawn(ros2("run", "corrections", "mux", "--ros-args", "-p", f"task:={task_file}"), "mux")
+    with probe_node() as node:
+        commands = []
+        node.create_subscription(JointState, "/pusher/command/policy", commands.append, 10)
+        action_pub = node.create_publisher(JointState, "/policy/action", 10)
+        state_pub = node.create_publisher(JointState, "/pusher/state", 10)
+        assert node.spin_until(lambda: action_pub.get_subscription_count() and state_pub.get_subscription_count(), 60), \
+            mux.output()
+
+        def send(effort):
+            state = JointState(name=["shoulder", "elbow"], position=[0.8, 0.0], velocity=[0.0, 0.0])
+            state_pub.publish(state)  # the shoulder 0.3 rad beyond its high limit
+            action = JointState(name=["shoulder", "elbow"], effort=effort)
+            action.header.stamp.sec = 3
+            action_pub.publish(action)
+
+        for _ in range(50):  # until the mux has read a state: then outward is refused
+            send([0.25, 0.0])
+            if node.spin_until(lambda: "beyond limits" in mux.output(), 0.5):
+                break
+        assert "further beyond its position limits" in mux.output(), mux.output()
+        commands.clear()
+        for _ in range(20):
+            send([-0.25, 0.0])
+            if node.spin_until(lambda: commands, 0.5):
+                break
+        assert commands and list(commands[-1].effort) == [-0.25, 0.0], mux.output()
+    assert mux.stop() == 0, mux.output()

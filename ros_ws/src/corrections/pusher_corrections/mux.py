@@ -31,7 +31,9 @@ hold counts as a command for its ``hold_ms``), the mux sends
 the task's safe command once on ``pusher/command/policy`` (``offline_rl_core.nodes.watchdog``)
 and latches the fault on ``~/status``; while the e-stop is engaged (``estop``, released only
 by ``estop/reset``) it sends the safe command and forwards nothing (counted as ``estop``), in
-lockstep too.
+lockstep too. For an effort interface with ``safety.position_limits`` / ``velocity_limits`` it
+reads the arm's state and refuses an action whose effort pushes a joint further beyond them
+(counted as ``beyond limits``; ``offline_rl_core.nodes.state_limits``); one back inside passes.
 """
 
 from __future__ import annotations
@@ -48,6 +50,7 @@ from std_msgs.msg import Bool
 
 from offline_rl_core.common.rejections import Rejection
 from offline_rl_core.nodes.command_limits import SlewLimiter
+from offline_rl_core.nodes.state_limits import StateLimits
 from offline_rl_core.nodes.joint_messages import action_from_effort, joints_from_state
 from offline_rl_core.nodes.watchdog import CommandWatchdog, safe_action
 from pusher_common.estop import EStopInput
@@ -96,7 +99,9 @@ class Mux(Node):
         self.intervening: bool | None = None
         self.slew = SlewLimiter(task.safety.slew)
         self.watchdog = CommandWatchdog(task.command_timeout)
+        self.state_limits = StateLimits(task)  # effort interface: soft limits on the measured state
         self.position = None  # the state joints' latest positions, where the safe command holds them
+        self.velocity = None  # and their speeds, for the soft limits
         self.last_sent = (None, None)  # (stamp, action) of the latest command sent
         self.status = NodeStatus(self, fields=lambda: {"forwarded": dict(self.arbiter.counts),
                                                        "intervening": self.intervening,
@@ -104,7 +109,7 @@ class Mux(Node):
                                                        "faults": self.faults(),
                                                        "estop": self.estop.latch.as_dict()})
         self.estop = EStopInput(self, on_engage=self.on_estop_engaged, on_reset=self.watchdog.reset)
-        if task.safe_command == "hold":
+        if task.safe_command == "hold" or self.state_limits.active:
             self.create_subscription(JointState, task.state.topic, self.on_state, 10)
         # who acted is the topic: pusher/command/policy or pusher/command/human (the sim logs it)
         self.command_pubs = {source: self.create_publisher(JointState, f"pusher/command/{source}", 10)
@@ -145,6 +150,8 @@ class Mux(Node):
         problem = check_stamp(msg.header.stamp.sec, msg.header.stamp.nanosec) or problem
         if problem is None and self.estop.engaged:
             problem = Rejection("estop", "an action while the e-stop is engaged (estop/reset releases it)")
+        if problem is None and action is not None and self.position is not None:
+            problem = self.state_limits.check(action, self.position, self.velocity)  # outward beyond: refused
         if problem:
             self.status.reject(topic, problem)
             return False
@@ -194,11 +201,11 @@ class Mux(Node):
 
     # -------------------------------------------------------------- safety
     def on_state(self, msg: JointState) -> None:
-        """The arm's positions, for a safe command that holds them."""
+        """The arm's positions, for a safe command that holds them, and speeds, for the soft limits."""
         joints, problem = joints_from_state(msg.name, msg.position, msg.velocity, self.task.state.joints,
                                             velocity_optional=True)
         if problem is None:
-            self.position = joints[0]
+            self.position, self.velocity = joints
 
     def check_watchdog(self) -> None:
         now = time.monotonic()
