@@ -438,3 +438,40 @@ def test_the_mux_refuses_an_effort_that_pushes_a_joint_further_beyond_its_limit(
                 break
         assert commands and list(commands[-1].effort) == [-0.25, 0.0], mux.output()
     assert mux.stop() == 0, mux.output()
+
+
+def test_the_sim_refuses_torque_that_pushes_a_joint_further_beyond_its_limit(spawn, tmp_path):
+    """The realtime sim, its shoulder starting beyond the task's high limit: full torque
+    outward is refused (counted as beyond limits, nothing applied), torque back is applied."""
+    from sensor_msgs.msg import JointState
+
+    from offline_rl_core.nodes.sim_loop import SimLoop
+    from offline_rl_core.task.spec import load_task
+
+    probe = SimLoop("realtime", seed=0)
+    start = float(probe.start_episode().position[0])  # the sim's first pose (reset seed 0)
+    doc = load_task("pusher_reach").describe()
+    doc["safety"] = {"position_limits": [[start - 3.0, start - 0.2], [-9.0, 9.0]]}
+    task_file = tmp_path / "limited.yaml"
+    task_file.write_text(json.dumps(doc))
+    sim = spawn([sys.executable, "-m", "pusher_sim.node", "--ros-args", "-p", f"task:={task_file}"], "sim")
+    efforts, statuses = [], []
+    with probe_node() as node:
+        node.create_subscription(JointState, "/pusher/state", lambda m: efforts.append(list(m.effort)), 100)
+        _latest_status(node, "sim", statuses)
+        command_pub = node.create_publisher(JointState, "/pusher/command/policy", 10)
+        assert node.spin_until(lambda: command_pub.get_subscription_count() and efforts, 60), sim.output()
+
+        def drive(effort, until, timeout=10.0):
+            deadline = time.monotonic() + timeout
+            while time.monotonic() < deadline:
+                command_pub.publish(JointState(name=["shoulder", "elbow"], effort=effort))
+                if node.spin_until(until, 0.02):
+                    return True
+            return False
+
+        assert drive([1.0, 0.0], lambda: statuses and statuses[-1]["rejected"].get("beyond limits")), \
+            sim.output() + str(statuses[-1:])
+        assert all(e[0] <= 0.0 for e in efforts)  # no outward torque was ever applied
+        assert drive([-1.0, 0.0], lambda: efforts[-1] == [-0.5, 0.0]), sim.output()  # back inside: taken
+    assert sim.stop() == 0, sim.output()
