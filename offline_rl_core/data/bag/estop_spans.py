@@ -27,7 +27,7 @@ from rosbags.typesys import Stores, get_types_from_msg
 
 from ...common.errors import UserError
 from ..transitions import Transitions
-from .reader import open_bag, sqlite_storages, transition_topic
+from .reader import one_topic, open_bag, sqlite_storages, transition_topic
 
 ESTOP_TOPIC = "/estop"
 ESTOP_MSGTYPE = "std_msgs/msg/Bool"
@@ -52,15 +52,6 @@ def event_typestore():
     types.update({RESET_EVENT_MSGTYPE: definition for definition in event.values()})
     store.register(types)
     return store
-
-
-def _one_topic(reader: Reader, name: str) -> str | None:
-    """``name`` in the bag, or its one namespaced copy (``/arm2/estop``)."""
-    names = {c.topic for c in reader.connections}
-    if name in names:
-        return name
-    namespaced = [n for n in names if n.endswith(name)]
-    return namespaced[0] if len(namespaced) == 1 else None
 
 
 def _connections(reader: Reader, path: Path, topic: str, msgtype: str) -> list:
@@ -139,10 +130,10 @@ def drop_engaged(path: str | os.PathLike, data: Transitions) -> tuple[Transition
     and how many were dropped; (data, None) for a bag that records no e-stop."""
     path = Path(path)
     with open_bag(path) as reader:
-        estop = _one_topic(reader, ESTOP_TOPIC)
+        estop = one_topic(reader, ESTOP_TOPIC)
         if estop is None:
             return data, None
-        reset = _one_topic(reader, RESET_EVENT_TOPIC)
+        reset = one_topic(reader, RESET_EVENT_TOPIC)
         spans = engaged_spans(_estop_words(reader, path, estop),
                               _resets(reader, path, reset) if reset is not None else None)
         if not spans:
