@@ -127,3 +127,16 @@ def test_a_bag_without_an_estop_topic_keeps_its_summary(tmp_path):
     write_transitions(bag, Transitions.from_rows(_rows(), PUSHER_LAYOUT))
     data, summary = load_bags([str(bag)])
     assert len(data) == N and "estop_dropped" not in summary[0]
+
+
+def test_the_learners_offline_half_leaves_out_the_engaged_rows(tmp_path):
+    from offline_rl_core.learners import TrainConfig
+    from offline_rl_core.nodes.learner_service import LearnerService, LearnerServiceConfig
+
+    bag = _session_bag(tmp_path / "session.db3", [(10, True), (20, False)])
+    lines = []
+    service = LearnerService(LearnerServiceConfig(bags=[str(bag)], out=str(tmp_path / "learner"), seed=0,
+                                                  train=TrainConfig(algo="sac", batch_size=8, hidden=8)),
+                             log=lines.append)
+    assert service.learner.n_offline == N - 10 and service.status()["offline_estop_dropped"] == 10
+    assert "offline half: left out 10 transitions recorded while the e-stop was engaged" in lines
