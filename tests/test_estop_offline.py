@@ -140,3 +140,24 @@ def test_the_learners_offline_half_leaves_out_the_engaged_rows(tmp_path):
                              log=lines.append)
     assert service.learner.n_offline == N - 10 and service.status()["offline_estop_dropped"] == 10
     assert "offline half: left out 10 transitions recorded while the e-stop was engaged" in lines
+
+
+def test_transitions_joined_from_raw_topics_leave_out_the_engaged_states(tmp_path):
+    from pathlib import Path
+
+    from raw_topic_bags import START_NS, TICK_NS, record_raw_bag
+
+    from offline_rl_core.runs.training_run import load_bags
+
+    spec = str(Path(__file__).resolve().parents[1] / "bags" / "pusher_topics.yaml")
+    plain, stopped = tmp_path / "plain.db3", tmp_path / "stopped.db3"
+    record_raw_bag(plain, episodes=1, expert_frac=1.0, seed=3, sim_like=False)
+    # pressed just before the state of step 10, released just before step 30's
+    record_raw_bag(stopped, episodes=1, expert_frac=1.0, seed=3, sim_like=False,
+                   estop=((START_NS + 10 * TICK_NS - 1, True), (START_NS + 30 * TICK_NS - 1, False)))
+    full, plain_summary = load_bags([str(plain)], from_topics=spec)
+    kept, summary = load_bags([str(stopped)], from_topics=spec)
+    assert "estop_dropped" not in plain_summary[0] and "estop_dropped" not in plain_summary[0]["from_topics"]
+    assert summary[0]["estop_dropped"] == 20 and summary[0]["from_topics"]["estop_dropped"] == 20
+    rows = full.to_rows()
+    assert np.array_equal(kept.to_rows(), np.concatenate([rows[:10], rows[30:]]))

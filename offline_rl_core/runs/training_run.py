@@ -142,7 +142,10 @@ def load_bags(paths: list[str], from_topics: str | None = None, task: TaskSpec |
         data.episode = data.episode - data.episode.min() + offset
         offset = int(data.episode.max()) + 1
         parts.append(data)
-        summary.append({**bag_summary(path, data), "from_topics": spec.as_dict()})
+        entry = {**bag_summary(path, data), "from_topics": spec.as_dict()}
+        if spec.estop_dropped is not None:
+            entry["estop_dropped"] = spec.estop_dropped
+        summary.append(entry)
     return (parts[0] if len(parts) == 1 else Transitions.concatenate(parts)), summary
 
 

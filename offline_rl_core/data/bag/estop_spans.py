@@ -11,7 +11,9 @@ those steps say nothing of the policy.
 ``drop_engaged(path, data)``: the transitions of a bag (as ``read_transitions`` returned
 them) less those recorded while engaged, judged by each transition message's bag stamp
 (the moment its step ended), and how many were dropped; None for a bag without an
-``estop`` topic, whose transitions come back untouched.
+``estop`` topic, whose transitions come back untouched. ``bag_engaged_spans`` and
+``engaged_at``: the same for transitions joined from raw topics (``raw_topics``), judged by
+their state's receive stamp.
 """
 
 from __future__ import annotations
@@ -125,26 +127,42 @@ def topic_stamps(reader: Reader, topic: str) -> np.ndarray:
     return np.fromiter(stamps, dtype=np.int64)
 
 
+def _bag_spans(reader: Reader, path: Path) -> list[tuple[int, int]] | None:
+    estop = one_topic(reader, ESTOP_TOPIC)
+    if estop is None:
+        return None
+    reset = one_topic(reader, RESET_EVENT_TOPIC)
+    return engaged_spans(_estop_words(reader, path, estop), _resets(reader, path, reset) if reset is not None else None)
+
+
+def bag_engaged_spans(path: str | os.PathLike) -> list[tuple[int, int]] | None:
+    """The [start, stop) bag stamps while the e-stop was engaged; None for a bag without ``estop``."""
+    with open_bag(path) as reader:
+        return _bag_spans(reader, Path(path))
+
+
+def engaged_at(stamps: np.ndarray, spans: list[tuple[int, int]]) -> np.ndarray:
+    """Which of ``stamps`` fall in a span."""
+    stamps = np.asarray(stamps, np.int64)
+    engaged = np.zeros(stamps.shape, dtype=bool)
+    for start, stop in spans:
+        engaged |= (stamps >= start) & (stamps < stop)
+    return engaged
+
+
 def drop_engaged(path: str | os.PathLike, data: Transitions) -> tuple[Transitions, int | None]:
     """``data`` (the bag's transitions) less the rows recorded while the e-stop was engaged,
     and how many were dropped; (data, None) for a bag that records no e-stop."""
     path = Path(path)
     with open_bag(path) as reader:
-        estop = one_topic(reader, ESTOP_TOPIC)
-        if estop is None:
-            return data, None
-        reset = one_topic(reader, RESET_EVENT_TOPIC)
-        spans = engaged_spans(_estop_words(reader, path, estop),
-                              _resets(reader, path, reset) if reset is not None else None)
+        spans = _bag_spans(reader, path)
         if not spans:
-            return data, 0
+            return data, None if spans is None else 0
         stamps = topic_stamps(reader, transition_topic(reader))
     if len(stamps) != len(data):  # a recording still growing between the two reads
         raise UserError(f"{path}: {len(stamps)} transition stamps for {len(data)} transitions; "
                         "the bag changed while it was read (read it once its recording has stopped)")
-    engaged = np.zeros(len(data), dtype=bool)
-    for start, stop in spans:
-        engaged |= (stamps >= start) & (stamps < stop)
+    engaged = engaged_at(stamps, spans)
     dropped = int(engaged.sum())
     if dropped == len(data):
         raise UserError(f"{path}: every one of its {len(data)} transitions was recorded while the e-stop was engaged; "

@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from ..bag import TRANSITION_TOPIC, open_bag
+from ..bag.estop_spans import bag_engaged_spans, engaged_at
 from ...task.pusher_reach import (
     SUCCESS_TOL, StepScore, batch_observations, fingertip_from_joints, planar_distances, score_steps,
 )
@@ -67,6 +68,7 @@ class JoinReport:
     episodes: int = 0
     episode_starts: dict = field(default_factory=dict)  # what started each new episode
     transitions: int = 0
+    estop_dropped: int | None = None  # transitions whose state came while the e-stop was engaged; None: no estop topic
 
     def as_dict(self) -> dict:
         return {
@@ -75,6 +77,7 @@ class JoinReport:
             "commands": self.commands, "targets": self.targets, "fingertips": self.fingertips,
             "resets": self.resets, "episodes": self.episodes, "episode_starts": self.episode_starts,
             "transitions": self.transitions,
+            **({} if self.estop_dropped is None else {"estop_dropped": self.estop_dropped}),
         }
 
     def format(self) -> str:
@@ -99,6 +102,8 @@ class JoinReport:
         starts = ", ".join(f"{n} by {_START_CAUSE[k]}" for k, n in self.episode_starts.items())
         lines.append(f"  episodes    {self.episodes} (new episodes started: {starts})"
                      + (f"; {self.resets} reset messages" if self.resets else ""))
+        if self.estop_dropped is not None:
+            lines.append(f"  e-stop      {self.estop_dropped} transitions left out: their state came while it was engaged")
         lines.append(f"  transitions {self.transitions}")
         return "\n".join(lines)
 
@@ -407,6 +412,11 @@ class _Join:
         alive = ~(success_before & spec.terminate_on_success)
         report.commands["after_termination"] = int((~alive).sum())
         c, a, b, step, score = c[alive], a[alive], b[alive], step[alive], StepScore._make(f[alive] for f in score)
+        spans = bag_engaged_spans(self.bag)  # the arm applied the safe command then, not these actions
+        if spans is not None:
+            outside = ~engaged_at(recv_state[a], spans)
+            report.estop_dropped = int((~outside).sum())
+            c, a, b, step, score = c[outside], a[outside], b[outside], step[outside], StepScore._make(f[outside] for f in score)
         if c.size == 0:
             raise UserError(f"{self.bag}: no transitions could be built from {spec.state_topic} and the commands; "
                             f"commands: {_counts_text(report.commands)}")
