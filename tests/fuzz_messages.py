@@ -52,7 +52,8 @@ def joint_case(rng: np.random.Generator, kind: str, values: tuple[str, ...], sca
     fields, and ``bad_stamp`` (True: the test sends a stamp that is no valid time).
 
     ``expect`` is the reason for a *state*; commands differ in two cases the caller
-    adjusts: an effort of 1e38 is clipped (taken), an empty effort is a teleop yield.
+    adjusts: an effort of 1e38 is beyond the action range (refused, never clipped), an empty
+    effort is a teleop yield.
     """
     arrays = {f: [float(v) for v in rng.uniform(-scale, scale, 2)] for f in values}
     names, expect, bad_stamp = list(JOINTS), None, False
@@ -90,10 +91,10 @@ def joint_case(rng: np.random.Generator, kind: str, values: tuple[str, ...], sca
 
 
 def command_case(rng: np.random.Generator, kind: str, allow_empty: bool = False) -> Case:
-    """A command (effort = action, clipped to [-1, 1]); see :func:`joint_case`."""
-    case = joint_case(rng, kind, ("effort",), 1.5)
+    """A command (effort = the action in [-1, 1]); see :func:`joint_case`."""
+    case = joint_case(rng, kind, ("effort",), 1.0)
     if kind == "huge":
-        case.expect = None  # an effort of 1e38 is clipped to the action range: taken
+        case.expect = "beyond limits"  # an effort of 1e38 is refused: clipping it would send full effort
     if kind == "empty" and allow_empty:
         case.expect = None  # a teleop yield
     return case

@@ -78,6 +78,7 @@ def record_raw_bag(
     torque_commands: bool = False,
     source_tags: bool = False,
     noise_seed: int = 1,
+    estop: tuple[tuple[int, bool], ...] = (),
 ) -> None:
     """Roll out ``episodes`` as `offline-rl collect` does and write their raw topics.
 
@@ -88,6 +89,7 @@ def record_raw_bag(
     with receive times 0.5 ms after the commanded state's (a recording in sim time).
     Commands go, as the sim takes them, to /pusher/command/<source>; ``source_tags``: to
     /pusher/command with the source in header.frame_id, as older recorders sent them.
+    ``estop``: (receive stamp, value) of /estop (std_msgs/Bool) messages to record too.
     """
     msgs = _Messages()
     env = PusherReachEnv()
@@ -110,6 +112,10 @@ def record_raw_bag(
     with BagWriter(path) as bag:
         for topic, msgtype in types.items():
             bag.add_topic(topic, msgtype)
+        if estop:
+            bag.add_topic("/estop", "std_msgs/msg/Bool")
+            for at, value in estop:
+                bag.write("/estop", at, bytes([0, 1, 0, 0, int(value), 0, 0, 0]))  # CDR LE header, the bool, padding
 
         def write(topic: str, data: bytes, at: int | None = None, droppable: bool = False) -> None:
             if topic not in types or (droppable and drop and noise.random() < drop):

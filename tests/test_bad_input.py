@@ -41,7 +41,7 @@ def test_fuzzed_states_and_points_get_the_reason_written_for_them():
         assert _reason(problem) == point.expect, point
 
 
-def test_fuzzed_commands_are_refused_or_clipped_into_the_action_range():
+def test_fuzzed_commands_are_refused_or_taken_inside_the_action_range():
     rng = np.random.default_rng(2)
     for _ in range(N):
         allow_empty = bool(rng.integers(2))

@@ -355,3 +355,44 @@ def test_rosproc_stops_by_pid_with_escalation(tmp_path):
     started = time.monotonic()
     assert proc.stop(timeout=1.0) == -_signal.SIGTERM  # SIGINT ignored, SIGTERM after 1 s
     assert time.monotonic() - started < 10 and not proc.running()
+
+
+@pytest.mark.ros
+def test_the_realtime_mux_ramps_sends_the_safe_command_when_silent_and_forwards_nothing_under_estop(
+        spawn, ros_env, tmp_path):
+    require_corrections()
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import Bool, String
+
+    from offline_rl_core.common.atomic import write_json_atomic
+    from offline_rl_core.task.spec import load_task
+    from ros2_shim.ament_index import ros2_run
+
+    task = {**load_task("pusher_reach").describe(), "safety": {"slew": 0.25}}
+    write_json_atomic(tmp_path / "task.yaml", task)  # JSON is YAML
+    mux = spawn(ros2_run("corrections", "mux", "--ros-args", "-p", f"task:={tmp_path / 'task.yaml'}"), "mux")
+    assert mux.wait_for_output("mux realtime", 60), mux.output()
+    with probe_node("mux_safety_probe") as node:
+        sent, statuses = [], []
+        node.create_subscription(JointState, "/pusher/command/policy", lambda m: sent.append(list(m.effort)), 50)
+        node.create_subscription(String, "/mux/status", lambda m: statuses.append(json.loads(m.data)), 10)
+        policy = node.create_publisher(JointState, "/policy/action", 10)
+        estop = node.create_publisher(Bool, "/estop", QoSProfile(
+            depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        assert node.spin_until(lambda: policy.get_subscription_count() and estop.get_subscription_count(), 30)
+        policy.publish(joint_msg([0.0, 0.0], 1, "policy"))
+        policy.publish(joint_msg([1.0, -1.0], 2, "policy"))  # a far jump: ramped by the task's slew
+        assert node.spin_until(lambda: len(sent) >= 2, 10), mux.output()
+        assert sent[:2] == [[0.0, 0.0], [0.25, -0.25]]
+        # then silence: the safe command (zero effort) once, the fault latched on ~/status
+        assert node.spin_until(lambda: len(sent) >= 3, 10) and sent[2] == [0.0, 0.0]
+        assert node.spin_until(lambda: statuses and statuses[-1]["faults"].get("watchdog"), 10), statuses[-1:]
+        assert statuses[-1]["slew_limited"] == 1
+        # the e-stop: nothing forwarded, counted
+        estop.publish(Bool(data=True))
+        assert node.spin_until(lambda: statuses[-1]["estop"]["engaged"], 10), statuses[-1]
+        count = len(sent)
+        policy.publish(joint_msg([0.1, 0.1], 3, "policy"))
+        assert node.spin_until(lambda: statuses[-1]["rejected"].get("estop") == 1, 10), statuses[-1]
+        assert all(s == [0.0, 0.0] for s in sent[count:])  # at most the safe command

@@ -58,3 +58,17 @@ def test_learner_far_behind_warns():
 def test_idle_message_can_read_the_status():
     report = StatusDiagnosis(idle=lambda s: f"episode {s['episode']}").report({"episode": 3})
     assert report.message == "episode 3" and report.values == [("episode", "3")]
+
+
+def test_an_engaged_estop_is_an_error_and_a_tripped_watchdog_a_warning():
+    from offline_rl_core.nodes.diagnostics import ERROR, OK, WARN, StatusDiagnosis
+
+    diagnosis = StatusDiagnosis()
+    calm = {"estop": {"engaged": False, "held": False, "engagements": 0}, "faults": {}}
+    assert diagnosis.report(calm).level == OK
+    tripped = {**calm, "faults": {"watchdog": {"trips": 2, "silent": True, "timeout_s": 0.06}}}
+    report = diagnosis.report(tripped)
+    assert report.level == WARN and "watchdog tripped 2 time(s)" in report.message
+    stopped = {**tripped, "estop": {"engaged": True, "held": True, "engagements": 1}}
+    report = diagnosis.report(stopped)
+    assert report.level == ERROR and report.message.startswith("e-stop engaged")

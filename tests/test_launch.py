@@ -30,7 +30,9 @@ def test_serve_launch_becomes_ros2_run_command_lines():
     ros_args = cmd[cmd.index("--ros-args") + 1:]
     assert ros_args == ["-r", "__node:=sim", "-r", "__ns:=/arm2", "-p", 'mode:="lockstep"', "-p", "seed:=7",
                         "-p", "episodes:=3", "-p", 'summary:="/tmp/s.json"', "-r", "pusher/command:=policy/action"]
-    assert nodes["policy"].params == {"checkpoint": "runs/x/policy.pt", "task": "", "poll_period": 0.5}
+    # the policy runs in the sim's mode: its watchdog only where the sim runs in realtime
+    assert nodes["policy"].params == {"checkpoint": "runs/x/policy.pt", "task": "", "poll_period": 0.5,
+                                      "mode": "lockstep"}
     served_only = load_launch(LAUNCH_DIR / "serve.launch.yaml", {"checkpoint": "c.pt", "closed_loop": "false"})
     assert [n.label for n in served_only] == ["policy"]  # if: $(var closed_loop)
 

@@ -67,7 +67,10 @@ def test_pairing_without_co_stamped_targets_uses_the_latest():
 
 
 def test_joint_messages_read_commands_states_and_torques():
-    assert np.array_equal(action_from_effort(["elbow", "shoulder"], [0.5, 2.0])[0], np.float32([1.0, 0.5]))
+    assert np.array_equal(action_from_effort(["elbow", "shoulder"], [0.5, 1.0])[0], np.float32([1.0, 0.5]))
+    # beyond the action range: refused, never clipped to full effort
+    assert action_from_effort(["elbow", "shoulder"], [0.5, 2.0])[1].reason == "beyond limits"
+    assert action_from_effort([], [1e300, 0.0])[1].reason == "beyond limits"
     assert action_from_effort([], [0.1])[1] == "effort has 1 values, expected 2 (shoulder, elbow)"
     assert action_from_effort([], [float("nan"), 0])[1] == "effort is not finite"
     assert action_from_effort([], [], allow_empty=True) == (None, None)  # a teleop yield
@@ -75,7 +78,8 @@ def test_joint_messages_read_commands_states_and_torques():
     assert list(q) == [2.0, 1.0] and list(qd) == [4.0, 3.0]
     assert joints_from_state([], [0.1], [0.1])[1].reason == "wrong length"
     assert np.allclose(torques_from_action([1.0, -0.4]), [0.5, -0.2])  # motor gear 0.5 N·m
-    assert np.allclose(action_from_torques([0.25, -3.0])[0], [0.5, -1.0])  # clipped to the action range
+    assert np.allclose(action_from_torques([0.25, -0.5])[0], [0.5, -1.0])
+    assert action_from_torques([0.25, -3.0])[1].reason == "beyond limits"  # beyond the motors: refused
     assert action_from_torques([1.0])[1].startswith("expected 2 torques")
 
 

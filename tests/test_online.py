@@ -374,3 +374,19 @@ def test_a_two_hour_realtime_session_runs_on_a_small_buffer(tmp_path, files):
     again = _service(tmp_path, d / "offline.db3", d / "prior.pt", "long", resume=True, **cfg)
     assert again.learner.n_online == n and again.learner.updates == learner.updates
     assert torch.equal(again.learner.data.obs, learner.data.obs)
+
+
+def test_while_the_estop_is_engaged_the_learner_trains_on_no_live_transition(tmp_path, files):
+    from offline_rl_core.data.bag.cdr import encode_transition_rows
+
+    d, stream = files
+    service = _service(tmp_path, d / "offline.db3", d / "prior.pt", "estop")
+    payloads = encode_transition_rows(stream.to_rows()[:4])
+    assert service.receive(payloads[0]) is None
+    service.estop.on_estop(True)
+    assert [service.receive(p).reason for p in payloads[1:3]] == ["estop", "estop"]
+    assert service.learner.n_online == 1 and service.status()["estop"]["engaged"]
+    assert service.status()["rejected"] == {"estop": 2}
+    service.estop.on_estop(False)
+    assert service.estop.reset()[0]
+    assert service.receive(payloads[3]) is None and service.learner.n_online == 2

@@ -189,8 +189,10 @@ def test_policy_node_survives_fuzzed_states_targets_fingertips_and_weights(spawn
     signer = load_signer(keys.signing_key)
     weights = {"v1": encode_weights({**good, "weights_version": 1}, signer)}
     broken = broken_weights(good, signer)
+    # lockstep: the test paces the states, and counts one controller command per answer (no watchdog's)
     proc = spawn([sys.executable, "-m", "pusher_policy.node", "--ros-args", "-p", f"checkpoint:={served}",
-                  "-p", "weights_topic:=learner/weights", "-p", f"weights_key:={keys.public_key}"], "policy")
+                  "-p", "weights_topic:=learner/weights", "-p", f"weights_key:={keys.public_key}",
+                  "-p", "mode:=lockstep"], "policy")
     rng = np.random.default_rng(13)
     actions, torques, provenance = [], [], {}
     expected = Counter()
@@ -425,7 +427,7 @@ def test_sim_survives_fuzzed_commands_on_every_command_topic(spawn):
                 else:
                     out.send(topic, joint_msg(case.fields, current, rng))
                     expected[case.expect] += 1
-            case = command_case(rng, str(rng.choice(["valid", "reordered", "unnamed", "huge"])))
+            case = command_case(rng, str(rng.choice(["valid", "reordered", "unnamed"])))
             named = dict(zip(case.fields["name"] or ["shoulder", "elbow"], case.fields["effort"]))
             action = np.clip(np.float32([named["shoulder"], named["elbow"]]), -1, 1)
             msg = joint_msg(case.fields, current, rng)
@@ -466,7 +468,7 @@ def test_sim_survives_fuzzed_commands_on_every_command_topic(spawn):
 @pytest.mark.slow
 def test_realtime_sim_survives_fuzzed_torques(spawn):
     """Realtime, torques on effort_topic (no stamps): bad ones are refused and counted, the
-    held command is always a good one, clipped to the action range."""
+    held command is always a good one (torques beyond the motors' are refused, never clipped)."""
     from std_msgs.msg import Float32MultiArray, Float64MultiArray
 
     from offline_rl_core.data.transitions import LAYOUT_SLICES
@@ -512,9 +514,8 @@ def test_realtime_sim_survives_fuzzed_torques(spawn):
                 if kind in ("nan", "inf", "huge"):
                     torques[int(rng.integers(2))] = {"nan": math.nan, "inf": -math.inf, "huge": 1e38}[kind]
                 out.send(topic, Float64MultiArray(data=[float(t) for t in torques]))
-                expected[{"nan": "non-finite", "inf": "non-finite", "huge": None}.get(kind, "wrong length")] += 1
+                expected[{"nan": "non-finite", "inf": "non-finite", "huge": "beyond limits"}.get(kind, "wrong length")] += 1
             hold(rng.uniform(-0.4, 0.4, 2))
-        expected.pop(None)
         st = status.wait(lambda s: Counter(s["messages"]) - sent_before == out.sent, 10)
         assert st is not None, (status.seen[-1], dict(out.sent))
         assert_counted_and_throttled(st, expected, proc)

@@ -88,7 +88,9 @@ def test_policy_answers_rejects_and_hot_reloads(spawn, data, tmp_path):
     served = tmp_path / "policy.pt"
     shutil.copy(data["a"], served)
     policy_a, policy_b = load_policy(data["a"]), load_policy(data["b"])
-    node_proc = spawn(ros2("run", "policy", "node", "--ros-args", "-p", f"checkpoint:={served}"), "policy")
+    # lockstep: this test sends a state at a time (a pause between them is no fault to the watchdog)
+    node_proc = spawn(ros2("run", "policy", "node", "--ros-args", "-p", f"checkpoint:={served}",
+                           "-p", "mode:=lockstep"), "policy")
     actions, torques = [], []
     with probe_node() as node:
         node.create_subscription(JointState, "/policy/action", actions.append, 10)

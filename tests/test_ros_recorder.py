@@ -125,7 +125,7 @@ def test_passive_records_every_topic_with_its_qos_namespace_and_clock(spawn, ros
     names in the node's namespace; stamps on the node's clock: the sim's /clock with
     use_sim_time."""
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-    from std_msgs.msg import String
+    from std_msgs.msg import Bool, String
 
     bag = tmp_path / "all"
     ns = ["--ros-args", "-r", "__ns:=/arm2"]
@@ -143,6 +143,12 @@ def test_passive_records_every_topic_with_its_qos_namespace_and_clock(spawn, ros
         for _ in range(10):
             notes.publish(String(data="hello"))
             node.spin_for(0.1)
+        # the e-stop is recorded like any topic (reliable, transient local): the bag marks when it engaged
+        estop = node.create_publisher(Bool, "/arm2/estop", QoSProfile(
+            depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        estop.publish(Bool(data=True))
+        assert node.spin_until(lambda: "/arm2/estop" in recorder.output(), 30), recorder.output()
+        node.spin_for(0.5)
         refused = subprocess.run(ros2("param", "set", "/arm2/recorder", "max_bag_size", "1000"),
                                  capture_output=True, text=True, env=ros_env)
         assert "sqlite3 minimum" in refused.stdout + refused.stderr, refused
@@ -153,6 +159,8 @@ def test_passive_records_every_topic_with_its_qos_namespace_and_clock(spawn, ros
         assert topics["/arm2/notes"].ext.offered_qos_profiles[0].reliability.name == "BEST_EFFORT"
         assert topics["/arm2/pusher/transition"].ext.offered_qos_profiles[0].reliability.name == "RELIABLE"
         stamps = [stamp for _, stamp, _ in reader.messages([topics["/arm2/pusher/transition"]])]
+        pressed = [raw for _, _, raw in reader.messages([topics["/arm2/estop"]])]
+    assert len(pressed) == 1 and pressed[0][4] == 1  # std_msgs/Bool true, after the CDR header
     assert stamps and all(sim_start * 10**9 <= s < (sim_start + 3600) * 10**9 for s in stamps)  # sim time, not wall
     assert len(read_transitions(bag)) == len(stamps)  # the namespaced transition topic is the dataset
 

@@ -265,3 +265,213 @@ def test_ctrl_c_and_a_second_one_never_crash_the_recorder_or_cut_its_bag(spawn, 
     finally:
         busy.kill()
         busy.wait()
+
+
+# ---------------------------------------------------------------- watchdog and e-stop
+
+def _latest_status(node, name: str, seen: list):
+    from std_msgs.msg import String
+
+    return node.create_subscription(String, f"/{name}/status", lambda m: seen.append(json.loads(m.data)), 10)
+
+
+def test_sigkill_of_the_policy_driving_the_controller_zeroes_the_sims_torque(spawn, tmp_path):
+    """The policy node drives the realtime sim through its effort controller topic; killed
+    with SIGKILL (no goodbye), the sim's watchdog applies zero torque and latches the fault."""
+    from sensor_msgs.msg import JointState
+
+    from offline_rl_core.serving.checkpoint import save_checkpoint
+
+    served = save_checkpoint(tmp_path / "policy.pt", _checkpoint(0))
+    sim = spawn([sys.executable, "-m", "pusher_sim.node", "--ros-args",
+                 "-p", "effort_topic:=effort_controller/commands"], "sim")
+    policy = spawn([sys.executable, "-m", "pusher_policy.node", "--ros-args", "-p", f"checkpoint:={served}"], "policy")
+    efforts, statuses = [], []
+    with probe_node() as node:
+        node.create_subscription(JointState, "/pusher/state", lambda m: efforts.append(list(m.effort)), 100)
+        _latest_status(node, "sim", statuses)
+        # the policy drives: the applied torque is its (nonzero) command
+        assert node.spin_until(lambda: sum(any(e) for e in efforts[-5:]) == 5, 60), sim.output() + policy.output()
+        os.kill(policy.pid, signal.SIGKILL)
+        killed_at = len(efforts)
+        assert node.spin_until(lambda: any(not any(e) for e in efforts[killed_at:]), 10), sim.output()
+        first_zero = next(i for i in range(killed_at, len(efforts)) if not any(efforts[i]))
+        assert node.spin_until(lambda: len(efforts) > first_zero + 5, 10)
+        assert all(not any(e) for e in efforts[first_zero:])  # and stays zero: no one commands
+        assert node.spin_until(lambda: statuses and statuses[-1]["faults"].get("watchdog", {}).get("trips"), 10), \
+            statuses[-1:]
+    assert statuses[-1]["faults"]["watchdog"]["silent"] is True
+    assert sim.stop() == 0
+
+
+def test_the_estop_engages_the_sim_and_policy_and_only_estop_reset_releases_them(spawn, tmp_path):
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import Bool
+    from std_srvs.srv import Trigger
+
+    from offline_rl_core.serving.checkpoint import save_checkpoint
+
+    served = save_checkpoint(tmp_path / "policy.pt", _checkpoint(0))
+    sim = spawn([sys.executable, "-m", "pusher_sim.node", "--ros-args",
+                 "-p", "effort_topic:=effort_controller/commands"], "sim")
+    policy = spawn([sys.executable, "-m", "pusher_policy.node", "--ros-args", "-p", f"checkpoint:={served}"], "policy")
+    efforts, actions, sim_status, policy_status = [], [], [], []
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    with probe_node() as node:
+        node.create_subscription(JointState, "/pusher/state", lambda m: efforts.append(list(m.effort)), 100)
+        node.create_subscription(JointState, "/policy/action", actions.append, 100)
+        _latest_status(node, "sim", sim_status)
+        _latest_status(node, "policy", policy_status)
+        estop = node.create_publisher(Bool, "/estop", latched)
+        reset = node.create_client(Trigger, "/estop/reset")
+        assert node.spin_until(lambda: sum(any(e) for e in efforts[-5:]) == 5, 60), sim.output() + policy.output()
+        estop.publish(Bool(data=True))
+        assert node.spin_until(lambda: sim_status and sim_status[-1]["estop"]["engaged"] and policy_status
+                               and policy_status[-1]["estop"]["engaged"], 10), (sim_status[-1:], policy_status[-1:])
+        engaged_at, answered_at = len(efforts), len(actions)
+        assert node.spin_until(lambda: len(efforts) > engaged_at + 10, 10)
+        assert all(not any(e) for e in efforts[engaged_at:])  # the safe command, every tick
+        assert len(actions) == answered_at  # the policy answers nothing
+        assert node.spin_until(lambda: policy_status[-1]["rejected"].get("estop"), 10)
+
+        def call():
+            assert reset.wait_for_service(timeout_sec=10)
+            future = reset.call_async(Trigger.Request())
+            assert node.spin_until(future.done, 10)
+            return future.result()
+
+        refused = call()  # the button is still down
+        assert not refused.success and "still held" in refused.message
+        estop.publish(Bool(data=False))  # released on the topic: still engaged
+        node.spin_for(0.5)
+        assert sim_status[-1]["estop"]["engaged"] and not any(efforts[-1])
+        assert node.spin_until(lambda: call().success and not sim_status[-1]["estop"]["engaged"]
+                               and not policy_status[-1]["estop"]["engaged"], 20), (sim_status[-1], policy_status[-1])
+        # released: the policy drives again
+        assert node.spin_until(lambda: len(actions) > answered_at and any(efforts[-1]), 20), policy.output()
+    assert sim.stop() == 0
+
+
+def test_the_policy_node_sends_its_controller_the_safe_command_when_its_states_stop(spawn, tmp_path):
+    """A forward controller holds the last command: when the states stop coming (the arm's
+    driver, the network), the policy node driving it sends zero torque once, fault latched."""
+    from geometry_msgs.msg import PointStamped
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import Float64MultiArray
+
+    from offline_rl_core.serving.checkpoint import save_checkpoint
+
+    served = save_checkpoint(tmp_path / "policy.pt", _checkpoint(0))
+    policy = spawn([sys.executable, "-m", "pusher_policy.node", "--ros-args", "-p", f"checkpoint:={served}"], "policy")
+    torques, statuses = [], []
+    with probe_node() as node:
+        node.create_subscription(Float64MultiArray, "/effort_controller/commands",
+                                 lambda m: torques.append(list(m.data)), 100)
+        _latest_status(node, "policy", statuses)
+        pubs = {t: node.create_publisher(m, f"/{t}", 10) for t, m in (
+            ("pusher/target", PointStamped), ("pusher/fingertip", PointStamped), ("pusher/state", JointState))}
+        assert node.spin_until(lambda: all(p.get_subscription_count() for p in pubs.values())
+                               and node.count_publishers("/effort_controller/commands"), 60), policy.output()
+        stamp = [START]
+
+        def send_state():
+            stamp[0] += TICK
+            sec, nsec = divmod(stamp[0], 10**9)
+            for topic in ("pusher/target", "pusher/fingertip"):
+                msg = PointStamped()
+                msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nsec
+                msg.point.x, msg.point.y = 0.1, 0.05
+                pubs[topic].publish(msg)
+            msg = JointState(name=["shoulder", "elbow"], position=[0.3, -1.2], velocity=[0.5, -0.1])
+            msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nsec
+            pubs["pusher/state"].publish(msg)
+
+        while not node.spin_until(lambda: len(torques) >= 3, 0.05):  # the policy drives
+            send_state()
+        answered = len(torques)
+        send_state()  # the last state: answered with a nonzero torque
+        assert node.spin_until(lambda: len(torques) > answered, 10) and any(torques[-1]), torques[-3:]
+        # the states stop: the controller's next command is zero torque, and the fault is latched
+        last = len(torques)
+        assert node.spin_until(lambda: len(torques) > last, 10), policy.output()
+        assert torques[last] == [0.0, 0.0]
+        assert node.spin_until(lambda: statuses and statuses[-1]["faults"].get("watchdog"), 10), statuses[-1:]
+
+
+def test_the_mux_refuses_an_effort_that_pushes_a_joint_further_beyond_its_limit(spawn, tmp_path):
+    """Soft limits on the measured state: with the shoulder beyond its position limit, an
+    action pushing it further out is refused (counted as beyond limits), one back is forwarded."""
+    from sensor_msgs.msg import JointState
+
+    from offline_rl_core.task.spec import load_task
+
+    doc = load_task("pusher_reach").describe()
+    doc["safety"] = {"position_limits": [[-0.5, 0.5], [-3.0, 3.0]]}
+    task_file = tmp_path / "limited.yaml"
+    task_file.write_text(json.dumps(doc))
+    mux = spawn(ros2("run", "corrections", "mux", "--ros-args", "-p", f"task:={task_file}"), "mux")
+    with probe_node() as node:
+        commands = []
+        node.create_subscription(JointState, "/pusher/command/policy", commands.append, 10)
+        action_pub = node.create_publisher(JointState, "/policy/action", 10)
+        state_pub = node.create_publisher(JointState, "/pusher/state", 10)
+        assert node.spin_until(lambda: action_pub.get_subscription_count() and state_pub.get_subscription_count(), 60), \
+            mux.output()
+
+        def send(effort):
+            state = JointState(name=["shoulder", "elbow"], position=[0.8, 0.0], velocity=[0.0, 0.0])
+            state_pub.publish(state)  # the shoulder 0.3 rad beyond its high limit
+            action = JointState(name=["shoulder", "elbow"], effort=effort)
+            action.header.stamp.sec = 3
+            action_pub.publish(action)
+
+        for _ in range(50):  # until the mux has read a state: then outward is refused
+            send([0.25, 0.0])
+            if node.spin_until(lambda: "beyond limits" in mux.output(), 0.5):
+                break
+        assert "further beyond its position limits" in mux.output(), mux.output()
+        commands.clear()
+        for _ in range(20):
+            send([-0.25, 0.0])
+            if node.spin_until(lambda: commands, 0.5):
+                break
+        assert commands and list(commands[-1].effort) == [-0.25, 0.0], mux.output()
+    assert mux.stop() == 0, mux.output()
+
+
+def test_the_sim_refuses_torque_that_pushes_a_joint_further_beyond_its_limit(spawn, tmp_path):
+    """The realtime sim, its shoulder starting beyond the task's high limit: full torque
+    outward is refused (counted as beyond limits, nothing applied), torque back is applied."""
+    from sensor_msgs.msg import JointState
+
+    from offline_rl_core.nodes.sim_loop import SimLoop
+    from offline_rl_core.task.spec import load_task
+
+    probe = SimLoop("realtime", seed=0)
+    start = float(probe.start_episode().position[0])  # the sim's first pose (reset seed 0)
+    doc = load_task("pusher_reach").describe()
+    doc["safety"] = {"position_limits": [[start - 3.0, start - 0.2], [-9.0, 9.0]]}
+    task_file = tmp_path / "limited.yaml"
+    task_file.write_text(json.dumps(doc))
+    sim = spawn([sys.executable, "-m", "pusher_sim.node", "--ros-args", "-p", f"task:={task_file}"], "sim")
+    efforts, statuses = [], []
+    with probe_node() as node:
+        node.create_subscription(JointState, "/pusher/state", lambda m: efforts.append(list(m.effort)), 100)
+        _latest_status(node, "sim", statuses)
+        command_pub = node.create_publisher(JointState, "/pusher/command/policy", 10)
+        assert node.spin_until(lambda: command_pub.get_subscription_count() and efforts, 60), sim.output()
+
+        def drive(effort, until, timeout=10.0):
+            deadline = time.monotonic() + timeout
+            while time.monotonic() < deadline:
+                command_pub.publish(JointState(name=["shoulder", "elbow"], effort=effort))
+                if node.spin_until(until, 0.02):
+                    return True
+            return False
+
+        assert drive([1.0, 0.0], lambda: statuses and statuses[-1]["rejected"].get("beyond limits")), \
+            sim.output() + str(statuses[-1:])
+        assert all(e[0] <= 0.0 for e in efforts)  # no outward torque was ever applied
+        assert drive([-1.0, 0.0], lambda: efforts[-1] == [-0.5, 0.0]), sim.output()  # back inside: taken
+    assert sim.stop() == 0, sim.output()

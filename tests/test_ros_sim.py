@@ -138,11 +138,14 @@ def test_realtime_sim_takes_torques_as_an_effort_controller_does(spawn):
         assert node.spin_until(lambda: torques.get_subscription_count() and transitions, 30), sim.output()
 
         def held(row):
-            return list(row.data[8:10]) == [0.5, -1.0] and row.data[24] == 2.0  # action clipped, source policy
+            return list(row.data[8:10]) == [0.5, -1.0] and row.data[24] == 2.0  # the action, source policy
 
         # held like a zero-order hold until replaced: every tick after it steps with it
-        assert node.spin_until(lambda: torques.publish(Float64MultiArray(data=[0.25, -3.0])) or
+        assert node.spin_until(lambda: torques.publish(Float64MultiArray(data=[0.25, -0.5])) or
                                sum(held(t) for t in transitions) >= 3, 20), sim.output()
+        # torques beyond the motors' are refused and counted, never clipped to full
+        assert node.spin_until(lambda: torques.publish(Float64MultiArray(data=[0.25, -3.0])) or
+                               "beyond limits" in sim.output(), 20), sim.output()
     assert sim.stop() == 0
     # its timing report comes after Ctrl-C has shut the context (and rosout) down: printed, not lost
     assert "sim: realtime timing:" in sim.output() and "Failed to publish" not in sim.output(), sim.output()

@@ -64,8 +64,13 @@ def test_pusher7_in_lockstep_takes_controller_commands_and_publishes_its_task(sp
         assert node.spin_until(lambda: any(s["rejected"].get("wrong length") for s in statuses), 20), sim.output()
         assert not transitions
 
-        # torques in N·m (the motors' ctrlrange [-2, 2]) in the controller's joint order
-        torques = [2.0, -1.0, 0.5, -3.0, 0.0, 1.0, -0.25]  # -3 N·m: beyond the controller's limits, clipped
+        # beyond the controller's limits (-3 N·m, the motors' ctrlrange is [-2, 2]): refused, never clipped
+        commands.publish(Float64MultiArray(data=[2.0, -1.0, 0.5, -3.0, 0.0, 1.0, -0.25]))
+        assert node.spin_until(lambda: any(s["rejected"].get("beyond limits") for s in statuses), 20), sim.output()
+        assert not transitions
+
+        # torques in N·m in the controller's joint order
+        torques = [2.0, -1.0, 0.5, -1.5, 0.0, 1.0, -0.25]
         commands.publish(Float64MultiArray(data=torques))
         assert node.spin_until(lambda: transitions and any(stamp_ns(s) == stamp_ns(first) + TICK for s in states),
                                20), sim.output()
@@ -79,8 +84,8 @@ def test_pusher7_in_lockstep_takes_controller_commands_and_publishes_its_task(sp
         assert np.array_equal(moved.position, env.joint_positions)  # the arm moved, as in this process
         assert np.allclose(moved.effort, np.clip(torques, -2, 2))  # what the motors applied, N·m
 
-        assert node.spin_until(lambda: statuses[-1]["messages"].get("effort_controller/commands") == 2, 20)
-        assert statuses[-1]["rejected"] == {"wrong length": 1}
+        assert node.spin_until(lambda: statuses[-1]["messages"].get("effort_controller/commands") == 3, 20)
+        assert statuses[-1]["rejected"] == {"wrong length": 1, "beyond limits": 1}
     assert sim.stop() == 0
 
 

@@ -48,8 +48,10 @@ def test_a_seven_joint_policy_is_served_on_its_tasks_topics(spawn, arm):
     task = load_task(arm["task_file"])
     policy = load_policy(arm["checkpoint"], task)
     builder = ObservationBuilder(task)
-    # no task given: the node serves the one the checkpoint records
-    node_proc = spawn(ros2("run", "policy", "node", "--checkpoint", arm["checkpoint"]), "policy")
+    # no task given: the node serves the one the checkpoint records; lockstep, as this test
+    # sends a state at a time (no watchdog: a pause between states is no fault)
+    node_proc = spawn(ros2("run", "policy", "node", "--checkpoint", arm["checkpoint"], "--ros-args",
+                           "-p", "mode:=lockstep"), "policy")
     mux = spawn(ros2("run", "corrections", "mux", "--ros-args", "-p", f"task:={arm['task_file']}"), "mux")
     rng = np.random.default_rng(5)
     actions, commands, forwarded = [], [], []

@@ -204,3 +204,217 @@ def test_sros2_permissions_follow_the_schemas_and_grant_only_what_each_node_uses
     assert "rr/pusher/resetReply" in topics("sim", "publish") and "rq/pusher/resetRequest" in topics("sim", "subscribe")
     assert "rq/pusher/resetRequest" in topics("operator", "publish")
     assert not any(t.endswith("Request") for t in topics("policy", "publish"))
+
+
+# ---------------------------------------------------------------- watchdog, e-stop, limits
+
+def _position_task(**safety):
+    """pusher_reach's arm behind a position interface (hold the position is its safe command)."""
+    from offline_rl_core.task.spec import load_task, task_from_dict
+
+    doc = load_task("pusher_reach").describe()
+    doc["command"] = {**doc["command"], "interface": "position", "scale": [3.0, 3.0], "offset": [0.0, 0.0]}
+    if safety:
+        doc["safety"] = safety
+    return task_from_dict(doc)
+
+
+def test_the_watchdog_arms_on_the_first_command_trips_on_silence_and_latches_until_reset():
+    from offline_rl_core.nodes.watchdog import CommandWatchdog
+
+    dog = CommandWatchdog(0.06)
+    assert not dog.check(100.0) and dog.fault() is None  # nothing came yet: not a fault
+    dog.fed(100.0)
+    assert not dog.check(100.05)
+    assert dog.check(100.07) and dog.fault() == {"trips": 1, "silent": True, "timeout_s": 0.06}
+    assert dog.check(100.5) and dog.trips == 1  # one silence, one trip
+    dog.fed(100.6)
+    assert not dog.check(100.61)
+    assert dog.fault() == {"trips": 1, "silent": False, "timeout_s": 0.06}  # latched after commands came back
+    dog.reset()
+    assert dog.fault() is None
+    with pytest.raises(ValueError):
+        CommandWatchdog(0.0)
+
+
+def test_a_realtime_sim_applies_zero_torque_when_its_commands_go_silent_and_resumes_on_one():
+    from offline_rl_core.nodes.sim_loop import SimLoop
+    from offline_rl_core.task.spec import load_task
+
+    task = load_task("pusher_reach")
+    assert task.command_timeout == pytest.approx(3 * task.control_period) and task.safe_command == "zero"
+    loop = SimLoop("realtime", task=task)
+    loop.start_episode()
+    loop.command(None, np.float32([1.0, -1.0]), 2, now=0.0)
+    period = task.control_period
+    torques = [loop.tick(now=k * period).next_state.torque.tolist() for k in range(1, 6)]
+    assert torques[:3] == [[0.5, -0.5]] * 3  # within the timeout the command holds (N·m: gear 0.5)
+    assert torques[4] == [0.0, 0.0] and loop.faults()["watchdog"]["trips"] == 1 and loop.safe_steps >= 1
+    loop.command(None, np.float32([0.2, 0.2]), 2, now=6 * period)
+    assert loop.tick(now=6.5 * period).next_state.torque.tolist() == pytest.approx([0.1, 0.1])
+    assert loop.faults()["watchdog"]["silent"] is False  # still reported: latched until estop/reset
+    loop.reset_faults()
+    assert loop.faults() == {}
+
+
+def test_without_a_clock_the_sim_steps_as_before_so_lockstep_runs_keep_their_bytes():
+    from offline_rl_core.nodes.sim_loop import SimLoop
+
+    loop = SimLoop("lockstep")
+    state = loop.start_episode()
+    step = loop.command(state.stamp_ns, np.float32([1.0, 1.0]), 2)
+    assert step is not None and step.next_state.torque.tolist() == [0.5, 0.5] and loop.faults() == {}
+
+
+def test_the_safe_command_holds_the_position_for_a_position_interface():
+    from offline_rl_core.nodes.watchdog import safe_action
+
+    task = _position_task()
+    assert task.safe_command == "hold"
+    assert safe_action(task, [0.3, -1.5]).tolist() == pytest.approx([0.1, -0.5])  # position / scale
+    assert safe_action(task) is None  # no state heard: nothing to hold
+    assert _position_task(safe_command="zero").safe_command == "zero"
+
+
+def test_the_estop_engages_on_true_and_only_a_reset_releases_it_once_the_button_is_up():
+    from offline_rl_core.nodes.estop import EStopLatch
+
+    latch = EStopLatch()
+    assert latch.reset() == (True, "not engaged")
+    assert latch.on_estop(True) and not latch.on_estop(True) and latch.engaged
+    ok, message = latch.reset()
+    assert not ok and "still held" in message and latch.engaged
+    assert not latch.on_estop(False) and latch.engaged  # the topic never releases it
+    assert latch.reset() == (True, "released") and not latch.engaged
+    assert latch.as_dict() == {"engaged": False, "held": False, "engagements": 1}
+
+
+def test_a_sim_under_estop_applies_the_safe_command_and_does_not_resume_the_old_one_after_reset():
+    from offline_rl_core.nodes.sim_loop import SimLoop
+
+    loop = SimLoop("realtime")
+    loop.start_episode()
+    loop.command(None, np.float32([1.0, 1.0]), 2, now=0.0)
+    assert loop.tick(now=0.01).next_state.torque.tolist() == [0.5, 0.5]
+    loop.estop.on_estop(True)
+    loop.estop_engaged()
+    assert loop.tick(now=0.02).next_state.torque.tolist() == [0.0, 0.0]
+    loop.estop.on_estop(False)
+    assert loop.estop.reset()[0]
+    # released: the safe command holds until a fresh command comes; no fault for the e-stop's silence
+    assert [loop.tick(now=0.02 * k).next_state.torque.tolist() for k in (2, 10)] == [[0.0, 0.0]] * 2
+    assert loop.faults() == {}
+
+
+def test_commands_beyond_the_controllers_range_or_the_joint_limits_are_refused_not_clipped():
+    from offline_rl_core.nodes.joint_messages import action_from_command, action_from_effort
+    from offline_rl_core.task.spec import load_task
+
+    task = load_task("pusher_reach")
+    assert action_from_command(task, [0.5, -0.5])[0].tolist() == [1.0, -1.0]  # the bounds themselves
+    for torques in ([1e300, 0.0], [0.5001, 0.0]):
+        action, problem = action_from_command(task, torques)
+        assert action is None and problem.reason == "beyond limits", problem
+    assert action_from_effort([], [1.0 + 1e-9, -1.0])[1] is None  # float rounding is no command beyond the range
+    limited = _position_task(position_limits={"shoulder": [-1.0, 1.0]})
+    assert action_from_command(limited, [0.9, 2.5])[1] is None  # the elbow has no limit but the range
+    action, problem = action_from_command(limited, [1.2, 0.0])
+    assert action is None and problem.reason == "beyond limits" and "shoulder" in problem
+
+
+def test_a_task_safety_section_is_checked_and_a_task_without_one_keeps_its_digest():
+    from offline_rl_core.task.spec import load_task, task_from_dict
+
+    task = load_task("pusher_reach")
+    assert "safety" not in task.describe()
+    doc = task.describe()
+    doc["safety"] = {"command_timeout": 0.1, "velocity_limits": {"elbow": 5.0}, "slew": 0.25}
+    safe = task_from_dict(doc)
+    assert safe.command_timeout == 0.1 and safe.safety.velocity_limits == (float("inf"), 5.0)
+    assert safe.digest != task.digest and task_from_dict(safe.describe()) == safe  # bags and checkpoints keep it
+    for field, value, expected in (("command_timeout", 0, "a number > 0"), ("safe_command", "brake", "one of"),
+                                   ("position_limits", {"wrist": [0, 1]}, "'wrist', not one of"),
+                                   ("position_limits", {"elbow": [1, 0]}, "low < high")):
+        with pytest.raises(UserError, match=f"safety.{field}.*{expected}|{expected}"):
+            task_from_dict({**task.describe(), "safety": {field: value}})
+
+
+def test_the_slew_limiter_ramps_a_far_command_and_passes_near_ones():
+    from offline_rl_core.nodes.command_limits import SlewLimiter
+
+    ramp = SlewLimiter(0.25)
+    assert ramp.limit([0.0, 0.0]).tolist() == [0.0, 0.0]
+    assert ramp.limit([1.0, -0.1]).tolist() == pytest.approx([0.25, -0.1])
+    assert ramp.limit([1.0, -0.1]).tolist() == pytest.approx([0.5, -0.1]) and ramp.limited == 2
+    ramp.restart(np.zeros(2))  # after an e-stop: from the safe command
+    assert ramp.limit([-1.0, 0.0]).tolist() == pytest.approx([-0.25, 0.0])
+    assert SlewLimiter(None).limit([1.0, -1.0]).tolist() == [1.0, -1.0]
+
+
+def test_a_producers_actions_are_kept_inside_the_joint_limits_so_none_is_refused():
+    from offline_rl_core.nodes.command_limits import action_bounds, within_limits
+    from offline_rl_core.nodes.joint_messages import action_from_command, command_from_action
+    from offline_rl_core.task.spec import load_task
+
+    task = _position_task(position_limits={"shoulder": [-1.5, 0.3]})
+    low, high = action_bounds(task)
+    assert low.tolist() == pytest.approx([-0.5, -1.0]) and high.tolist() == pytest.approx([0.1, 1.0])
+    rng = np.random.default_rng(0)
+    for action in np.tanh(rng.normal(0, 2, (200, 2))).astype(np.float32):  # exploration's samples
+        kept = within_limits(task, action)
+        assert action_from_command(task, command_from_action(task.command, kept))[1] is None
+    assert within_limits(load_task("pusher_reach"), np.float32([0.9, -1.0])).tolist() == pytest.approx([0.9, -1.0])
+
+
+# ---------------------------------------------------------------- soft limits on the measured state
+
+def _limited_effort_task(**safety):
+    """pusher_reach (an effort interface) with joint limits on its measured state."""
+    from offline_rl_core.task.spec import load_task, task_from_dict
+
+    doc = load_task("pusher_reach").describe()
+    doc["safety"] = safety
+    return task_from_dict(doc)
+
+
+def test_an_effort_beyond_the_measured_limits_is_refused_outward_and_taken_back_inward():
+    from offline_rl_core.nodes.state_limits import StateLimits
+
+    limits = StateLimits(_limited_effort_task(position_limits=[[-1.0, 1.0], [-2.0, 2.0]], velocity_limits=[5.0, 5.0]))
+    inside, beyond_high = [0.0, 0.0], [1.2, 0.0]
+    assert limits.check(np.float32([1.0, 1.0]), inside, [0.0, 0.0]) is None
+    refused = limits.check(np.float32([0.3, 0.0]), beyond_high, [0.0, 0.0])
+    assert refused.reason == "beyond limits" and "shoulder" in refused and "position limits" in refused
+    assert limits.check(np.float32([-0.3, 1.0]), beyond_high, [0.0, 0.0]) is None  # back inside: taken
+    assert limits.check(np.float32([0.0, 0.0]), beyond_high, [0.0, 0.0]) is None  # no effort: taken
+    assert limits.check(np.float32([0.0, -0.5]), [0.0, -2.5], [0.0, 0.0]).reason == "beyond limits"
+    too_fast = limits.check(np.float32([0.0, 0.5]), inside, [0.0, 6.0])
+    assert too_fast.reason == "beyond limits" and "velocity_limits" in too_fast
+    assert limits.check(np.float32([0.0, -0.5]), inside, [0.0, 6.0]) is None  # braking: taken
+    assert not StateLimits(_limited_effort_task()).active  # pusher_reach as shipped: no limits, nothing checked
+
+
+def test_a_realtime_sim_stops_pushing_a_joint_past_its_limit_and_takes_a_command_back():
+    from offline_rl_core.nodes.sim_loop import SimLoop
+
+    probe = SimLoop("realtime", task=_limited_effort_task())
+    probe.start_episode()
+    start = float(probe.env.joint_positions[0])  # the same seed resets the arm to the same pose
+    high = start + 0.2
+    loop = SimLoop("realtime", task=_limited_effort_task(position_limits=[[start - 1.0, high], [-9.0, 9.0]]))
+    loop.start_episode()
+    outward = np.float32([1.0, 0.0])
+    assert loop.beyond_state_limits(outward) is None  # the reset pose is inside
+    loop.command(None, outward, 2, now=None)
+    tick, state = 0, None
+    # no clock: the watchdog is not in this test
+    while loop.limit_steps == 0:  # full torque until the shoulder passes its high limit
+        tick += 1
+        assert tick < 200, "the shoulder never reached its limit under full torque"
+        state = loop.tick(now=None).next_state
+    assert state.position[0] > high and loop.beyond_state_limits(outward).reason == "beyond limits"
+    assert loop.tick(now=None).next_state.torque.tolist() == [0.0, 0.0]  # held outward: safe applied
+    back = np.float32([-1.0, 0.0])
+    assert loop.beyond_state_limits(back) is None
+    loop.command(None, back, 2, now=None)
+    assert loop.tick(now=None).next_state.torque.tolist() == [-0.5, 0.0]

@@ -33,6 +33,8 @@ REASONS = (
     "bad checkpoint",   # a checkpoint file replaced by one that does not load
     "non-finite action",  # the policy's output for a state was not finite: no answer sent
     "policy error",     # the policy raised on a state (a bug or a checkpoint no check caught): no answer sent
+    "beyond limits",    # a command outside the controller's range or the task's joint limits: refused, not clipped
+    "estop",            # a command or row that came while the e-stop is engaged: not acted on, not trained on
 )
 
 

@@ -100,11 +100,17 @@ def bag_summary(path: str, data: Transitions) -> dict:
 
 
 def decode_bag(path: str) -> tuple[Transitions, dict]:
-    """One bag's transitions and its summary (a worker's task)."""
+    """One bag's transitions and its summary (a worker's task); rows recorded while the
+    e-stop was engaged are left out, counted as ``estop_dropped`` (only for a bag that
+    records the e-stop, so the summaries of others keep their bytes)."""
     from .bag import read_transitions
+    from .bag.estop_spans import drop_engaged
 
-    data = read_transitions(path)
-    return data, bag_summary(path, data)
+    data, dropped = drop_engaged(path, read_transitions(path))
+    summary = bag_summary(path, data)
+    if dropped is not None:
+        summary["estop_dropped"] = dropped
+    return data, summary
 
 
 def count_transitions(path: str) -> int:

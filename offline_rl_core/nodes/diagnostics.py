@@ -87,7 +87,7 @@ class StatusDiagnosis:
         if new:
             reasons = ", ".join(f"{k}: {n}" for k, n in sorted(new.items()))
             problems.append((WARN, f"{sum(new.values())} messages refused since the last report ({reasons})"))
-        for check in self.checks:
+        for check in (safety_checks,) + self.checks:
             problems += list(check(status))
         if problems:
             problems.sort(key=lambda p: -p[0])
@@ -99,6 +99,20 @@ class StatusDiagnosis:
 
 
 # ------------------------------------------------------------------ each node's checks
+def safety_checks(status: dict) -> list[tuple[int, str]]:
+    """Every node that consumes commands: an engaged e-stop is an ERROR (the arm is stopped
+    until ``estop/reset``); a latched fault (a watchdog that tripped) a WARN until the reset."""
+    out = []
+    estop = status.get("estop")
+    if isinstance(estop, dict) and estop.get("engaged"):
+        out.append((ERROR, "e-stop engaged: the safe command applies until estop/reset"))
+    faults = status.get("faults")
+    if isinstance(faults, dict) and faults.get("watchdog"):
+        trips = faults["watchdog"].get("trips") if isinstance(faults["watchdog"], dict) else None
+        out.append((WARN, f"watchdog tripped {trips} time(s): commands went silent (latched until estop/reset)"))
+    return out
+
+
 def policy_checks(status: dict) -> list[tuple[int, str]]:
     out = []
     age = status.get("weights_age_s")

@@ -23,6 +23,9 @@ from ..common.rejections import Rejection
 # it: a finite value beyond it is garbage, and the policy's network would turn it into one.
 VALUE_LIMIT = 1e4
 _ARM = ", ".join(JOINT_NAMES)
+# Float rounding between an action and its command (offset + scale * action, and back) is not
+# an out-of-range command: within this of a bound it is the bound.
+ROUNDING = 1e-6
 
 
 def joint_index(names, n_values: int, what: str,
@@ -64,10 +67,20 @@ def _bad_values(values: np.ndarray, what: str) -> Rejection | None:
     return None
 
 
+def beyond_action_range(action: np.ndarray, what: str = "effort") -> Rejection | None:
+    """An action outside [-1, 1] (the controller's range) is refused: clipping it would send
+    full effort for a command that meant something else (a unit mistake, garbage)."""
+    worst = float(np.max(np.abs(action))) if action.size else 0.0
+    if worst > 1.0 + ROUNDING:
+        return Rejection("beyond limits", f"{what} {worst:.6g} beyond the action range [-1, 1] (the controller's "
+                                          "limits): refused, not clipped")
+    return None
+
+
 def action_from_effort(names, effort, allow_empty: bool = False,
                        joints: tuple[str, ...] = JOINT_NAMES) -> tuple[np.ndarray | None, Rejection | None]:
-    """A command's action in [-1, 1] (float32, clipped, in ``joints`` order: the task's
-    command joints), or (None, why it is ignored).
+    """A command's action in [-1, 1] (float32, in ``joints`` order: the task's command
+    joints), or (None, why it is ignored): one outside [-1, 1] is refused.
 
     An empty effort is (None, None) where ``allow_empty`` (a teleop *yield*).
     """
@@ -82,7 +95,10 @@ def action_from_effort(names, effort, allow_empty: bool = False,
     action = np.array(effort, dtype=np.float64)[index]
     if not np.all(np.isfinite(action)):
         return None, Rejection("non-finite", "effort is not finite")
-    return np.clip(action, -1.0, 1.0).astype(np.float32), None
+    problem = beyond_action_range(action)
+    if problem:
+        return None, problem
+    return np.clip(action, -1.0, 1.0).astype(np.float32), None  # only rounding is clipped
 
 
 def joints_from_state(names, position, velocity, joints: tuple[str, ...] = JOINT_NAMES,
@@ -139,18 +155,25 @@ def torques_from_action(action) -> np.ndarray:
 
 
 def action_from_torques(torques) -> tuple[np.ndarray | None, Rejection | None]:
-    """The action (float32, clipped to [-1, 1]) for commanded torques (N·m), or (None, why)."""
+    """The action (float32, in [-1, 1]) for commanded torques (N·m), or (None, why): torques
+    beyond the motors' are refused."""
     torques = np.asarray(torques, np.float64).reshape(-1)
     if torques.shape != (ACT_DIM,):
         return None, Rejection("wrong length", f"expected {ACT_DIM} torques ({_ARM}), got {torques.size}")
     if not np.all(np.isfinite(torques)):
         return None, Rejection("non-finite", "torques are not finite")
-    return np.clip(torques / actuator_gear(), -1.0, 1.0).astype(np.float32), None
+    action = torques / actuator_gear()
+    problem = beyond_action_range(action, "torque / gear")
+    if problem:
+        return None, problem
+    return np.clip(action, -1.0, 1.0).astype(np.float32), None
 
 
 def action_from_command(task, values, names=()) -> tuple[np.ndarray | None, Rejection | None]:
-    """A controller's command as the action: ``(command - offset) / scale``, float32, clipped
-    to [-1, 1] (the controller's limits), or (None, why it is refused).
+    """A controller's command as the action: ``(command - offset) / scale``, float32, or (None,
+    why it is refused): a command outside the controller's limits (an action outside [-1, 1])
+    or, for a position or velocity interface, outside the task's joint limits
+    (``safety.position_limits`` / ``velocity_limits``) is refused and counted, never clipped.
 
     ``values``: in the task's units (``command.interface``), in ``command.joints`` order, as a
     forward_command_controller takes them (a Float64MultiArray), or named by ``names`` (a
@@ -167,5 +190,32 @@ def action_from_command(task, values, names=()) -> tuple[np.ndarray | None, Reje
     values = values[index]
     if not np.all(np.isfinite(values)):
         return None, Rejection("non-finite", "command is not finite")
+    problem = beyond_joint_limits(task, values)
+    if problem:
+        return None, problem
     action = (values - np.asarray(task.command.offset)) / np.asarray(task.command.scale)
-    return np.clip(action, -1.0, 1.0).astype(np.float32), None
+    problem = beyond_action_range(action, f"{task.command.interface} command / scale")
+    if problem:
+        return None, problem
+    return np.clip(action, -1.0, 1.0).astype(np.float32), None  # only rounding is clipped
+
+
+def beyond_joint_limits(task, values) -> Rejection | None:
+    """A position (velocity) command, in the command joints' order, outside the task's joint
+    position (velocity) limits; None for an effort interface or a task without limits."""
+    safety, command = task.safety, task.command
+    if command.interface == "position" and safety.position_limits:
+        bounds = dict(zip(task.state.joints, safety.position_limits))
+        for joint, value in zip(command.joints, values):
+            low, high = bounds.get(joint, (-np.inf, np.inf))
+            if not low - ROUNDING <= value <= high + ROUNDING:
+                return Rejection("beyond limits", f"position {value:.6g} of {joint} outside its limits "
+                                                  f"[{low:g}, {high:g}] (safety.position_limits)")
+    if command.interface == "velocity" and safety.velocity_limits:
+        bounds = dict(zip(task.state.joints, safety.velocity_limits))
+        for joint, value in zip(command.joints, values):
+            bound = bounds.get(joint, np.inf)
+            if abs(value) > bound + ROUNDING:
+                return Rejection("beyond limits", f"velocity {value:.6g} of {joint} beyond ±{bound:g} "
+                                                  "(safety.velocity_limits)")
+    return None

@@ -42,6 +42,7 @@ from ..data.bag.cdr import TransitionDecodeError, decode_transition_payloads
 from ..common.errors import UserError
 from ..learners.config import TrainConfig
 from ..learners.online import OnlineLearner, OnlineSettings, PriorMismatch
+from .estop import EStopLatch
 from .joint_messages import VALUE_LIMIT
 from ..common.output_paths import check_output_dir
 from ..serving.checkpoint import checkpoint_task, load_checkpoint, save_checkpoint
@@ -104,7 +105,7 @@ def _count(value: float) -> bool:
 
 class LearnerService:
     def __init__(self, cfg: LearnerServiceConfig, log=print):
-        from ..runs.training_run import load_bags, task_of_run
+        from ..runs.training_run import estop_dropped_of, load_bags, task_of_run
 
         self.cfg, self.log = cfg, log
         self.out = check_output_dir(cfg.out, "parameter out:")  # before the bags load: a bad path is refused at once
@@ -113,7 +114,10 @@ class LearnerService:
         given = cfg.task or (checkpoint_task(prior) if prior is not None and "task" in prior else None)
         self.task = task_of_run(cfg.bags, given)
         self.layout = Layout(self.task.obs_dim, self.task.act_dim)
-        offline = self._offline(cfg.bags, cfg.from_topics, self.task, load_bags)
+        offline, bags_read = self._offline(cfg.bags, cfg.from_topics, self.task, load_bags)
+        self.offline_estop_dropped = estop_dropped_of(bags_read)  # None: no offline bag records the e-stop
+        if self.offline_estop_dropped is not None:
+            log(f"offline half: left out {self.offline_estop_dropped} transitions recorded while the e-stop was engaged")
         # the live join of the task's raw topics (None: the transitions come on pusher/transition)
         self.live = LiveJoin(self.task, cfg.live) if cfg.from_topics else None
         self.idle_since = time.monotonic()  # when training last stopped (the live join's quiet rule)
@@ -129,6 +133,7 @@ class LearnerService:
         except PriorMismatch as exc:
             raise UserError(f"{cfg.prior}: {exc}") from None
         self.rejected = RejectionCounter()  # live transitions refused, by reason (never trained on)
+        self.estop = EStopLatch()  # while engaged, every live transition is dropped (counted as estop)
         self.received = 0  # live transitions accepted since this process started
         self.started = time.monotonic()
         self.last_save = time.monotonic()
@@ -146,29 +151,35 @@ class LearnerService:
         self.weights = self.learner.weights()  # the version the actor should be acting on
 
     @staticmethod
-    def _offline(bags: list[str], from_topics: bool, task: TaskSpec, load_bags) -> Transitions:
+    def _offline(bags: list[str], from_topics: bool, task: TaskSpec, load_bags) -> tuple[Transitions, list[dict]]:
         """The offline bags: their transitions, or (raw topics) those joined from a bag
-        that holds none."""
+        that holds none; and each bag's summary."""
         if not from_topics:
-            return load_bags(bags, task=task)[0]
+            return load_bags(bags, task=task)
         from ..data.bag.reader import open_bag, transition_topic
 
-        parts = []
+        parts, summaries = [], []
         for bag in bags:
             with open_bag(bag) as reader:
                 joined = transition_topic(reader) is None
-            parts.append(load_bags([bag], from_topics=joined or None, task=task)[0])
+            data, summary = load_bags([bag], from_topics=joined or None, task=task)
+            parts.append(data)
+            summaries += summary
         if len(parts) == 1:
-            return parts[0]
+            return parts[0], summaries
         offset = 0
         for part in parts:  # episode ids unique across bags, as load_bags keeps them
             part.episode = part.episode - part.episode.min() + offset
             offset = int(part.episode.max()) + 1
-        return Transitions.concatenate(parts)
+        return Transitions.concatenate(parts), summaries
 
     # ---------------------------------------------------------------- input
     def receive(self, raw: bytes) -> Rejection | None:
         """One raw ``/pusher/transition``; returns why it was rejected (counted), or None."""
+        if self.estop.engaged:  # the arm applies the safe command: those steps say nothing of the policy
+            rejection = Rejection("estop", "a transition while the e-stop is engaged: not trained on")
+            self.rejected.add(rejection)
+            return rejection
         try:
             row = decode_transition_payloads([bytes(raw)], self.layout)[0]
         except TransitionDecodeError as exc:
@@ -213,6 +224,8 @@ class LearnerService:
                 self.skip_steps -= 1
                 continue
             rejection = None if row is None else check_row(row, self.layout)
+            if row is not None and self.estop.engaged:  # the arm applied the safe command then
+                rejection = Rejection("estop", "a step while the e-stop is engaged: not trained on")
             if rejection is not None:
                 self.rejected.add(rejection)
                 row = None  # still a step of the arm: the versions stay in step with it
@@ -336,4 +349,6 @@ class LearnerService:
         return {"received": learner.n_online, **live, "evicted": learner.n_evicted, "updates": learner.updates,
                 "owed": learner.updates_owed,
                 "weights_version": learner.version, "rejected": dict(self.rejected.counts),
+                "estop": self.estop.as_dict(),
+                **({} if self.offline_estop_dropped is None else {"offline_estop_dropped": self.offline_estop_dropped}),
                 "train_s": round(learner.train_seconds, 2), **{k: round(v, 5) for k, v in learner.losses.items()}}

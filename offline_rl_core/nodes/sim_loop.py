@@ -12,6 +12,12 @@ state it answers: ``command_unstamped`` takes the first one after the current st
 published (``published()``) as its answer, and refuses it once commands with stamps have
 come (they pair exactly; taking both would step twice per state).
 
+Safety (realtime): every valid command feeds a :class:`~.watchdog.CommandWatchdog`; a tick
+that finds the commands silent for the task's ``command_timeout``, or the e-stop engaged
+(``estop``, a :class:`~.estop.EStopLatch` the node feeds), steps with the task's safe command
+instead of the held one (zero effort or velocity, or the position held), and the row records
+the action that was applied. Lockstep needs neither: the arm steps only on a command.
+
 Sim time: every state carries ``start_ns + tick * control_period``. In lockstep, step ``s``
 of episode ``e`` is tick ``e * max_steps + s`` (an episode owns max_steps ticks however it
 ends), so a state's stamp says which episode and step it is; in realtime the tick counts
@@ -33,6 +39,9 @@ from ..data.transitions import Layout, SOURCE_POLICY
 from ..task.envs import make_env
 from ..task.pusher_reach import CONTROL_HZ, MAX_STEPS
 from ..task.spec import JOINT_STATE, TaskSpec, load_task
+from .estop import EStopLatch
+from .state_limits import StateLimits
+from .watchdog import CommandWatchdog, safe_action
 
 TICK_NS = 1_000_000_000 // CONTROL_HZ  # pusher_reach's 20 ms (a task's own: SimLoop.tick_ns)
 TICKS_PER_EPISODE = MAX_STEPS  # lockstep: one tick per state an episode can have
@@ -95,6 +104,11 @@ class SimLoop:
         self.held_action = np.zeros(self.task.act_dim, np.float32)
         self.held_source = SOURCE_POLICY
         self.current: ArmState | None = None
+        self.watchdog = CommandWatchdog(self.task.command_timeout)
+        self.estop = EStopLatch()
+        self.safe_steps = 0  # realtime ticks that applied the safe command
+        self.state_limits = StateLimits(self.task)  # effort interface: soft limits on the measured state
+        self.limit_steps = 0  # realtime ticks whose held command pushed a joint further out: the safe one applied
 
     # ------------------------------------------------------------ episodes
     @property
@@ -135,25 +149,27 @@ class SimLoop:
         self.answerable = True
 
     # ------------------------------------------------------------ stepping
-    def command(self, stamp_ns: int | None, action: np.ndarray, source: int) -> Step | None:
-        """A command for the state stamped ``stamp_ns`` (lockstep), or the one to hold (realtime)."""
+    def command(self, stamp_ns: int | None, action: np.ndarray, source: int, now: float | None = None) -> Step | None:
+        """A command for the state stamped ``stamp_ns`` (lockstep), or the one to hold (realtime,
+        fed to the watchdog at ``now``, seconds on a steady clock)."""
         if self.finished:
             return None
         if self.mode == "realtime":
-            self.held_action, self.held_source = action, source
+            self.hold(action, source, now)
             return None
         self.stamped_commands = True
         if stamp_ns != self.current.stamp_ns:
             return None  # answers an older (or republished, already answered) state: stale
         return self._step(action, source)
 
-    def command_unstamped(self, action: np.ndarray, source: int) -> tuple[Step | None, Rejection | None]:
+    def command_unstamped(self, action: np.ndarray, source: int,
+                          now: float | None = None) -> tuple[Step | None, Rejection | None]:
         """A command without a stamp: held (realtime), or in lockstep the answer to the
         current state if it is the first since that state was published; else (None, why)."""
         if self.finished:
             return None, None
         if self.mode == "realtime":
-            self.held_action, self.held_source = action, source
+            self.hold(action, source, now)
             return None, None
         if self.stamped_commands:
             return None, Rejection("unpaired", "a command without a stamp, while commands with stamps answer "
@@ -164,12 +180,51 @@ class SimLoop:
                                                "each state)")
         return self._step(action, source), None
 
-    def tick(self) -> Step | None:
-        """Realtime: one step with the held command."""
+    def hold(self, action: np.ndarray, source: int, now: float | None) -> None:
+        self.held_action, self.held_source = action, source
+        if now is not None:
+            self.watchdog.fed(now)
+
+    def safe(self, now: float | None) -> bool:
+        """Whether a realtime tick at ``now`` applies the safe command (e-stop, silent commands)."""
+        silent = now is not None and self.watchdog.check(now)
+        return self.estop.engaged or silent
+
+    def beyond_state_limits(self, action: np.ndarray) -> Rejection | None:
+        """Why ``action`` may not be applied where the arm is now (it pushes a joint further
+        beyond the task's position or velocity limits); None where it may."""
+        return self.state_limits.check(action, self.env.joint_positions, self.env.joint_velocities)
+
+    def safe_action(self) -> np.ndarray:
+        """The task's safe command as an action: zero effort or velocity, or the position now."""
+        return safe_action(self.task, self.env.joint_positions)
+
+    def tick(self, now: float | None = None) -> Step | None:
+        """Realtime: one step with the held command, or the safe one (see ``safe``)."""
         if self.finished or self.mode != "realtime":
             return None
         self.ticks += 1
+        if self.safe(now):
+            self.safe_steps += 1
+            return self._step(self.safe_action(), self.held_source)
+        if self.beyond_state_limits(self.held_action) is not None:  # taken inside, but the arm has gone out since
+            self.limit_steps += 1
+            return self._step(self.safe_action(), self.held_source)
         return self._step(self.held_action, self.held_source)
+
+    def faults(self) -> dict:
+        """The latched faults, as ``~/status`` shows them."""
+        watchdog = self.watchdog.fault()
+        return {"watchdog": watchdog} if watchdog else {}
+
+    def reset_faults(self) -> None:
+        self.watchdog.reset()
+
+    def estop_engaged(self) -> None:
+        """The e-stop engaged: the command held before it is dropped, so a reset does not
+        bring it back; the safe command holds until a fresh command comes after the reset."""
+        self.held_action = self.safe_action()
+        self.watchdog.disarm()
 
     def _step(self, action: np.ndarray, source: int) -> Step:
         obs, step_index = self.obs, self.env.steps

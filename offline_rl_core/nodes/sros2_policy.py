@@ -34,6 +34,8 @@ PARAMETER_SERVICES = tuple(f"~/{name}" for name in (
     "set_parameters_atomically", "get_type_description"))
 
 COMMANDS = tuple(f"pusher/command/{source}" for source in ("expert", "random", "policy", "human"))
+# The e-stop: heard by every node that acts or trains, pressed and reset only by the operator.
+ESTOP, ESTOP_RESET = "estop", "estop/reset"
 SIM_OUT = ("/clock", "pusher/state", "joint_states", "pusher/target", "pusher/fingertip", "pusher/transition")
 
 
@@ -49,30 +51,32 @@ class NodeAccess:
 
 NODE_GRAPH: dict[str, NodeAccess] = {
     "sim": NodeAccess(publish=SIM_OUT + ("markers",),
-                      subscribe=("pusher/command",) + COMMANDS + ("effort_controller/commands",),
-                      reply=("pusher/reset",)),
+                      subscribe=("pusher/command",) + COMMANDS + ("effort_controller/commands", ESTOP),
+                      reply=("pusher/reset", ESTOP_RESET)),
     "policy": NodeAccess(publish=("policy/action", "policy/provenance", "effort_controller/commands"),
-                         subscribe=("pusher/state", "pusher/target", "pusher/fingertip", "learner/weights")),
+                         subscribe=("pusher/state", "pusher/target", "pusher/fingertip", "learner/weights", ESTOP),
+                         reply=(ESTOP_RESET,)),
     "mux": NodeAccess(publish=("pusher/command/policy", "pusher/command/human", "corrections/intervening"),
-                      subscribe=("policy/action", "teleop/action")),
+                      subscribe=("policy/action", "teleop/action", "pusher/state", ESTOP), reply=(ESTOP_RESET,)),
     "corrector": NodeAccess(publish=("teleop/action", "episode_label"),
                             subscribe=("pusher/state", "pusher/target", "joy"), status=False),
-    "learner": NodeAccess(publish=("~/weights",), subscribe=("pusher/transition",)),
+    "learner": NodeAccess(publish=("~/weights",), subscribe=("pusher/transition", ESTOP), reply=(ESTOP_RESET,)),
     # driving (collect) or passive: every topic of the pipeline, never a weights publisher
     "recorder": NodeAccess(publish=("pusher/command/expert", "pusher/command/random"),
                            subscribe=SIM_OUT[1:] + COMMANDS + (
                                "policy/action", "policy/provenance", "teleop/action", "corrections/intervening",
-                               "effort_controller/commands", "learner/weights", "/tf", "/tf_static"),
+                               "effort_controller/commands", "learner/weights", "/tf", "/tf_static", ESTOP),
                            status=False),
     "trainer": NodeAccess(publish=("~/progress",), status=False, diagnostics=False),
     # the arm's markers from a real arm's joint states (ros2 run viz markers)
     "markers": NodeAccess(publish=("markers",), subscribe=("joint_states", "goal", "pusher/state", "pusher/target"),
                           status=False),
     # a person's tools (ros2 topic/param/service): watch, set parameters, reset episodes
-    "operator": NodeAccess(subscribe=("sim/status", "policy/status", "mux/status", "learner/status",
+    "operator": NodeAccess(publish=(ESTOP,),
+                           subscribe=("sim/status", "policy/status", "mux/status", "learner/status",
                                       "trainer/progress", "policy/provenance", "corrections/intervening",
                                       "/diagnostics", "markers", "episode_label"),
-                           request=("pusher/reset",) + tuple(
+                           request=("pusher/reset", ESTOP_RESET) + tuple(
                                f"{node}/{service[2:]}" for node in
                                ("sim", "policy", "mux", "corrector", "learner", "recorder", "trainer", "markers")
                                for service in PARAMETER_SERVICES),

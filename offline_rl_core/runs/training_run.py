@@ -149,8 +149,18 @@ def load_bags(paths: list[str], from_topics: bool | str | None = None,
         data.episode = data.episode - data.episode.min() + offset
         offset = int(data.episode.max()) + 1
         parts.append(data)
-        summary.append({**bag_summary(path, data), "from_topics": report.as_dict()})
+        entry = {**bag_summary(path, data), "from_topics": report.as_dict()}
+        if report.estop_dropped is not None:
+            entry["estop_dropped"] = report.estop_dropped
+        summary.append(entry)
     return (parts[0] if len(parts) == 1 else Transitions.concatenate(parts)), summary
+
+
+def estop_dropped_of(summaries: list[dict]) -> int | None:
+    """Transitions left out of the bags for the e-stop (``decode_bag``), or None where no bag
+    records one."""
+    counts = [s["estop_dropped"] for s in summaries if "estop_dropped" in s]
+    return sum(counts) if counts else None
 
 
 def console_progress(stream=None) -> Callable[[Progress], None]:
@@ -212,6 +222,9 @@ def run_training(
     points = ResumePoints(out / "resume.pt", resume_every, resume)
     if resume:
         log(f"resuming from {points.path}" if points.path.exists() else f"no resume point at {points.path}; starting")
+    estop_dropped = estop_dropped_of(bags_read)
+    if estop_dropped is not None:
+        log(f"left out {estop_dropped} transitions recorded while the e-stop was engaged")
     log(f"training {cfg.algo} on {len(data)} transitions from {len(bags)} bag(s), {cfg.steps} steps, seed {seed}")
     # UserError: a bad resume point
     result = train(data, cfg, seed, progress=progress, init=init_ckpt, resume=points, task=task)
@@ -229,6 +242,8 @@ def run_training(
         "final_losses": {k: round(float(v[-1]), 6) for k, v in result.history.items() if k != "step"},
         "mean_abs_q": None if result.mean_abs_q is None else round(result.mean_abs_q, 6),
     }
+    if estop_dropped is not None:  # only bags that record the e-stop: the others' metrics keep their bytes
+        metrics["estop_dropped"] = estop_dropped
     if plan is not None:
         metrics["plan"] = plan  # what --algo auto / --budget-s decided, and from what
     if task.digest != load_task(DEFAULT_TASK).digest:  # pusher_reach's metrics keep the chapter's bytes

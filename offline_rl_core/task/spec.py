@@ -132,6 +132,24 @@ class JoinSpec:
     period_tolerance: float = 0.005  # s
 
 
+SAFE_COMMANDS = ("auto", "zero", "hold")  # auto: hold for a position interface, zero otherwise
+# The watchdog's default: a consumer of commands that heard none for this many control periods
+# applies the safe command (one late command is jitter; three in a row is a silent controller).
+TIMEOUT_PERIODS = 3
+
+
+@dataclass(frozen=True)
+class SafetySpec:
+    """What the nodes that consume commands do when they must not trust them (nodes.watchdog,
+    nodes.estop, nodes.command_limits). Every field's default leaves a run as it was without it."""
+
+    command_timeout: float | None = None  # s; None: TIMEOUT_PERIODS control periods
+    safe_command: str = "auto"  # zero (effort or velocity), hold (position), or auto by the interface
+    position_limits: tuple[tuple[float, float], ...] = ()  # per state joint (low, high); () none
+    velocity_limits: tuple[float, ...] = ()  # per state joint, the largest |speed|; () none
+    slew: float | None = None  # the mux: the largest change of an action value per control period
+
+
 @dataclass(frozen=True)
 class TaskSpec:
     name: str
@@ -146,7 +164,22 @@ class TaskSpec:
     episodes: EpisodeSpec = field(default_factory=EpisodeSpec)
     join: JoinSpec = field(default_factory=JoinSpec)
     sim: dict = field(default_factory=dict)  # read by the task's env (task.envs); opaque here
+    safety: SafetySpec = field(default_factory=SafetySpec)
     path: Path | None = field(default=None, compare=False)
+
+    # ------------------------------------------------------------ safety
+    @property
+    def command_timeout(self) -> float:
+        """Seconds without a valid command before a consumer applies the safe command."""
+        timeout = self.safety.command_timeout
+        return TIMEOUT_PERIODS * self.control_period if timeout is None else timeout
+
+    @property
+    def safe_command(self) -> str:
+        """``zero`` (no effort, no velocity) or ``hold`` (the current position)."""
+        if self.safety.safe_command != "auto":
+            return self.safety.safe_command
+        return "hold" if self.command.interface == "position" else "zero"
 
     # ------------------------------------------------------------ sizes and names
     @property
@@ -212,6 +245,8 @@ class TaskSpec:
         """The spec as plain values (JSON-able; what bags and checkpoints record)."""
         out = asdict(self)
         out.pop("path")
+        if self.safety == SafetySpec():  # a task without a safety section keeps the digest it had
+            out.pop("safety")
         return json.loads(json.dumps(out))
 
     @cached_property  # a frozen spec: computed once (every env step of a task asks for its expert by it)
@@ -272,7 +307,7 @@ class _Reader:
     """Checks a document field by field; errors name the file and the dotted field."""
 
     TOP = ("name", "description", "control_period", "robot", "goal", "points", "observation", "reward", "episodes",
-           "join", "sim",
+           "join", "sim", "safety",
            # describe()'s flat form
            "state", "command")
 
@@ -381,7 +416,8 @@ class _Reader:
             control_period=self.number("control_period", doc.get("control_period"), 0.02, 0.0, True),
             state=state, command=command, goal=goal, points=points,
             observation=(), reward=self.reward(doc.get("reward")), episodes=self.episodes(doc.get("episodes")),
-            join=self.join(doc.get("join")), sim=self.sim(doc.get("sim")), path=self.path,
+            join=self.join(doc.get("join")), sim=self.sim(doc.get("sim")),
+            safety=self.safety(doc.get("safety"), state), path=self.path,
         )
         spec = _replace(spec, observation=self.observation(doc.get("observation"), spec))
         self.check_vectors(spec)
@@ -553,6 +589,57 @@ class _Reader:
                         self.choice("join.match", doc.get("match"), MATCH_MODES, "nearest"),
                         self.number("join.tolerance", doc.get("tolerance"), 0.005, 0.0),
                         self.number("join.period_tolerance", doc.get("period_tolerance"), 0.005, 0.0))
+
+    def safety(self, doc, state: StateSpec) -> SafetySpec:
+        doc = self.mapping("safety", doc, ("command_timeout", "safe_command", "position_limits", "velocity_limits",
+                                           "slew"))
+        timeout = self.number("safety.command_timeout", doc.get("command_timeout"), None, 0.0, True)
+        safe = self.choice("safety.safe_command", doc.get("safe_command"), SAFE_COMMANDS, "auto")
+        slew = self.number("safety.slew", doc.get("slew"), None, 0.0, True)
+        return SafetySpec(timeout, safe, self.joint_pairs("safety.position_limits", doc.get("position_limits"), state),
+                          self.joint_bounds("safety.velocity_limits", doc.get("velocity_limits"), state), slew)
+
+    def joint_pairs(self, label, value, state: StateSpec) -> tuple[tuple[float, float], ...]:
+        """``{joint: [low, high]}`` (or describe()'s list, in the state's order); joints not named: unbounded."""
+        if value is None or (isinstance(value, (list, dict)) and not value):
+            return ()
+        if isinstance(value, list):
+            value = dict(zip(state.joints, value))
+        if not isinstance(value, dict):
+            raise self.error(label, "a mapping of state joints to [low, high]", value)
+        self.unknown_joints(label, value, state)
+        pairs = []
+        for joint in state.joints:
+            pair = value.get(joint, [-math.inf, math.inf])
+            if not (isinstance(pair, (list, tuple)) and len(pair) == 2 and all(
+                    isinstance(v, (int, float)) and not isinstance(v, bool) and not math.isnan(v) for v in pair)
+                    and pair[0] < pair[1]):
+                raise self.error(f"{label}.{joint}", "[low, high] with low < high", pair)
+            pairs.append((float(pair[0]), float(pair[1])))
+        return tuple(pairs)
+
+    def joint_bounds(self, label, value, state: StateSpec) -> tuple[float, ...]:
+        """``{joint: max}`` (or describe()'s list); joints not named: unbounded."""
+        if value is None or (isinstance(value, (list, dict)) and not value):
+            return ()
+        if isinstance(value, list):
+            value = dict(zip(state.joints, value))
+        if not isinstance(value, dict):
+            raise self.error(label, "a mapping of state joints to a largest speed", value)
+        self.unknown_joints(label, value, state)
+        bounds = []
+        for joint in state.joints:
+            bound = value.get(joint, math.inf)
+            if isinstance(bound, bool) or not isinstance(bound, (int, float)) or not bound > 0:
+                raise self.error(f"{label}.{joint}", "a number > 0", bound)
+            bounds.append(float(bound))
+        return tuple(bounds)
+
+    def unknown_joints(self, label, value: dict, state: StateSpec) -> None:
+        unknown = [j for j in value if j not in state.joints]
+        if unknown:
+            raise UserError(f"{self.where}: field {label} names {unknown[0]!r}, not one of robot.state.joints "
+                            f"({', '.join(state.joints)})")
 
     def sim(self, doc) -> dict:
         if doc is None:

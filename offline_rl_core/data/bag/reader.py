@@ -281,14 +281,19 @@ def _finite_problem(path: Path, bad_rows: int, total: int, bad_columns: set[int]
     )
 
 
-def transition_topic(reader: Reader) -> str | None:
-    """The bag's transition topic: /pusher/transition, or the one namespaced copy of it
-    (``/arm2/pusher/transition``, recorded under ``__ns:=/arm2``)."""
+def one_topic(reader: Reader, name: str) -> str | None:
+    """``name`` in the bag, or the one namespaced copy of it (``/arm2/pusher/transition``,
+    recorded under ``__ns:=/arm2``)."""
     names = {c.topic for c in reader.connections}
-    if TRANSITION_TOPIC in names:
-        return TRANSITION_TOPIC
-    namespaced = [n for n in names if n.endswith(TRANSITION_TOPIC)]
+    if name in names:
+        return name
+    namespaced = [n for n in names if n.endswith(name)]
     return namespaced[0] if len(namespaced) == 1 else None
+
+
+def transition_topic(reader: Reader) -> str | None:
+    """The bag's transition topic: /pusher/transition, or the one namespaced copy of it."""
+    return one_topic(reader, TRANSITION_TOPIC)
 
 
 def _transition_connections(reader: Reader, path: Path) -> list:

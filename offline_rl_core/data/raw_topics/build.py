@@ -42,6 +42,7 @@ from ...common.errors import UserError
 from ...task import features
 from ...task.spec import TaskSpec
 from ..bag import TRANSITION_TOPIC, open_bag
+from ..bag.estop_spans import bag_engaged_spans, engaged_at
 from ..transitions import Transitions
 from .messages import MessageDecodeError
 from .spec import JoinPlan, plan_for
@@ -66,11 +67,13 @@ class JoinReport:
     steps: int = 0  # joined commands: the environment steps the recording holds
     transitions: int = 0
     ignored: dict = field(default_factory=dict)  # topic -> why it was not read
+    estop_dropped: int | None = None  # transitions whose state came while the e-stop was engaged; None: no estop topic
 
     def as_dict(self) -> dict:
-        return {k: getattr(self, k) for k in ("bag", "task", "points", "command_topics", "states", "commands",
-                                               "goals", "point_topics", "resets", "episodes", "episode_starts",
-                                               "steps", "transitions", "ignored")}
+        fields = {k: getattr(self, k) for k in ("bag", "task", "points", "command_topics", "states", "commands",
+                                                 "goals", "point_topics", "resets", "episodes", "episode_starts",
+                                                 "steps", "transitions", "ignored")}
+        return fields if self.estop_dropped is None else {**fields, "estop_dropped": self.estop_dropped}
 
     def format(self) -> str:
         """The report as a few lines of text (what `offline-rl dataset` prints)."""
@@ -96,6 +99,8 @@ class JoinReport:
         starts = ", ".join(f"{n} by {_START_CAUSE[k]}" for k, n in self.episode_starts.items())
         lines.append(f"  episodes    {self.episodes} (new episodes started: {starts})"
                      + (f"; {self.resets} reset messages" if self.resets else ""))
+        if self.estop_dropped is not None:
+            lines.append(f"  e-stop      {self.estop_dropped} transitions left out: their state came while it was engaged")
         lines.append(f"  transitions {self.transitions} of {self.steps} steps")
         return "\n".join(lines)
 
@@ -126,7 +131,7 @@ def transitions_from_topics(bag: str | os.PathLike, task: TaskSpec | str | os.Pa
     plan = plan_for(task)
     streams, report = read_bag(bag, plan)
     try:
-        result = join(plan, streams, report, point_kinematics(task))
+        result = join(plan, streams, report, point_kinematics(task), engaged=bag_engaged_spans(bag))
     except JoinEmpty as exc:
         raise UserError(f"{bag}: {exc}") from None
     return result.data, report
@@ -337,7 +342,8 @@ def _episode_starts(plan: JoinPlan, t: np.ndarray, recv: np.ndarray, goal: np.nd
     return new | limit, starts
 
 
-def join(plan: JoinPlan, s: Streams, report: JoinReport, kinematics=None, allow_empty: bool = False) -> JoinResult:
+def join(plan: JoinPlan, s: Streams, report: JoinReport, kinematics=None, allow_empty: bool = False,
+         engaged: list[tuple[int, int]] | None = None) -> JoinResult:
     """Steps 2-7 on decoded streams. JoinEmpty when no state is usable, or (unless
     ``allow_empty``: the live join's window) no transition can be built."""
     task = plan.task
@@ -443,6 +449,11 @@ def join(plan: JoinPlan, s: Streams, report: JoinReport, kinematics=None, allow_
     report.commands["after_termination"] = int((~alive).sum())
     c, a, b, step, step_index = c[alive], a[alive], b[alive], step[alive], step_index[alive]
     score = features.StepScore._make(f[alive] for f in score)
+    if engaged is not None:  # the e-stop's spans (engaged, released): the arm applied the safe command then
+        outside = ~engaged_at(recv_state[a], engaged)
+        report.estop_dropped = int((~outside).sum())
+        c, a, b, step, step_index = c[outside], a[outside], b[outside], step[outside], step_index[outside]
+        score = features.StepScore._make(f[outside] for f in score)
     report.states["kept"] = int(t_state.size)
     report.episode_starts = {key: int(v.sum()) for key, v in starts.items()}
     report.steps = int(report.commands["exact"] + report.commands["within_tolerance"])

@@ -20,21 +20,40 @@ Its parameters:
 The rule in lockstep: exactly one command per stamp. A teleop action for the stamp
 wins; a yield lets the policy's action for the stamp through; a late message for a
 decided stamp only repeats the decided command (see ``offline_rl_core.nodes.arbiter``).
-A malformed or non-finite action, or one with a bad stamp, is not forwarded: it is
-counted by reason on ``~/status`` (``pusher_common.status``) with a throttled warning.
+A malformed or non-finite action, one outside [-1, 1] (refused, never clipped), or one with
+a bad stamp, is not forwarded: it is counted by reason on ``~/status``
+(``pusher_common.status``) with a throttled warning.
+
+Safety: with the task's ``safety.slew`` each forwarded action moves at most that far from
+the one before (``offline_rl_core.nodes.command_limits``). Realtime: when neither the policy
+nor the human sent a valid action within the task's ``safety.command_timeout`` (a person's
+hold counts as a command for its ``hold_ms``), the mux sends
+the task's safe command once on ``pusher/command/policy`` (``offline_rl_core.nodes.watchdog``)
+and latches the fault on ``~/status``; while the e-stop is engaged (``estop``, released only
+by ``estop/reset``) it sends the safe command and forwards nothing (counted as ``estop``), in
+lockstep too. For an effort interface with ``safety.position_limits`` / ``velocity_limits`` it
+reads the arm's state and refuses an action whose effort pushes a joint further beyond them
+(counted as ``beyond limits``; ``offline_rl_core.nodes.state_limits``); one back inside passes.
 """
 
 from __future__ import annotations
 
 import sys
+import time
 
 import numpy as np
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile
+from rclpy.clock import Clock, ClockType
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool
 
-from offline_rl_core.nodes.joint_messages import action_from_effort
+from offline_rl_core.common.rejections import Rejection
+from offline_rl_core.nodes.command_limits import SlewLimiter
+from offline_rl_core.nodes.state_limits import StateLimits
+from offline_rl_core.nodes.joint_messages import action_from_effort, joints_from_state
+from offline_rl_core.nodes.watchdog import CommandWatchdog, safe_action
+from pusher_common.estop import EStopInput
 from offline_rl_core.task.spec import DEFAULT_TASK, load_task
 from offline_rl_core.nodes.pairing import check_stamp
 from pusher_common.node_main import run_node
@@ -75,13 +94,26 @@ class Mux(Node):
         self.mode = self.settings.mode
         self.hold_s = self.settings.hold_ms / 1000.0
         self.require_teleop = self.settings.require_teleop
-        self.joints = load_task(self.settings.task or None).command.joints  # UserError: one line naming the task
+        self.task = task = load_task(self.settings.task or None)  # UserError: one line naming the task
+        self.joints = task.command.joints
         self.arbiter = LockstepArbiter() if self.mode == "lockstep" else RealtimeArbiter(self.hold_s)
         self.intervening: bool | None = None
+        self.slew = SlewLimiter(task.safety.slew)
+        self.watchdog = CommandWatchdog(task.command_timeout)
+        self.state_limits = StateLimits(task)  # effort interface: soft limits on the measured state
+        self.position = None  # the state joints' latest positions, where the safe command holds them
+        self.velocity = None  # and their speeds, for the soft limits
+        self.last_sent = (None, None)  # (stamp, action) of the latest command sent
         self.status = NodeStatus(self, fields=lambda: {"forwarded": dict(self.arbiter.counts),
-                                                       "intervening": self.intervening},
+                                                       "intervening": self.intervening,
+                                                       "slew_limited": self.slew.limited,
+                                                       "faults": self.faults(),
+                                                       "estop": self.estop.latch.as_dict()},
                                  diagnosis=StatusDiagnosis(idle=lambda st: "a person drives" if st["intervening"]
                                                            else "the policy drives"))
+        self.estop = EStopInput(self, on_engage=self.on_estop_engaged, on_reset=self.watchdog.reset)
+        if task.safe_command == "hold" or self.state_limits.active:
+            self.create_subscription(JointState, task.state.topic, self.on_state, 10)
         # who acted is the topic: pusher/command/policy or pusher/command/human (the sim logs it)
         self.command_pubs = {source: self.create_publisher(JointState, f"pusher/command/{source}", 10)
                              for source in (POLICY, HUMAN)}
@@ -91,6 +123,8 @@ class Mux(Node):
         self.hold_timer = None
         if self.mode == "realtime":
             self.hold_timer = self.create_timer(hold_check_period(self.hold_s), self.check_hold)
+            # wall time: a controller gone silent is a fault whatever the sim clock does
+            self.create_timer(task.control_period, self.check_watchdog, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.set_intervening(False)
         self.get_logger().info(
             f"mux {self.mode}: {self.policy_sub.topic_name} + {self.teleop_sub.topic_name} -> "
@@ -117,9 +151,14 @@ class Mux(Node):
         self.status.took(topic)
         action, problem = action_from_effort(msg.name, msg.effort, allow_empty, self.joints)
         problem = check_stamp(msg.header.stamp.sec, msg.header.stamp.nanosec) or problem
+        if problem is None and self.estop.engaged:
+            problem = Rejection("estop", "an action while the e-stop is engaged (estop/reset releases it)")
+        if problem is None and action is not None and self.position is not None:
+            problem = self.state_limits.check(action, self.position, self.velocity)  # outward beyond: refused
         if problem:
             self.status.reject(topic, problem)
             return False
+        self.watchdog.fed(time.monotonic())
         return action
 
     def now(self) -> float:
@@ -153,11 +192,54 @@ class Mux(Node):
     def send(self, command, msg: JointState) -> None:
         if command is None:
             return
-        out = JointState(name=list(self.joints), effort=[float(a) for a in command.action])
+        if not command.resend:
+            self.last_sent = (command.stamp, self.slew.limit(command.action))
+        # a resend repeats what was sent for the stamp (ramped), not what was decided
+        action = self.last_sent[1] if self.last_sent[0] == command.stamp else command.action
+        out = JointState(name=list(self.joints), effort=[float(a) for a in action])
         out.header.stamp = msg.header.stamp
         self.command_pubs[command.source].publish(out)
         if self.mode == "lockstep" and not command.resend:
             self.set_intervening(command.source == HUMAN)
+
+    # -------------------------------------------------------------- safety
+    def on_state(self, msg: JointState) -> None:
+        """The arm's positions, for a safe command that holds them, and speeds, for the soft limits."""
+        joints, problem = joints_from_state(msg.name, msg.position, msg.velocity, self.task.state.joints,
+                                            velocity_optional=True)
+        if problem is None:
+            self.position, self.velocity = joints
+
+    def check_watchdog(self) -> None:
+        now = time.monotonic()
+        if self.arbiter.holding(self.now()):
+            self.watchdog.fed(now)  # a person's hold is a command for its whole length (hold_ms)
+        silent_before = self.watchdog.silent
+        if self.watchdog.check(now) and not silent_before:
+            self.get_logger().error(f"no valid action for {self.watchdog.timeout_s * 1000:.0f} ms: sending the "
+                                    f"safe command ({self.task.safe_command})", throttle_duration_sec=2.0)
+            self.send_safe()
+
+    def on_estop_engaged(self) -> None:
+        self.watchdog.disarm()
+        self.send_safe()
+
+    def send_safe(self) -> None:
+        """Realtime: send the task's safe command (once: the sim and a forward controller hold it).
+        In lockstep the sim steps only on a command: forwarding nothing stops the arm."""
+        if self.mode != "realtime":
+            return
+        action = safe_action(self.task, self.position)
+        if action is None:  # a position to hold that no state has told: the sim's own watchdog holds it
+            return
+        self.slew.restart(action)
+        out = JointState(name=list(self.joints), effort=[float(a) for a in action])
+        out.header.stamp = self.get_clock().now().to_msg()
+        self.command_pubs[POLICY].publish(out)
+
+    def faults(self) -> dict:
+        fault = self.watchdog.fault()
+        return {"watchdog": fault} if fault else {}
 
     def check_hold(self) -> None:
         if self.mode == "realtime":

@@ -16,7 +16,8 @@ transitions that arrived while it was down from ``--session-bag`` (the session's
 recording). ``~/status`` (``std_msgs/String``, JSON, once a second; ``pusher_common.status``):
 counts, losses, rejections by reason. A transition with a non-finite value, an action
 outside [-1, 1], a value out of range or an unknown layout is dropped, counted and warned
-about (throttled), never trained on. The learner trains on the wall clock: with
+about (throttled), never trained on; so is every transition that comes while the e-stop is
+engaged (``estop``, released only by ``estop/reset``: ``pusher_common.estop``). The learner trains on the wall clock: with
 ``use_sim_time`` its work still runs (the sim's clock waits for the policy, which waits
 for the learner's weights).
 
@@ -47,6 +48,7 @@ from offline_rl_core.learners.online import OnlineSettings
 from offline_rl_core.nodes.learner_service import LearnerService, LearnerServiceConfig
 from offline_rl_core.serving.signing import load_signer
 from offline_rl_core.serving.weights import WEIGHTS_LABEL, encode_weights
+from pusher_common.estop import EStopInput
 from pusher_common.message_types import message_class
 from pusher_common.node_main import run_node
 from pusher_common.params import Param, Settings
@@ -138,6 +140,7 @@ class Learner(Node):
         self.status = NodeStatus(self, fields=self.service.status, counter=self.service.rejected,
                                  diagnosis=StatusDiagnosis(checks=(learner_checks,), idle=lambda st: (
                                      f"weights version {st['weights_version']}, {st['updates']} updates")))
+        self.estop = EStopInput(self, latch=self.service.estop)
         self.raw_subs: dict[str, object] = {}  # topic -> subscription (raw topics)
         self.first_published = False
         # wall-clock timers, also under use_sim_time: a timer on sim time would wait for a

@@ -37,6 +37,15 @@ cannot outrun the learner. Every answer is also reported on ``policy/provenance`
 (std_msgs/String, JSON: stamp, weights_version, trained_through, weights_age_s: seconds
 since the learner cut them, explore), so a bag says which weights acted.
 
+Safety: a forward controller holds its last command for ever, so in ``mode`` realtime (the
+default) the node that drives it watches itself (``offline_rl_core.nodes.watchdog``): when
+it sent the controller no command within the task's ``safety.command_timeout`` (its states
+stopped, or it stalls), it sends the task's safe command once (zero effort or velocity; the
+last state's position held) and latches the fault on ``~/status``. In ``mode`` lockstep the
+sim waits for each answer, so a silence is no fault. While the e-stop is engaged (``estop``,
+released only by ``estop/reset``) it answers no state (counted as ``estop``) and, in
+realtime, the controller gets the safe command.
+
 Checkpoint files and weights messages are read, checked and decoded on a worker thread
 (``offline_rl_core.nodes.background_loads``), never on the thread that answers states;
 a ``checkpoint`` that is not a regular file (a FIFO, a terminal) is refused.
@@ -64,7 +73,9 @@ from std_msgs.msg import Float64MultiArray, String, UInt8MultiArray  # noqa: E40
 from offline_rl_core.serving.actor import Actor  # noqa: E402
 from offline_rl_core.common.errors import UserError  # noqa: E402
 from offline_rl_core.nodes.background_loads import BackgroundLoads  # noqa: E402
+from offline_rl_core.nodes.command_limits import action_bounds, within_limits  # noqa: E402
 from offline_rl_core.nodes.joint_messages import command_from_action  # noqa: E402
+from offline_rl_core.nodes.watchdog import CommandWatchdog, safe_action  # noqa: E402
 from offline_rl_core.nodes.observation import ObservationBuilder, kinematics_model  # noqa: E402
 from offline_rl_core.nodes.pairing import Paired, StatePairing, check_stamp  # noqa: E402
 from offline_rl_core.serving.checkpoint import checkpoint_file, checkpoint_task, regular_file_problem  # noqa: E402
@@ -73,6 +84,7 @@ from offline_rl_core.serving.signing import load_verifier  # noqa: E402
 from offline_rl_core.serving.weights import MAX_MESSAGE_BYTES, policy_from_weights_message  # noqa: E402
 from offline_rl_core.task.spec import JOINT_STATE, POSE_STAMPED, load_task  # noqa: E402
 from offline_rl_core.common.rejections import Rejection  # noqa: E402
+from pusher_common.estop import EStopInput  # noqa: E402
 from pusher_common.node_main import run_node  # noqa: E402
 from pusher_common.params import Param, Settings  # noqa: E402
 from pusher_common.scheduling import THREAD_PRIORITY, apply_thread_priority  # noqa: E402
@@ -114,6 +126,9 @@ PARAMS = (
     Param("explore", False, "sample exploration actions from the policy's Gaussian (the online learner's std) "
           "instead of acting deterministically", flag="--explore"),
     Param("seed", 0, "seed of the exploration noise", low=0, read_only=True, flag="--seed"),
+    Param("mode", "realtime", "as the sim's: realtime (a controller driven by this node gets the task's safe command "
+          "when this node sent it nothing within the task's command timeout) or lockstep (the sim waits for each "
+          "answer: no watchdog)", choices=("realtime", "lockstep"), read_only=True),
     Param("paced_every", 0, "answer state n only with weights version n // paced_every or newer (the learner's "
           "publish_every; 0: never wait)", low=0, read_only=True, flag="--paced-every"),
     THREAD_PRIORITY,
@@ -149,12 +164,20 @@ class PolicyServer(Node):
         # what the worker loaded is taken on this thread, woken by the guard condition
         self.loads_ready = self.create_guard_condition(self.on_loaded)
         self.loads = BackgroundLoads(self.loads_ready.trigger, max_pending=WEIGHTS_QOS.depth, name="policy-loads")
+        self.watchdog = CommandWatchdog(self.task.command_timeout)
+        # the task's joint limits as an action range: every answer (exploring too) stays inside
+        self.bounds = action_bounds(self.task) if self.task.safety.position_limits or \
+            self.task.safety.velocity_limits else None
+        self.position = None  # the latest state's joint positions (a safe command that holds them)
         self.status = NodeStatus(self, fields=lambda: {"answered": self.answered,
                                                        "weights_version": self.policy.weights_version,
                                                        "weights_age_s": self.weights_age_s(),
-                                                       "loads_dropped": dict(self.loads.dropped)},
+                                                       "loads_dropped": dict(self.loads.dropped),
+                                                       "faults": self.faults(),
+                                                       "estop": self.estop.latch.as_dict()},
                                  diagnosis=StatusDiagnosis(checks=(policy_checks,), idle=serving_message),
                                  hardware_id=self.task.name)
+        self.estop = EStopInput(self, on_engage=self.on_estop_engaged, on_reset=self.watchdog.reset)
 
         # Goal subscription first: when both are ready the executor takes it first.
         # Paced, every state counts (it indexes the pacing and the exploration noise), and
@@ -178,6 +201,8 @@ class PolicyServer(Node):
         # Watching a file is wall-clock work, also under use_sim_time.
         self.poll_timer = self.create_timer(self.poll_period, self.check_checkpoint,
                                             clock=Clock(clock_type=ClockType.STEADY_TIME))
+        if self.command_pub is not None and self.settings.mode == "realtime":
+            self.create_timer(task.control_period, self.check_watchdog, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.get_logger().info(f"serving {self.policy.algorithm} policy from {self.path} on task {task.name} "
                                f"({task.source_file()}): {task.state.topic} + {task.goal.topic} -> policy/action"
                                + (f" + {self.command_pub.topic_name}" if self.command_pub is not None else "")
@@ -320,10 +345,15 @@ class PolicyServer(Node):
             self.status.reject(topic, problem)
             return
         self.actor.see(stamp)  # every state of the session counts, answered or not
+        self.position = joints[0]
         self.answer(self.pairing.on_state(stamp, (msg.header.stamp, joints)))
 
     def answer(self, paired: Paired | None) -> None:
         if paired is None:
+            return
+        if self.estop.engaged:  # the controller holds the safe command; nothing is answered
+            self.status.reject(self.task.state.topic, Rejection("estop", "a state while the e-stop is engaged: "
+                                                                         "not answered"))
             return
         if not self.actor.ready():
             self.held = paired  # answered when the weights version it needs arrives
@@ -334,6 +364,8 @@ class PolicyServer(Node):
         if problem:
             self.status.reject(self.task.state.topic, problem)
             return
+        if self.bounds is not None:
+            action = within_limits(self.task, action, self.bounds)
         joints = list(self.task.command.joints)
         out = JointState(name=joints, effort=[float(a) for a in action])
         out.header.stamp = header_stamp
@@ -342,7 +374,33 @@ class PolicyServer(Node):
             self.publish_provenance(paired.stamp)
         if self.command_pub is not None and self.command_pub.get_subscription_count():
             self.publish_command(command_from_action(self.task.command, action), header_stamp)
+            self.watchdog.fed(time.monotonic())
         self.answered += 1
+
+    # -------------------------------------------------------------- safety
+    def check_watchdog(self) -> None:
+        silent_before = self.watchdog.silent
+        if self.watchdog.check(time.monotonic()) and not silent_before:
+            self.get_logger().error(f"sent the controller nothing for {self.watchdog.timeout_s * 1000:.0f} ms: "
+                                    f"sending the safe command ({self.task.safe_command})", throttle_duration_sec=2.0)
+            self.send_safe()
+
+    def on_estop_engaged(self) -> None:
+        self.watchdog.disarm()
+        self.send_safe()
+
+    def send_safe(self) -> None:
+        """Send the controller the task's safe command (once: a forward controller holds it). Not
+        in lockstep: the sim steps only on an answer, so answering nothing stops the arm."""
+        action = safe_action(self.task, self.position)
+        if self.settings.mode != "realtime" or self.command_pub is None or action is None or \
+                not self.command_pub.get_subscription_count():
+            return
+        self.publish_command(command_from_action(self.task.command, action), self.get_clock().now().to_msg())
+
+    def faults(self) -> dict:
+        fault = self.watchdog.fault()
+        return {"watchdog": fault} if fault else {}
 
     def publish_command(self, values, header_stamp) -> None:
         """Publish the action as the controller takes it, in the controller's joint order."""

@@ -6,6 +6,7 @@
   with the old command-line flags as aliases.
 - :mod:`pusher_common.stamps`: ``stamp_key`` (a stamp as integer nanoseconds).
 - :mod:`pusher_common.spin`: a message-fast ``spin_until_future_complete``.
+- :mod:`pusher_common.estop`: ``EStopInput``, a node's ``estop`` topic and ``estop/reset`` service.
 - :mod:`pusher_common.status`: ``NodeStatus``, a node's ``~/status`` (messages taken,
   rejections by reason) and its throttled warnings about refused messages.
 - :mod:`pusher_common.diagnostics`: ``NodeDiagnostics``, the node's entry on ``/diagnostics``.

@@ -21,8 +21,9 @@ Pusher model), exposed as a ros2_control arm is. For the task it publishes
 and takes commands on
 
 - the task's command topic, as its controller would (std_msgs/Float64MultiArray in the
-  controller's joint order, or JointState): action = (command - offset) / scale, clipped to
-  the controller's limits; a command of another length is refused and counted. pusher_reach
+  controller's joint order, or JointState): action = (command - offset) / scale; a command
+  outside the controller's limits (or the task's joint limits), or of another length, is
+  refused and counted, never clipped. pusher_reach
   takes these only where ``effort_topic`` is set (its closed loops send the action on
   pusher/command too, and a state must not be answered twice);
 - ``pusher/command``, ``pusher/command/expert``, ``.../random``, ``.../policy``, ``.../human``
@@ -32,6 +33,18 @@ and takes commands on
   TF frame).
 
 It serves ``pusher/reset`` (std_srvs/Trigger).
+
+Safety (``offline_rl_core.nodes.watchdog``, ``.estop``): in realtime, when no valid command
+came within the task's ``safety.command_timeout`` (three control periods unless the task
+says), or while the e-stop is engaged (``estop``, released only by ``estop/reset``), each
+tick applies the task's safe command (zero effort or velocity; the position held), and
+``~/status`` carries the latched fault (``faults``) and the e-stop (``estop``). In lockstep
+the arm steps only on a command; while the e-stop is engaged every command is refused
+(counted as ``estop``). For an effort interface with ``safety.position_limits`` /
+``velocity_limits`` (``offline_rl_core.nodes.state_limits``), a command whose effort pushes a
+joint further beyond them, where the arm is measured now, is refused (counted as ``beyond
+limits``) and one back inside is taken; a held command that has come to push outward applies
+the safe command on those ticks (``limit_steps`` on ``~/status``).
 
 Lockstep: a stamped command steps the arm when its stamp is the current state's. A
 Float64MultiArray has no header, so it cannot name the state it answers: the first one that
@@ -80,6 +93,8 @@ from offline_rl_core.data.transitions import SOURCE_NAMES, SOURCE_POLICY, source
 from offline_rl_core.task.spec import (
     DEFAULT_TASK, FLOAT64_MULTI_ARRAY, JOINT_STATE, POSE_STAMPED, load_task,
 )
+from offline_rl_core.common.rejections import Rejection
+from pusher_common.estop import EStopInput
 from pusher_common.node_main import run_node
 from pusher_common.params import Param, Settings
 from pusher_common.scheduling import THREAD_PRIORITY, apply_thread_priority
@@ -144,10 +159,17 @@ class PusherSim(Node):
         self.last_publish = 0.0
         self.timing = TickTiming(task.control_period)
         self.status = NodeStatus(self, fields=lambda: {"episode": self.loop.episode,
-                                                       "episodes_done": len(self.loop.results)},
+                                                       "episodes_done": len(self.loop.results),
+                                                       "faults": self.loop.faults(),
+                                                       "estop": self.loop.estop.as_dict(),
+                                                       "safe_steps": self.loop.safe_steps,
+                                                       "limit_steps": self.loop.limit_steps},
                                  diagnosis=StatusDiagnosis(idle=lambda st: f"{s.mode}, episode {st['episode']}, "
                                                                            f"{st['episodes_done']} done"),
                                  hardware_id=task.name)
+        self.estop = EStopInput(self, latch=self.loop.estop, on_engage=self.loop.estop_engaged,
+                                on_reset=self.loop.reset_faults)
+        self.tripped = 0  # watchdog trips logged so far
 
         self.clock_pub = self.create_publisher(ClockMsg, "/clock", 10)
         self.state_pub = self.create_publisher(JointState, task.state.topic, 10)
@@ -308,13 +330,34 @@ class PusherSim(Node):
                 self.loop.stamped_commands = True  # a stamped command came, even if refused
             self.status.reject(topic, problem)
             return
+        if self.refused_for_estop(topic) or self.refused_for_state_limits(topic, action):
+            return
         if source is None:
             source = source_from_tag(msg.header.frame_id)
             if source is None:
                 source = SOURCE_POLICY
             else:
                 self.warn_tag_deprecated()
-        self.publish_step(self.loop.command(stamp_key(msg.header.stamp), action, source))
+        self.publish_step(self.loop.command(stamp_key(msg.header.stamp), action, source, time.monotonic()))
+
+    def refused_for_estop(self, topic: str) -> bool:
+        """While the e-stop is engaged no command is taken (the safe command applies)."""
+        if not self.loop.estop.engaged:
+            return False
+        self.status.reject(topic, Rejection("estop", "a command while the e-stop is engaged (estop/reset "
+                                                     "releases it)"))
+        return True
+
+    def refused_for_state_limits(self, topic: str, action, stamped: bool = True) -> bool:
+        """An effort that pushes a joint further beyond the task's limits, where the arm is
+        now, is refused (counted as ``beyond limits``); one that brings it back is taken."""
+        problem = self.loop.beyond_state_limits(action)
+        if problem is None:
+            return False
+        if self.mode == "lockstep" and stamped:
+            self.loop.stamped_commands = True  # a stamped command came, even if refused
+        self.status.reject(topic, problem)
+        return True
 
     def warn_tag_deprecated(self) -> None:
         # a method of its own: rclpy ties a log call's filters (once, throttle) to its caller
@@ -327,8 +370,10 @@ class PusherSim(Node):
         if self.finished.done():
             return
         action, problem = action_from_command(self.task, msg.data)
+        if problem is None and (self.refused_for_estop(topic) or self.refused_for_state_limits(topic, action, stamped=False)):
+            return
         if problem is None:
-            step, problem = self.loop.command_unstamped(action, SOURCE_POLICY)
+            step, problem = self.loop.command_unstamped(action, SOURCE_POLICY, time.monotonic())
         if problem:
             self.status.reject(topic, problem)
             return
@@ -349,7 +394,9 @@ class PusherSim(Node):
         if problem:
             self.status.reject(topic, problem)
             return
-        self.publish_step(self.loop.command(stamp_key(stamp), action, SOURCE_POLICY))
+        if self.refused_for_estop(topic) or self.refused_for_state_limits(topic, action):
+            return
+        self.publish_step(self.loop.command(stamp_key(stamp), action, SOURCE_POLICY, time.monotonic()))
 
     def readers_matched(self) -> bool:
         """Whether the transition readers asked for are there (matched once: never hold again)."""
@@ -364,8 +411,17 @@ class PusherSim(Node):
             return
         if not self.readers_matched():
             return  # the arm waits at its first state: a recorder or learner started beside it gets every step
-        self.timing.tick(time.monotonic())
-        self.publish_step(self.loop.tick())
+        now = time.monotonic()
+        self.timing.tick(now)
+        self.publish_step(self.loop.tick(now))
+        if self.loop.watchdog.trips > self.tripped:
+            self.warn_watchdog()
+        self.tripped = self.loop.watchdog.trips
+
+    def warn_watchdog(self) -> None:
+        self.get_logger().error(f"no valid command for {self.loop.watchdog.timeout_s * 1000:.0f} ms: "
+                                f"applying the safe command ({self.task.safe_command}) until one comes",
+                                throttle_duration_sec=2.0)
 
     def on_republish_timer(self) -> None:
         period_s = self.republish_timer.timer_period_ns / 1e9
