@@ -23,6 +23,7 @@ from typing import Callable
 
 from ..data.collect import collect_transitions
 from ..common import seeds
+from ..common.seeds import eval_reset_seeds
 from ..common.atomic import write_json_atomic, write_text_atomic
 from ..evaluation.rollouts import RolloutResult, format_rate, round6, rollout
 from ..learners import Progress, TrainConfig
@@ -189,7 +190,7 @@ def run_experiment(cfg: ExperimentConfig, out_dir: str | Path, log: Callable[[st
     trained = train_all(cfg, seeds, datasets, log, [p[0] for p in plans], resume_points)
     outcomes = []
     for m, s in enumerate(seeds):
-        reset_seeds = seeds.eval_reset_seeds(s, cfg.n_seeds, cfg.eval_episodes)
+        reset_seeds = eval_reset_seeds(s, cfg.n_seeds, cfg.eval_episodes)
         bc_res = trained["bc"][m]
         off_res = trained["offline"][m]
         bc_roll = rollout(bc_res.policy.act, reset_seeds)
