@@ -11,7 +11,9 @@ every weights version it returns is published for the acting policy node
   counters, the online buffer), written atomically every ``save_every`` seconds and at exit;
 - ``progress.jsonl``: one line per weights version (counts, losses, timings);
 - ``snapshots/policy_NNNNNN.pt``: the weights every ``snapshot_every`` transitions (the
-  learning curve is scored from them afterwards, off the critical path).
+  learning curve is scored from them afterwards, off the critical path);
+- the ``logger``'s files (``runs.loggers``; TensorBoard event files by default): each
+  weights version's losses, counts, age and rates against live transitions.
 
 Resuming (``resume``): the saved state is loaded, and with a ``session_bag`` (the
 passive recorder's bag of the same session) the transitions that arrived after the save
@@ -25,7 +27,7 @@ import json
 import math
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +40,7 @@ from ..learners.config import TrainConfig
 from ..learners.online import OnlineLearner, OnlineSettings, PriorMismatch
 from .joint_messages import VALUE_LIMIT
 from ..common.output_paths import check_output_dir
+from ..runs.loggers import DEFAULT_LOGGER, check_logger, online_scalars, open_logger
 from ..serving.checkpoint import load_checkpoint, save_checkpoint
 from ..serving.policy import policy_for_task
 from ..common.rejections import Rejection, RejectionCounter
@@ -54,6 +57,7 @@ class LearnerServiceConfig:
     resume: bool = False
     session_bag: str | None = None  # the session's recording: transitions missed while down
     snapshot_every: int = 0  # live transitions between kept copies of the weights (0: none)
+    logger: str = DEFAULT_LOGGER  # where each version's losses and rates go besides progress.jsonl
     settings: OnlineSettings = field(default_factory=OnlineSettings)
     train: TrainConfig = field(default_factory=lambda: TrainConfig(algo="sac"))
 
@@ -93,6 +97,7 @@ class LearnerService:
 
         self.cfg, self.log = cfg, log
         self.out = check_output_dir(cfg.out, "parameter out:")  # before the bags load: a bad path is refused at once
+        check_logger(cfg.logger, "parameter logger:")
         self.out.mkdir(parents=True, exist_ok=True)
         offline, _ = load_bags(cfg.bags)
         prior = load_checkpoint(cfg.prior) if cfg.prior else None  # validated as the policy node validates it
@@ -111,6 +116,8 @@ class LearnerService:
         if cfg.snapshot_every and cfg.snapshot_every % cfg.settings.publish_every:
             raise UserError(f"snapshot_every ({cfg.snapshot_every}) must be a multiple of publish_every "
                             f"({cfg.settings.publish_every})")
+        self.curves = open_logger(cfg.logger, self.out, name=self.out.name, resume=cfg.resume, config=self._settings())
+        self.curves.drop_previous()  # a fresh session starts anew, as its progress.jsonl does
         if cfg.resume:
             self._resume()
         else:
@@ -167,11 +174,25 @@ class LearnerService:
                 **{k: round(v, 6) for k, v in self.learner.losses.items() if math.isfinite(v)}}
         with open(self.out / "progress.jsonl", "a", encoding="utf-8") as f:
             f.write(json.dumps(line) + "\n")
+        arrived_per_s = self.received / max(time.monotonic() - self.started, 1e-9)  # since this process started
+        self.curves.scalars(n, {**online_scalars(self.learner, weights, arrived_per_s),
+                                "online/rejected": self.rejected.total})
 
     def _write_policy(self, weights: dict) -> None:
         save_checkpoint(self.out / "policy.pt", weights)
 
     # ---------------------------------------------------------------- persistence
+    def close(self) -> None:
+        """At exit: the resume point, and the logger's last scalars and settings."""
+        self.save()
+        self.curves.hparams(self._settings(), {f"train/{k}": v for k, v in self.learner.losses.items()
+                                               if math.isfinite(v)})
+        self.curves.close()
+
+    def _settings(self) -> dict:
+        cfg = self.cfg
+        return {"online": asdict(cfg.settings), "train": cfg.train.to_dict(), "seed": cfg.seed, "prior": cfg.prior}
+
     def save(self) -> Path:
         path = self.out / "learner_state.pt"
         with atomic_path(path) as tmp, open(tmp, "wb") as f:

@@ -32,6 +32,7 @@ from std_msgs.msg import Float32MultiArray, MultiArrayDimension, UInt8MultiArray
 from offline_rl_core.learners.config import TrainConfig
 from offline_rl_core.learners.online import OnlineSettings
 from offline_rl_core.nodes.learner_service import LearnerService, LearnerServiceConfig
+from offline_rl_core.runs.loggers import DEFAULT_LOGGER, LOGGERS
 from offline_rl_core.serving.weights import WEIGHTS_LABEL, encode_weights
 from pusher_common.node_main import run_node
 from pusher_common.params import Param, Settings
@@ -77,6 +78,9 @@ PARAMS = [
     Param("resume", False, "continue from OUT/learner_state.pt", read_only=True, flag="--resume"),
     Param("session_bag", None, "the session's recording, to read back transitions missed while down (with --resume)",
           read_only=True, flag="--session-bag", kind=str),
+    Param("logger", DEFAULT_LOGGER, "where each weights version's losses and rates go besides progress.jsonl: "
+          "tensorboard (event files in OUT), wandb (OUT/wandb) or none", choices=LOGGERS, read_only=True,
+          flag="--logger"),
 ]
 
 
@@ -96,7 +100,8 @@ class Learner(Node):
                                   capacity=s.capacity)
         self.service = LearnerService(LearnerServiceConfig(
             bags=list(s.bag), out=s.out, prior=s.prior or None, seed=s.seed, save_every=s.save_every, resume=s.resume,
-            session_bag=s.session_bag or None, snapshot_every=s.snapshot_every, settings=settings, train=train),
+            session_bag=s.session_bag or None, snapshot_every=s.snapshot_every, settings=settings, train=train,
+            logger=s.logger),
             log=self.get_logger().info)
         self.weights_pub = self.create_publisher(UInt8MultiArray, "~/weights", WEIGHTS_QOS)
         self.status = NodeStatus(self, fields=self.service.status, counter=self.service.rejected)
@@ -125,7 +130,7 @@ class Learner(Node):
         self.weights_pub.publish(msg)
 
     def close(self) -> None:
-        self.service.save()
+        self.service.close()
 
 
 def main(argv: list[str] | None = None) -> int:
