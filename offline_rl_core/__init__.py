@@ -26,6 +26,8 @@ _EXPORTS = {
     "expert_action": "task.expert",
     "reach_action": "task.expert",
     "register_gym_envs": "task.gym_env",
+    "load_task": "task.spec",
+    "make_env": "task.envs",
     "Transitions": "data.transitions",
     "bag_info": "data.bag",
     "read_transitions": "data.bag",

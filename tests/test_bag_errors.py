@@ -94,7 +94,7 @@ def test_unknown_layout(tmp_path, capsys):
         conn = writer.add_connection(TRANSITION_TOPIC, TRANSITION_MSGTYPE, typestore=ts)
         writer.write(conn, 1, ts.serialize_cdr(msg, TRANSITION_MSGTYPE))
     message = _refused(path, "unknown layout [x 25]")
-    assert TRANSITION_TOPIC in message and "expected [obs 8, action 2, reward 1" in message
+    assert TRANSITION_TOPIC in message and "expected the fields [obs, action, reward, next_obs" in message
     assert cli.main(["bag-info", str(path)]) == 0  # info still lists the bag
     assert "not usable" in capsys.readouterr().out
 

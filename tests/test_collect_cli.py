@@ -49,3 +49,29 @@ def test_collect_refuses_missing_parent(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and str(target) in err and "does not exist" in err
     assert not (tmp_path / "nowhere").exists()
+
+
+def test_collect_another_task_records_it_in_the_bag(tmp_path, capsys):
+    from offline_rl_core.data.task_record import recorded_task
+    from offline_rl_core.task.spec import load_task
+
+    out = tmp_path / "p7.db3"
+    assert cli.main(["collect", "--task", "pusher7_reach", "--episodes", "2", "--expert-frac", "0.5", "--seed", "1",
+                     "--out", str(out)]) == 0
+    assert "200 transitions, 2 episodes" in capsys.readouterr().out
+    assert recorded_task(out).digest == load_task("pusher7_reach").digest  # a bag that needs no --task
+    data = read_transitions(out)
+    assert (data.obs.shape[1], data.action.shape[1]) == (17, 7)
+    assert data.success[data.episode == 0][-1] and list(np.unique(data.source)) == [0, 1]  # the expert reached
+    assert cli.main(["bag-info", str(out)]) == 0
+    assert "expert:      1 episodes" in capsys.readouterr().out
+
+
+def test_collect_a_task_no_sim_hosts_is_one_line(tmp_path, capsys):
+    from offline_rl_core.task.spec import load_task
+
+    task = tmp_path / "nosim.yaml"
+    task.write_text(load_task("pusher7_reach").path.read_text().split("\nsim:")[0])
+    assert cli.main(["collect", "--task", str(task), "--episodes", "1", "--out", str(tmp_path / "x.db3")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "has no sim section" in err and not (tmp_path / "x.db3").exists()

@@ -178,3 +178,18 @@ def test_a_killed_experiment_resumes_to_the_same_bytes(tmp_path, capsys):
     assert main([*EXPERIMENT[3:], "--out", str(tmp_path / "whole")]) == 0
     assert (killed / "metrics.json").read_bytes() == (tmp_path / "whole" / "metrics.json").read_bytes()
     assert not list(killed.glob("*resume*"))  # spent once the results are written, temp files too
+
+
+def test_an_experiment_on_another_task_collects_and_evaluates_there(tmp_path):
+    from offline_rl_core.commands.experiment import config_from_args, register
+
+    parser = __import__("argparse").ArgumentParser()
+    register(parser.add_subparsers())
+    args = parser.parse_args(["experiment", "--task", "pusher7_reach", "--smoke", "--out", str(tmp_path)])
+    assert config_from_args(args).task == "pusher7_reach"
+    run_experiment(dataclasses.replace(tiny(task="pusher7_reach"), episodes=2, n_seeds=1), tmp_path,
+                   log=lambda line: None)
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert metrics["task"] == "pusher7_reach" and tuple(sorted(set(metrics) - {"task", "task_digest"})) == METRIC_KEYS
+    assert metrics["n_pooled"] == 2 and 0 <= metrics["bc_success_rate"] <= 1
+    assert torch.load(tmp_path / "bc.pt", weights_only=False)["obs_dim"] == 17

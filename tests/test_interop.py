@@ -123,3 +123,25 @@ def test_d3rlpy_trains_from_a_bag_as_the_readme_says(bag):
     assert actions.shape == (5, 2) and np.all(np.abs(actions) <= 1.0)
     result = evaluate_policy(awac.predict, episodes=2, seed=500000)  # the held-out resets, as ours are scored
     assert result["episodes"] == 2 and 0.0 <= result["success_rate"] <= 1.0
+
+
+def test_another_arms_bag_goes_to_minari_and_back_with_its_task(tmp_path, capsys):
+    from offline_rl_core.data.task_record import recorded_task
+    from offline_rl_core.task.spec import load_task
+
+    task = load_task("pusher7_reach")
+    bag = tmp_path / "arm7.db3"
+    write_transitions(bag, collect_transitions(2, 0.5, 0, task=task), task=task)
+    assert main(["export", "--minari", "pusher/arm7-v0", str(bag)]) == 0  # the task the bag records
+    dataset = minari.load_dataset("pusher/arm7-v0")
+    assert dataset.observation_space.shape == (task.obs_dim,) and dataset.action_space.shape == (task.act_dim,)
+    assert dataset.spec.env_spec is None  # no Gymnasium env of that arm to name
+    assert "pusher7_reach" in dataset.storage.metadata["description"]
+
+    out = tmp_path / "back.db3"
+    assert main(["import", "--minari", "pusher/arm7-v0", str(out)]) == 2  # read as pusher_reach: sizes differ
+    err = capsys.readouterr().err
+    assert "task pusher_reach has 8 and 2 (give the dataset's task with --task)" in err and not out.exists()
+    assert main(["import", "--minari", "pusher/arm7-v0", str(out), "--task", "pusher7_reach"]) == 0
+    assert np.array_equal(read_transitions(out).to_rows(), read_transitions(bag).to_rows())
+    assert recorded_task(out).digest == task.digest  # train --bag OUT knows its task

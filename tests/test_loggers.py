@@ -102,6 +102,16 @@ def test_eval_logs_beside_its_json_at_the_checkpoints_step_and_keeps_the_trainin
     assert last(acc, "eval/wilson_ci_hi").value == pytest.approx(result["wilson_ci_hi"], rel=1e-5)
 
 
+def test_eval_of_the_scripted_expert_logs_at_step_zero(tmp_path, capsys):
+    out = tmp_path / "expert" / "eval.json"
+    assert main(["eval", "--expert", "--episodes", "2", "--json", str(out)]) == 0
+    result = json.loads(out.read_text())
+    acc = events(out.parent)
+    (point,) = acc.Scalars("eval/success_rate")
+    assert point.step == 0 and point.value == pytest.approx(result["success_rate"])
+    assert hparams_of(acc)["algorithm"] == "expert"
+
+
 def test_a_logger_that_cannot_be_made_is_one_line_before_training(bag, tmp_path, capsys, monkeypatch):
     monkeypatch.setitem(sys.modules, "wandb", None)  # as where wandb is not installed
     out = tmp_path / "run"

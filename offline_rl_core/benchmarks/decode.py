@@ -1,5 +1,6 @@
 """Bag decoding figures: ``read_transitions`` against rosbags' own per-message
-``deserialize_cdr``, and a 2,000,000-transition bag (decode time, training memory).
+``deserialize_cdr`` (sqlite3 and MCAP), an MCAP file without summary against the same
+messages with one, and a 2,000,000-transition bag (decode time, training memory).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from ..data.bag import TRANSITION_TOPIC, decode_transition_payloads, read_transi
 from ..data.bag.writer import typestore
 from ..data.collect import collect_transitions
 from ..data.transitions import TRANSITION_WIDTH, Transitions
-from .harness import BenchSettings, figure, interleave, median
+from .harness import BenchSettings, figure, interleave, median, pending
 
 
 def rosbags_rows(path: Path) -> np.ndarray:
@@ -121,7 +122,72 @@ def run(s: BenchSettings, log=print) -> list:
         figs.append(figure("decode", "payload_decode_transitions_per_s", "transitions/s", rates["ours_mem"], rates["ref_mem"],
                            "rosbags deserialize_cdr per message", target=lambda o, r, x: o >= 1e6 and x >= 5.0,
                            target_text=">= 1,000,000/s and >= 5x", note="CDR payloads already in memory"))
+        figs.extend(mcap_figures(s, data, Path(tmp), log))
         figs.extend(large_bag_figures(s, data, Path(tmp), log))
+    return figs
+
+
+def copy_as_mcap(source: Path, target: Path, **layout) -> None:
+    """A bag's messages rewritten by Foxglove's ``mcap`` writer (profile ros2) with the
+    layout options given (its defaults otherwise: chunked, zstd, a full summary)."""
+    from mcap.writer import Writer
+    from rosbags.rosbag2 import Reader
+
+    store = typestore()
+    with Reader(source) as reader, target.open("wb") as f:
+        writer = Writer(f, **layout)
+        writer.start(profile="ros2", library="offline_rl_core bench")
+        channels = {}
+        for conn in reader.connections:
+            msgdef = store.generate_msgdef(conn.msgtype, ros_version=2)[0]
+            schema = writer.register_schema(conn.msgtype, "ros2msg", msgdef.encode())
+            channels[conn.id] = writer.register_channel(conn.topic, "cdr", schema, {"offered_qos_profiles": ""})
+        for conn, stamp, raw in reader.messages():
+            writer.add_message(channels[conn.id], log_time=stamp, data=raw, publish_time=stamp)
+        writer.finish()
+
+
+def mcap_figures(s: BenchSettings, data: Transitions, tmp: Path, log=print) -> list:
+    """read_transitions on MCAP: the default layout (a full summary, as rosbag2, rosbags and
+    the recorder write it) against rosbags' per-message reading; and a file without summary,
+    whose data section is scanned at open, against the same messages with a full summary."""
+    n = len(data)
+    default = tmp / "mix.mcap"
+    write_transitions(default, data)
+
+    def rate(fn, path):
+        def measure():
+            t0 = time.perf_counter()
+            fn(path)
+            return n / (time.perf_counter() - t0)
+        return measure
+
+    contenders = {"ours": rate(read_transitions, default), "ref": rate(rosbags_rows, default)}
+    try:
+        from mcap.writer import IndexType
+    except ImportError:
+        full = bare = None
+    else:
+        full, bare = tmp / "full.mcap", tmp / "no_summary.mcap"
+        copy_as_mcap(default, full)
+        copy_as_mcap(default, bare, use_statistics=False, use_summary_offsets=False, repeat_channels=False,
+                     repeat_schemas=False, index_types=IndexType.NONE)
+        for path in (full, bare):
+            assert np.array_equal(read_transitions(path).to_rows(), data.to_rows()), f"{path.name} reads other rows"
+        contenders |= {"full": rate(read_transitions, full), "bare": rate(read_transitions, bare)}
+    rates = {k: median(v) for k, v in interleave(contenders, s.decode_repeats).items()}
+    log("  MCAP decode transitions/s: " + ", ".join(f"{k} {v:,.0f}" for k, v in rates.items()))
+    figs = [figure("decode", "mcap_bag_decode_transitions_per_s", "transitions/s", rates["ours"], rates["ref"],
+                   "rosbags Reader + deserialize_cdr per message", target=lambda o, r, x: x >= 1.0,
+                   target_text=">= 1x", note=f"read_transitions on a {n}-transition .mcap (a full summary)")]
+    if bare is None:
+        figs.append(pending("decode", "mcap_no_summary_decode_transitions_per_s", "transitions/s",
+                            "the same messages with a full summary", "needs the mcap package (the dev extra)"))
+    else:
+        figs.append(figure("decode", "mcap_no_summary_decode_transitions_per_s", "transitions/s", rates["bare"],
+                           rates["full"], "read_transitions, the same file with a full summary",
+                           target=lambda o, r, x: x >= 0.5, target_text=">= 0.5x",
+                           note="Foxglove's mcap writer, no summary: the data section is scanned at open"))
     return figs
 
 

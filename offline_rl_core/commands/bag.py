@@ -12,7 +12,7 @@ def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "bag",
         help="bag tools: info (like `ros2 bag info`), repair (like `ros2 bag reindex` / `mcap recover`)",
-        description="Tools for rosbag2 bags: a directory with metadata.yaml, or a .db3/.mcap file.",
+        description="Tools for rosbag2 bags: a bag directory (its metadata.yaml may be missing), or a .db3/.mcap file.",
     )
     sub = parser.add_subparsers(dest="bag_command", metavar="SUBCOMMAND")
     sub.required = True

@@ -23,9 +23,12 @@ COMMAND_MODULES = (
     "train",
     "eval",
     "experiment",
+    "sweep",
     "export_onnx",
     "bench",
     "hil",
+    "weights_key",
+    "sros2",
 )
 
 

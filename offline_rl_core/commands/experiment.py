@@ -3,12 +3,16 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 
 from ..common.errors import RunFailed, UserError
 from ..common.output_paths import check_output_dir
 from ..common.seeds import seed_arg
+from .sweep import add_engine_arguments, engine_of
 from ..runs.experiment import ExperimentConfig, format_table, run_experiment, summary_rows, verdict
 from ..runs.loggers import DEFAULT_LOGGER, LOGGER_HELP, LOGGERS
+from ..task.envs import make_env
+from ..task.spec import BUILTIN_DIR, load_task
 
 OFFLINE_ALGOS = ("awac", "iql", "filtered_bc", "naive", "auto")
 
@@ -43,6 +47,10 @@ def register(subparsers) -> None:
     p.add_argument("--workers", type=int, default=None, metavar="N",
                    help="training processes, one (learner, seed) run each; results do not depend on it "
                         "(default: one per CPU core; smoke: 1)")
+    p.add_argument("--task", default=None, metavar="NAME_OR_FILE",
+                   help="the task whose dataset is collected and on which both learners are evaluated: a built-in "
+                        "task or a task file with a sim section (default: pusher_reach, the chapter's)")
+    add_engine_arguments(p)
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
     p.add_argument("--resume", action="store_true",
                    help="continue a killed experiment (same flags) from the resume points its training jobs left, "
@@ -64,11 +72,19 @@ def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
         raise UserError(f"--expert-frac must be in [0, 1], got {args.expert_frac}")
     overrides = {"seeds": seeds, "algo": algo, "expert_frac": args.expert_frac, "deterministic": args.deterministic,
                  "budget_s": args.budget_s}
+    if args.task is not None:
+        task = load_task(args.task)
+        make_env(task)  # a task no sim hosts: said before anything runs
+        # a file by its path, so worker processes and a --resume read the same task
+        overrides["task"] = str(task.path.resolve()) if task.path and task.path.parent != BUILTIN_DIR else task.name
     if args.budget_s is not None and not args.budget_s > 0:
         raise UserError(f"--budget-s must be > 0 seconds, got {args.budget_s}")
+    overrides["engine"] = engine_of(args)
     if args.workers is not None:
         if args.workers < 1:
             raise UserError(f"--workers must be >= 1, got {args.workers}")
+        if overrides["engine"] == "ray":
+            raise UserError("--workers is for --engine local; on Ray each (learner, seed) run takes one of the cluster's CPUs")
         overrides["workers"] = args.workers
     for name in ("episodes", "steps"):
         value = getattr(args, name)
@@ -79,14 +95,24 @@ def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
     return ExperimentConfig.smoke_settings(**overrides) if args.smoke else ExperimentConfig(**overrides)
 
 
+def _engine(cfg: ExperimentConfig, address: str | None):
+    """Ray connected for the block (``--engine ray``), or nothing to connect."""
+    if cfg.engine != "ray":
+        return contextlib.nullcontext()
+    from ..runs.ray_engine import connected
+
+    return connected(address)
+
+
 def run(args: argparse.Namespace) -> int:
     check_output_dir(args.out, "--out")
     cfg = config_from_args(args)
     if args.resume_every <= 0:
         raise UserError(f"--resume-every must be > 0, got {args.resume_every}")
     try:
-        outcomes = run_experiment(cfg, args.out, log=lambda line: print(line, flush=True),
-                                  resume=args.resume, resume_every=args.resume_every, logger=args.logger)
+        with _engine(cfg, args.address):
+            outcomes = run_experiment(cfg, args.out, log=lambda line: print(line, flush=True),
+                                      resume=args.resume, resume_every=args.resume_every, logger=args.logger)
     except RunFailed as exc:
         raise RunFailed(f"{exc}; the same command with --resume continues from the last resume points") from None
     rows = summary_rows(cfg, outcomes)

@@ -6,6 +6,7 @@ import warnings
 
 from ..data.bag import read_transitions
 from ..data.interop import episode_runs, minari_root, to_minari
+from ..data.task_record import check_layout_fits, task_of_bag
 
 
 def register(subparsers) -> None:
@@ -22,6 +23,9 @@ def register(subparsers) -> None:
     p.add_argument("--minari", required=True, metavar="ID",
                    help="Minari dataset ID, [NAMESPACE/]NAME-vN (e.g. pusher/mix-v0)")
     p.add_argument("bag", metavar="BAG", help="rosbag2 bag (directory, .db3 or .mcap) with /pusher/transition")
+    p.add_argument("--task", metavar="NAME_OR_FILE",
+                   help="the bag's task (default: the one it records, else pusher_reach); a pusher_reach dataset "
+                        "names its Gymnasium env")
     p.add_argument("--description", help="the dataset's description (default: where it came from)")
     p.add_argument("--author", help="the dataset's author, for its metadata")
     p.add_argument("--author-email", help="the author's e-mail, for its metadata")
@@ -30,12 +34,15 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
+    task = task_of_bag(args.bag, args.task)
     data = read_transitions(args.bag)
-    description = args.description or f"pusher-rl transitions exported from the rosbag2 bag {args.bag}"
+    check_layout_fits(args.bag, data.layout.obs_dim, data.layout.act_dim, task)
+    description = args.description or (
+        f"pusher-rl transitions of task {task.name} (digest {task.digest}) exported from the rosbag2 bag {args.bag}")
     with warnings.catch_warnings():
         # Minari asks for the metadata not given; the flags above give it
         warnings.filterwarnings("ignore", category=UserWarning, module=r"minari\.utils")
-        path = to_minari(data, args.minari, description=description, author=args.author,
+        path = to_minari(data, args.minari, description=description, task=task, author=args.author,
                          author_email=args.author_email, code_permalink=args.code_permalink)
     print(f"wrote the Minari dataset {args.minari} ({path}; root {minari_root()}): {len(data)} transitions, "
           f"{len(episode_runs(data))} episodes")

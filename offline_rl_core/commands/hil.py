@@ -42,7 +42,7 @@ def _run(args) -> int:
     if args.online:
         return _run_online(args)
     cfg = HilConfig(
-        out=args.out, rounds=args.rounds, episodes=args.episodes, prior=args.prior, bags=args.bag,
+        out=args.out, rounds=args.rounds, episodes=args.episodes, prior=args.prior, bags=args.bag, task=args.task,
         seed=args.seed, prior_steps=args.prior_steps, steps=args.steps, correction_ratio=args.correction_ratio,
         eval_episodes=args.eval_episodes, eval_seed=args.eval_seed, patience=args.patience,
         hold_steps=args.hold_steps, grace_steps=args.grace_steps, beta=args.beta, noise=args.noise, reaction_delay=args.reaction_delay,
@@ -58,7 +58,7 @@ def _run_online(args) -> int:
         out=args.out, env_steps=args.env_steps,
         seed=args.seed, prior=args.prior, no_prior=args.no_prior, prior_steps=args.prior_steps,
         prior_algo=args.prior_algo,
-        bags=args.bag, corrector=args.corrector, mode=args.mode, utd=args.utd,
+        bags=args.bag, task=args.task, corrector=args.corrector, mode=args.mode, utd=args.utd,
         publish_every=args.publish_every, eval_every=args.eval_every, eval_episodes=args.eval_episodes,
         eval_seed=args.eval_seed, in_process=args.in_process)
     summary = run_hil_online(cfg, logger=args.logger)
@@ -84,6 +84,9 @@ def register(subparsers) -> None:
                    "runs/demo/awac/policy.pt when it was trained so)")
     p.add_argument("--bag", action="append", metavar="PATH",
                    help="offline bag(s) of the prior (default: bags/mix.db3 here, else the project's)")
+    p.add_argument("--task", metavar="NAME_OR_FILE",
+                   help="the task: a built-in task or a task file, given to the sim, policy, corrector, learner and "
+                        "trainer (default: the one the bag records, else pusher_reach)")
     p.add_argument("--seed", type=seed_arg, default=d.seed, help="seed of training and of the corrector (default: %(default)s)")
     p.add_argument("--prior-steps", type=int, default=d.prior_steps, help="steps of the prior's training (default: %(default)s)")
     p.add_argument("--eval-episodes", type=int, default=d.eval_episodes,

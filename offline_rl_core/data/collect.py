@@ -1,4 +1,5 @@
-"""Build the chapter's fixed dataset: expert episodes first, then uniform-random ones."""
+"""Build a task's fixed dataset: expert episodes first, then uniform-random ones (the chapter's
+rule; on pusher_reach, the chapter's dataset)."""
 
 from __future__ import annotations
 
@@ -6,9 +7,9 @@ from typing import Callable
 
 import numpy as np
 
-from ..task.pusher_reach import ACT_DIM, MAX_STEPS, OBS_DIM, PusherReachEnv
-from ..task.expert import expert_action
-from .transitions import SOURCE_EXPERT, SOURCE_RANDOM, Transitions
+from ..task.envs import make_env, task_expert
+from ..task.spec import TaskSpec, load_task
+from .transitions import SOURCE_EXPERT, SOURCE_RANDOM, Layout, Transitions
 
 
 def expert_episode_count(episodes: int, expert_frac: float) -> int:
@@ -19,24 +20,28 @@ def expert_episode_count(episodes: int, expert_frac: float) -> int:
 class EpisodePlan:
     """Who acts in each episode of a collection, and what it does.
 
-    The first ``expert_episode_count`` episodes are the scripted expert's, the rest take
-    uniform random actions from one numpy Generator seeded by ``seed``, drawn only on
-    random episodes. ``collect_transitions`` and the recorder node (driving the sim over
-    ROS, see collect_driver) both act through it, so they record the same transitions.
+    The first ``expert_episode_count`` episodes are the task's scripted expert's
+    (``task.envs.task_expert``), the rest take uniform random actions from one numpy
+    Generator seeded by ``seed``, drawn only on random episodes. ``collect_transitions`` and
+    the recorder node (driving the sim over ROS, see collect_driver) both act through it,
+    so they record the same transitions.
     """
 
-    def __init__(self, episodes: int, expert_frac: float, seed: int):
+    def __init__(self, episodes: int, expert_frac: float, seed: int, task: TaskSpec | str | None = None):
+        self.task = load_task(task)
+        self.expert = task_expert(self.task)
         self.n_expert = expert_episode_count(episodes, expert_frac)
         self.rng = np.random.default_rng(seed)
 
     def source(self, episode: int) -> int:
         return SOURCE_EXPERT if episode < self.n_expert else SOURCE_RANDOM
 
-    def action(self, episode: int, position, velocity, target_xy) -> np.ndarray:
-        """The float32 action for a state of ``episode`` (joint positions, velocities, target x/y)."""
+    def action(self, episode: int, position, velocity, goal) -> np.ndarray:
+        """The float32 action for a state of ``episode``: joint positions and velocities (in
+        the state's joint order) and the task's goal vector (pusher_reach: the target's x, y)."""
         if episode < self.n_expert:
-            return expert_action(position, velocity, target_xy)
-        return self.rng.uniform(-1, 1, size=ACT_DIM).astype(np.float32)
+            return self.expert(position, velocity, goal)
+        return self.rng.uniform(-1, 1, size=self.task.act_dim).astype(np.float32)
 
 
 def collect_transitions(
@@ -44,8 +49,10 @@ def collect_transitions(
     expert_frac: float,
     seed: int,
     progress: Callable[[int, int], None] | None = None,
+    task: TaskSpec | str | None = None,
 ) -> Transitions:
-    """Roll out ``episodes`` episodes; episode ``ep`` resets with ``seed + ep``.
+    """Roll out ``episodes`` episodes of ``task`` (default pusher_reach); episode ``ep``
+    resets with ``seed + ep``.
 
     Who acts is ``EpisodePlan``'s rule, so the same arguments always give the same bytes.
     """
@@ -53,19 +60,14 @@ def collect_transitions(
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     if not 0.0 <= expert_frac <= 1.0:
         raise ValueError(f"expert_frac must be in [0, 1], got {expert_frac}")
-    env = PusherReachEnv()
-    plan = EpisodePlan(episodes, expert_frac, seed)
-    n = episodes * MAX_STEPS
-    obs = np.empty((n, OBS_DIM), np.float32)
-    action = np.empty((n, ACT_DIM), np.float32)
-    reward = np.empty(n, np.float32)
-    next_obs = np.empty((n, OBS_DIM), np.float32)
-    terminated = np.zeros(n, bool)
-    truncated = np.zeros(n, bool)
-    success = np.zeros(n, bool)
-    episode = np.empty(n, np.int64)
-    step = np.empty(n, np.int64)
-    source = np.empty(n, np.int64)
+    task = load_task(task)
+    env = make_env(task, terminate_on_success=False)
+    plan = EpisodePlan(episodes, expert_frac, seed, task)
+    n = episodes * env.max_steps
+    data = Transitions.empty(n, Layout(task.obs_dim, task.act_dim))
+    obs, action, reward, next_obs = data.obs, data.action, data.reward, data.next_obs
+    terminated, truncated, success = data.terminated, data.truncated, data.success
+    episode, step, source = data.episode, data.step, data.source
     i = 0
     for ep in range(episodes):
         o = env.reset(seed=seed + ep)
@@ -73,7 +75,7 @@ def collect_transitions(
         done = False
         t = 0
         while not done:
-            a = plan.action(ep, env.qpos, env.qvel, env.target[:2])
+            a = plan.action(ep, env.joint_positions, env.joint_velocities, env.goal)
             o2, r, done, info = env.step(a)
             obs[i], action[i], reward[i], next_obs[i] = o, a, r, o2
             terminated[i], truncated[i], success[i] = info["terminated"], info["truncated"], info["success"]

@@ -9,8 +9,9 @@ field for (who acted, the episode id and step, success) goes in ``infos`` at ind
 for step t (index 0 is the start, where Minari's own DataCollector puts the reset's info),
 so ``from_minari(to_minari(bag))`` gives the bag's rows back. The spaces are the task's:
 ``Box(-inf, inf, (obs_dim,))`` observations and ``Box(-1, 1, (act_dim,))`` actions, float32,
-sized from the data; a pusher-reach dataset names its Gymnasium env, so
-``dataset.recover_environment()`` makes the env it was recorded on.
+sized from the data (any task's); a pusher-reach dataset names its Gymnasium env, so
+``dataset.recover_environment()`` makes the env it was recorded on. Reading one back, the
+task is given (default pusher_reach) and its sizes must be the dataset's.
 
 Minari keeps datasets under ``MINARI_DATASETS_PATH`` (default ``~/.minari/datasets``); a
 dataset is written under a hidden staging directory there and moved into place whole.
@@ -32,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from ..common.errors import UserError
-from ..task.pusher_reach import ACT_DIM, OBS_DIM
+from ..task.spec import DEFAULT_TASK, TaskSpec, load_task
 from .transitions import SOURCE_NAMES, Transitions
 
 MINARI_INSTALL = "pip install 'offline_rl_core[interop]' (or: pip install 'minari[hdf5]')"
@@ -95,10 +96,11 @@ def minari_root() -> Path:
     return Path(os.environ.get("MINARI_DATASETS_PATH") or Path.home() / ".minari" / "datasets")
 
 
-def to_minari(data: Transitions, dataset_id: str, description: str | None = None, **metadata) -> Path:
-    """Write ``data`` as the Minari dataset ``dataset_id``; returns its directory. Refuses an
-    ID that exists; a dataset appears whole or not at all. ``metadata``: Minari's own
-    (``author``, ``author_email``, ``code_permalink``)."""
+def to_minari(data: Transitions, dataset_id: str, description: str | None = None, task: TaskSpec | None = None,
+              **metadata) -> Path:
+    """Write ``data`` (of ``task``, default pusher_reach) as the Minari dataset ``dataset_id``;
+    returns its directory. Refuses an ID that exists; a dataset appears whole or not at all.
+    ``metadata``: Minari's own (``author``, ``author_email``, ``code_permalink``)."""
     minari = import_minari()
     from minari.dataset.minari_dataset import parse_dataset_id
     from minari.namespace import create_namespace, list_local_namespaces
@@ -117,7 +119,7 @@ def to_minari(data: Transitions, dataset_id: str, description: str | None = None
                         f"name or version, or delete it first (minari delete {dataset_id})")
     obs_space, act_space = spaces(data.obs.shape[1], data.action.shape[1])
     env = None
-    if (data.obs.shape[1], data.action.shape[1]) == (OBS_DIM, ACT_DIM):
+    if (task or load_task()).digest == load_task(DEFAULT_TASK).digest:  # the one task with a Gymnasium env
         from ..task.gym_env import ENV_ID  # registers the env
 
         env = ENV_ID
@@ -153,10 +155,12 @@ def _datasets_path(path: Path):
             os.environ["MINARI_DATASETS_PATH"] = before
 
 
-def from_minari(dataset_id: str, source: int | None = None) -> Transitions:
-    """The transitions of the Minari dataset ``dataset_id``. Who acted, episode ids, steps
-    and success come from the episodes' infos where the dataset has them (pusher-rl's
-    exports do); else ``source`` (required then), Minari's episode ids, 0.. and False."""
+def from_minari(dataset_id: str, source: int | None = None, task: TaskSpec | None = None) -> Transitions:
+    """The transitions of the Minari dataset ``dataset_id``, which must have ``task``'s sizes
+    (default pusher_reach). Who acted, episode ids, steps and success come from the episodes'
+    infos where the dataset has them (pusher-rl's exports do); else ``source`` (required
+    then), Minari's episode ids, 0.. and False."""
+    task = task or load_task()
     minari = import_minari()
     from gymnasium import spaces as gym_spaces
 
@@ -171,9 +175,9 @@ def from_minari(dataset_id: str, source: int | None = None) -> Transitions:
             raise UserError(f"{dataset_id}: its {role} space is {space}; pusher-rl takes flat Box observations "
                             f"and actions")
     obs_dim, act_dim = dataset.observation_space.shape[0], dataset.action_space.shape[0]
-    if (obs_dim, act_dim) != (OBS_DIM, ACT_DIM):
-        raise UserError(f"{dataset_id}: observations of {obs_dim} and actions of {act_dim} values; a "
-                        f"/pusher/transition bag holds the task's {OBS_DIM} and {ACT_DIM}")
+    if (obs_dim, act_dim) != (task.obs_dim, task.act_dim):
+        raise UserError(f"{dataset_id}: observations of {obs_dim} and actions of {act_dim} values; task {task.name} "
+                        f"has {task.obs_dim} and {task.act_dim} (give the dataset's task with --task)")
     parts = [_episode_transitions(dataset_id, ep, source) for ep in dataset.iterate_episodes()]
     if not parts:
         raise UserError(f"{dataset_id}: the dataset has no episodes")

@@ -1,13 +1,16 @@
 """The dataset's unit: a batch of transitions as flat numpy arrays, plus the bag layout.
 
-One row per environment step. The field order and sizes are the `/pusher/transition`
-layout of the design (25 float32 values per message, each field labelled).
+One row per environment step. The field order is the `/pusher/transition` layout of the
+design, each field labelled with its size: ``obs`` and ``next_obs`` have the task's
+observation size, ``action`` its action size (8 and 2 on pusher-reach: 25 float32 values a
+message), every other field one value.
 """
 
 from __future__ import annotations
 
 import hashlib
 from dataclasses import dataclass, fields
+from functools import cached_property
 
 import numpy as np
 
@@ -32,32 +35,65 @@ def source_from_tag(tag: str) -> int | None:
         return int(tag)
     return None
 
-# (label, size) in message order; readers check the labels, not just the length.
-TRANSITION_LAYOUT: tuple[tuple[str, int], ...] = (
-    ("obs", OBS_DIM),
-    ("action", ACT_DIM),
-    ("reward", 1),
-    ("next_obs", OBS_DIM),
-    ("terminated", 1),
-    ("truncated", 1),
-    ("success", 1),
-    ("episode", 1),
-    ("step", 1),
-    ("source", 1),
-)
-TRANSITION_WIDTH = sum(size for _, size in TRANSITION_LAYOUT)  # 25
+FIELD_NAMES = ("obs", "action", "reward", "next_obs", "terminated", "truncated", "success", "episode", "step",
+               "source")
 
-# Column slices into one 25-float row.
-_offsets = np.cumsum([0] + [size for _, size in TRANSITION_LAYOUT])
-LAYOUT_SLICES = {label: slice(int(_offsets[i]), int(_offsets[i + 1])) for i, (label, _) in enumerate(TRANSITION_LAYOUT)}
+
+@dataclass(frozen=True)
+class Layout:
+    """The fields of one transition row, in message order, sized for a task."""
+
+    obs_dim: int
+    act_dim: int
+
+    @cached_property
+    def fields(self) -> tuple[tuple[str, int], ...]:
+        """(label, size) in message order; readers check the labels, not just the length."""
+        sizes = {"obs": self.obs_dim, "action": self.act_dim, "next_obs": self.obs_dim}
+        return tuple((name, sizes.get(name, 1)) for name in FIELD_NAMES)
+
+    @cached_property
+    def width(self) -> int:
+        return sum(size for _, size in self.fields)
+
+    @cached_property
+    def slices(self) -> dict[str, slice]:
+        """Column slices into one row."""
+        offsets = np.cumsum([0] + [size for _, size in self.fields])
+        return {label: slice(int(offsets[i]), int(offsets[i + 1])) for i, (label, _) in enumerate(self.fields)}
+
+    @classmethod
+    def of_fields(cls, fields: tuple[tuple[str, int], ...]) -> "Layout | None":
+        """The layout whose labelled fields these are, or None (other labels, order or sizes)."""
+        if tuple(label for label, _ in fields) != FIELD_NAMES:
+            return None
+        sizes = dict(fields)
+        if sizes["obs"] < 1 or sizes["action"] < 1 or sizes["next_obs"] != sizes["obs"] or any(
+                sizes[n] != 1 for n in FIELD_NAMES if n not in ("obs", "action", "next_obs")):
+            return None
+        return cls(sizes["obs"], sizes["action"])
+
+    def describe(self) -> str:
+        return ", ".join(f"{label} {size}" for label, size in self.fields)
+
+    def field_of_column(self, column: int) -> str:
+        """The label of a column of a row."""
+        return next(label for label, _ in self.fields if column < self.slices[label].stop)
+
+
+PUSHER_LAYOUT = Layout(OBS_DIM, ACT_DIM)  # the chapter's pusher-reach: 25 values
+# The pusher-reach layout under its old names (the layout of bags that record no task).
+TRANSITION_LAYOUT = PUSHER_LAYOUT.fields
+TRANSITION_WIDTH = PUSHER_LAYOUT.width
+LAYOUT_SLICES = PUSHER_LAYOUT.slices
 
 
 @dataclass
 class Transitions:
     """Flat arrays of N transitions. Vector fields are (N, dim); scalars are (N,)."""
 
-    obs: np.ndarray  # float32 (N, 8)
-    action: np.ndarray  # float32 (N, 2)
+    obs: np.ndarray  # float32 (N, obs_dim)
+    action: np.ndarray  # float32 (N, act_dim)
     reward: np.ndarray  # float32 (N,)
     next_obs: np.ndarray  # float32 (N, 8)
     terminated: np.ndarray  # bool (N,)
@@ -70,16 +106,21 @@ class Transitions:
     def __len__(self) -> int:
         return int(self.obs.shape[0])
 
+    @property
+    def layout(self) -> Layout:
+        return Layout(int(self.obs.shape[1]), int(self.action.shape[1]))
+
     def to_rows(self, start: int = 0, stop: int | None = None) -> np.ndarray:
-        """The (N, 25) float32 matrix (or rows start..stop of it), one bag message per row."""
+        """The (N, width) float32 matrix (or rows start..stop of it), one bag message per row."""
+        layout = self.layout
         stop = len(self) if stop is None else min(stop, len(self))
-        rows = np.empty((max(stop - start, 0), TRANSITION_WIDTH), dtype=np.float32)
-        for label, _ in TRANSITION_LAYOUT:
-            rows[:, LAYOUT_SLICES[label]] = getattr(self, label)[start:stop].reshape(len(rows), -1)
+        rows = np.empty((max(stop - start, 0), layout.width), dtype=np.float32)
+        for label, _ in layout.fields:
+            rows[:, layout.slices[label]] = getattr(self, label)[start:stop].reshape(len(rows), -1)
         return rows
 
     @classmethod
-    def empty(cls, n: int) -> "Transitions":
+    def empty(cls, n: int, layout: Layout = PUSHER_LAYOUT) -> "Transitions":
         """N uninitialised rows with the right dtypes (filled with ``fill_rows``)."""
         def column(label: str, size: int) -> np.ndarray:
             if label in ("terminated", "truncated", "success"):
@@ -87,13 +128,14 @@ class Transitions:
             if label in ("episode", "step", "source"):
                 return np.empty(n, dtype=np.int64)
             return np.empty((n, size) if label in ("obs", "action", "next_obs") else n, dtype=np.float32)
-        return cls(**{label: column(label, size) for label, size in TRANSITION_LAYOUT})
+        return cls(**{label: column(label, size) for label, size in layout.fields})
 
     def fill_rows(self, start: int, rows: np.ndarray) -> None:
-        """Write an (k, 25) float32 block of rows into rows start..start+k."""
+        """Write a (k, width) float32 block of rows into rows start..start+k."""
+        layout = self.layout
         stop = start + len(rows)
-        for label, _ in TRANSITION_LAYOUT:
-            block = rows[:, LAYOUT_SLICES[label]]
+        for label, _ in layout.fields:
+            block = rows[:, layout.slices[label]]
             target = getattr(self, label)
             if target.ndim == 1:
                 block = block[:, 0]
@@ -102,10 +144,13 @@ class Transitions:
                 target[start:stop] = block
 
     @classmethod
-    def from_rows(cls, rows: np.ndarray) -> "Transitions":
-        """Split an (N, 25) float32 matrix into typed columns (copies, contiguous)."""
+    def from_rows(cls, rows: np.ndarray, layout: Layout = PUSHER_LAYOUT) -> "Transitions":
+        """Split an (N, width) float32 matrix into typed columns (copies, contiguous)."""
         rows = np.asarray(rows, dtype=np.float32)
-        out = cls.empty(len(rows))
+        if rows.ndim != 2 or rows.shape[1] != layout.width:
+            raise ValueError(f"expected ({layout.width},)-wide rows of the layout [{layout.describe()}], "
+                             f"got shape {rows.shape}")
+        out = cls.empty(len(rows), layout)
         out.fill_rows(0, rows)
         return out
 

@@ -1,4 +1,8 @@
-"""Roll policies out in pusher-reach on held-out reset seeds and score them.
+"""Roll policies out on held-out reset seeds and score them: pusher-reach fast, any task's env.
+
+Any task with a sim (``task.envs.make_env``): ``rollout_task`` runs its env one episode
+after another, one policy call per step (as the policy node asks), and ``rollout_expert``
+the task's scripted expert from each state. On pusher_reach ``rollout_task`` is ``rollout``:
 
 ``rollout`` runs N episodes either batched (one ``mujoco.batch.Batch`` of N
 simulations, one policy call per control step for all of them) or sequentially
@@ -29,9 +33,11 @@ import mujoco
 import mujoco.batch
 import numpy as np
 
+from ..task.envs import expert_action, make_env
 from ..task.pusher_reach import (
     ACT_DIM, FRAME_SKIP, PusherReachEnv, batch_observations, build_model, clip_actions, sample_reset, score_steps,
 )
+from ..task.spec import DEFAULT_TASK, TaskSpec, load_task
 from .stats import wilson_ci
 
 ActFn = Callable[[np.ndarray], np.ndarray]
@@ -222,8 +228,12 @@ def single_threaded_blas():
         put(before)
 
 
-def _rollout_sequential(act_fn: ActFn, seeds: np.ndarray, terminate_on_success: bool) -> RolloutResult:
-    env = PusherReachEnv(terminate_on_success=terminate_on_success)
+def _rollout_sequential(act_fn: ActFn, seeds: np.ndarray, terminate_on_success: bool, env=None,
+                        choose: Callable[[np.ndarray], np.ndarray] | None = None) -> RolloutResult:
+    """One episode after another in ``env`` (default: pusher-reach's); the action of each
+    state is ``choose(obs)`` (default: ``act_fn`` on the one-row batch)."""
+    env = env if env is not None else PusherReachEnv(terminate_on_success=terminate_on_success)
+    choose = choose or (lambda obs: np.asarray(act_fn(obs[None, :]))[0])
     n = len(seeds)
     success = np.zeros(n, bool)
     final_dist = np.zeros(n)
@@ -233,7 +243,7 @@ def _rollout_sequential(act_fn: ActFn, seeds: np.ndarray, terminate_on_success: 
         obs = env.reset(int(seed))
         done = False
         while not done:
-            action = np.asarray(act_fn(obs[None, :]))[0]
+            action = choose(obs)
             obs, reward, done, info = env.step(action)
             returns[k] += reward
             lengths[k] += 1
@@ -270,14 +280,43 @@ def rollout(
     ``batched`` steps all episodes together with one ``act_fn`` call per control
     step; ``batched=False`` is the plain loop, one env and one call per step.
     """
-    seeds = np.asarray(list(reset_seeds), dtype=np.int64)
-    if seeds.size == 0:
-        raise ValueError("rollout needs at least one reset seed")
+    seeds = _seeds(reset_seeds)
     if not batched:  # the reference: MuJoCo as a plain loop runs it, profiling timers included
         with single_threaded_blas():
             return _rollout_sequential(act_fn, seeds, terminate_on_success)
     with single_threaded_blas(), mujoco_timers_off():
         return _rollout_batched(act_fn, seeds, terminate_on_success)
+
+
+def _seeds(reset_seeds: Sequence[int]) -> np.ndarray:
+    seeds = np.asarray(list(reset_seeds), dtype=np.int64)
+    if seeds.size == 0:
+        raise ValueError("rollout needs at least one reset seed")
+    return seeds
+
+
+def _is_pusher_reach(task: TaskSpec) -> bool:
+    return task.sim == {"env": "pusher_reach"}
+
+
+def rollout_task(task: TaskSpec | str | None, act_fn: ActFn, reset_seeds: Sequence[int],
+                 terminate_on_success: bool = False, batched: bool = True) -> RolloutResult:
+    """``rollout`` on any task's env: ``act_fn(obs (N, obs_dim)) -> (N, act_dim)``.
+    pusher_reach's env is batched (``batched``); another task's runs one episode after
+    another, one row per call, as the policy node serves it."""
+    task = load_task(task)
+    if _is_pusher_reach(task):
+        return rollout(act_fn, reset_seeds, terminate_on_success, batched)
+    seeds = _seeds(reset_seeds)
+    with single_threaded_blas():
+        return _rollout_sequential(act_fn, seeds, terminate_on_success, make_env(task, terminate_on_success))
+
+
+def rollout_expert(task: TaskSpec | str | None, reset_seeds: Sequence[int],
+                   terminate_on_success: bool = False) -> RolloutResult:
+    """The task's scripted expert (``task.envs.task_expert``) from each state of its env."""
+    env = make_env(load_task(task), terminate_on_success)
+    return _rollout_sequential(None, _seeds(reset_seeds), terminate_on_success, env, lambda obs: expert_action(env))
 
 
 def expert_act_fn() -> ActFn:
@@ -306,17 +345,32 @@ def round6(x: float) -> float:
     return round(float(x), 6)
 
 
-def evaluate_policy(policy, episodes: int, seed: int, batched: bool = True, checkpoint: str | None = None) -> dict:
-    """Score ``policy`` (anything with ``act(obs)``, or a callable) on reset seeds
-    ``seed .. seed + episodes - 1``; the dict ``offline-rl eval`` prints and writes."""
+def evaluate_policy(policy, episodes: int, seed: int, batched: bool = True, checkpoint: str | None = None,
+                    task: TaskSpec | str | None = None) -> dict:
+    """Score ``policy`` (anything with ``act(obs)``, or a callable; None: the task's
+    scripted expert) on ``task``'s reset seeds ``seed .. seed + episodes - 1``; the dict
+    ``offline-rl eval`` prints and writes (it names the task, but for pusher_reach's)."""
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
-    act_fn = policy.act if hasattr(policy, "act") else policy
-    result = rollout(act_fn, range(seed, seed + episodes), batched=batched)
+    task = load_task(task)
+    seeds = range(seed, seed + episodes)
+    if policy is None:
+        result = rollout_expert(task, seeds)
+    else:
+        act_fn = policy.act if hasattr(policy, "act") else policy
+        result = rollout_task(task, act_fn, seeds, batched=batched)
+    return scored(result, seed, task, checkpoint if checkpoint is not None else getattr(policy, "source", None),
+                  "expert" if policy is None else getattr(policy, "algorithm", None))
+
+
+def scored(result: RolloutResult, seed: int, task: TaskSpec, checkpoint: str | None, algorithm: str | None) -> dict:
+    """The evaluation's dict of a rollout: success with its Wilson interval, distances, return."""
     lo, hi = wilson_ci(result.successes, result.episodes)
+    named = {} if task.name == DEFAULT_TASK else {"task": task.name, "task_digest": task.digest}
     return {
-        "checkpoint": checkpoint if checkpoint is not None else getattr(policy, "source", None),
-        "algorithm": getattr(policy, "algorithm", None),
+        **named,
+        "checkpoint": checkpoint,
+        "algorithm": algorithm,
         "episodes": result.episodes,
         "seed": int(seed),
         "successes": result.successes,

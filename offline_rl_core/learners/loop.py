@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from ..common.errors import UserError
-from ..serving.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION
+from ..serving.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, task_field
 from ..serving.policy import LoadedPolicy
 from ..data.transitions import Transitions
 from .awac import AWAC
@@ -100,6 +100,7 @@ def train_seeds(
     resume: ResumePoints | None = None,
     snapshot: Callable[[int, float, Callable[[int], dict]], None] | None = None,
     threads_now: Callable[[], int] | None = None,
+    task=None,
 ) -> list[TrainResult]:
     """Train ``cfg.algo`` once per seed; ``datasets`` is one Transitions for all seeds
     or one per seed. ``init`` (a checkpoint dict) warm-starts every run from it.
@@ -110,7 +111,9 @@ def train_seeds(
     a learning curve: ``policy_state(m)`` is member m's policy as a checkpoint holds it.
     ``threads_now()``: the threads the steps may use from now on (asked every
     ``THREADS_CHECK_EVERY`` steps unless ``cfg.threads`` fixes them), e.g. more once the
-    runs beside this one have finished; the result is the same bytes either way."""
+    runs beside this one have finished; the result is the same bytes either way.
+    ``task`` (a ``TaskSpec``): the task the data is of, recorded in every checkpoint
+    (``checkpoint["task"]``); the data's sizes must be its observation and action sizes."""
     seeds = [int(s) for s in seeds]
     if not seeds:
         raise ValueError("no seeds to train")
@@ -122,6 +125,9 @@ def train_seeds(
         if len(d) == 0:
             raise ValueError("cannot train on an empty dataset")
     obs_dim, act_dim = datasets[0].obs.shape[1], datasets[0].action.shape[1]
+    if task is not None and (obs_dim, act_dim) != (task.obs_dim, task.act_dim):
+        raise ValueError(f"the data has obs {obs_dim}, action {act_dim}; task {task.name} has obs {task.obs_dim}, "
+                         f"action {task.act_dim}")
 
     gens = [seed_generators(s) for s in seeds]
     learner = LEARNERS[cfg.algo](cfg, len(seeds), [g[0] for g in gens], obs_dim, act_dim)
@@ -217,12 +223,14 @@ def train_seeds(
             "train_threads": getattr(step_once, "threads", None),
             "kernels": learner.policy.kernels if cfg.device == "cpu" else cfg.device,
         }
+        if task is not None:
+            checkpoint["task"] = task_field(task)
         results.append(TrainResult(seed, LoadedPolicy(checkpoint), checkpoint, histories[m],
                                    None if mean_abs_q is None else float(mean_abs_q[m]), step_kind))
     return results
 
 
 def train(dataset: Transitions, cfg: TrainConfig, seed: int, progress=None, init=None,
-          resume: ResumePoints | None = None, snapshot=None) -> TrainResult:
+          resume: ResumePoints | None = None, snapshot=None, task=None) -> TrainResult:
     """One run: ``train_seeds`` with a single seed."""
-    return train_seeds(dataset, cfg, [seed], progress, init, resume, snapshot)[0]
+    return train_seeds(dataset, cfg, [seed], progress, init, resume, snapshot, task=task)[0]

@@ -1,15 +1,21 @@
 """The sim node's protocol as a plain class: episodes, sim time, stepping, results (no ROS).
 
+The arm is any task's env (``task.envs.make_env``): pusher_reach by default.
+
 ``realtime``: ``tick()`` steps the arm with the latest command held (zero-order hold, as a
-motor driver does); the node calls it from a 50 Hz timer.
+motor driver does); the node calls it from a timer at the task's control period.
 ``lockstep``: ``command(stamp, action, source)`` steps the arm only when ``stamp`` is the
 current state's, so data collection and evaluation run as fast as the loop allows and
 are reproducible; any other stamp answers an older or a republished state and is stale.
+A command without a stamp (a controller's Float64MultiArray has no header) cannot name the
+state it answers: ``command_unstamped`` takes the first one after the current state was
+published (``published()``) as its answer, and refuses it once commands with stamps have
+come (they pair exactly; taking both would step twice per state).
 
-Sim time: every state carries ``start_ns + tick * 20 ms``. In lockstep, step ``s`` of
-episode ``e`` is tick ``e * 100 + s`` (an episode owns 100 ticks however it ends), so a
-state's stamp says which episode and step it is; in realtime the tick counts physics
-steps. The node publishes it on /clock and stamps every message with it.
+Sim time: every state carries ``start_ns + tick * control_period``. In lockstep, step ``s``
+of episode ``e`` is tick ``e * max_steps + s`` (an episode owns max_steps ticks however it
+ends), so a state's stamp says which episode and step it is; in realtime the tick counts
+physics steps. The node publishes it on /clock and stamps every message with it.
 
 Every state handed out is one a command applies to: the state after an episode's last
 step is not (it is the ``next_obs`` of the final transition); the next episode's first
@@ -18,14 +24,17 @@ state follows the final transition.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..task.pusher_reach import ACT_DIM, CONTROL_HZ, MAX_STEPS, PusherReachEnv
-from ..data.transitions import LAYOUT_SLICES, SOURCE_POLICY, TRANSITION_WIDTH
+from ..common.rejections import Rejection
+from ..data.transitions import Layout, SOURCE_POLICY
+from ..task.envs import make_env
+from ..task.pusher_reach import CONTROL_HZ, MAX_STEPS
+from ..task.spec import JOINT_STATE, TaskSpec, load_task
 
-TICK_NS = 1_000_000_000 // CONTROL_HZ  # 20 ms
+TICK_NS = 1_000_000_000 // CONTROL_HZ  # pusher_reach's 20 ms (a task's own: SimLoop.tick_ns)
 TICKS_PER_EPISODE = MAX_STEPS  # lockstep: one tick per state an episode can have
 MODES = ("realtime", "lockstep")
 # builtin_interfaces/Time.sec is an int32: a later start wraps to negative stamps that every
@@ -38,11 +47,16 @@ class ArmState:
     """One state of the arm, as the node publishes it."""
 
     stamp_ns: int
-    position: np.ndarray  # rad (shoulder, elbow)
-    velocity: np.ndarray  # rad/s
-    torque: np.ndarray  # N·m applied by the motors in the last step
-    target: np.ndarray  # m (x, y, z)
-    fingertip: np.ndarray  # m: the fingertip the env's observation uses
+    position: np.ndarray  # the state joints' positions (rad, m)
+    velocity: np.ndarray  # rad/s, m/s
+    torque: np.ndarray  # N·m (N) the actuators applied at the state joints in the last step
+    target: np.ndarray | None  # m (x, y, z): a Cartesian goal's point
+    goal: np.ndarray = None  # the task's goal vector (its axes, or a joint-space goal's positions)
+    points: dict = field(default_factory=dict)  # tracked point name -> x, y, z (m)
+
+    @property
+    def fingertip(self) -> np.ndarray | None:
+        return self.points.get("fingertip")
 
 
 @dataclass
@@ -50,7 +64,7 @@ class Step:
     """What one step produced: the transition row, and the next state to publish (None
     after an episode's last step: the next episode's first state is in ``new_episode``)."""
 
-    transition: np.ndarray  # float32[TRANSITION_WIDTH], the 25-float layout
+    transition: np.ndarray  # float32[layout.width], the task's transition layout
     next_state: ArmState | None
     episode_over: bool
     new_episode: ArmState | None = None  # the next episode's first state (None once finished)
@@ -58,20 +72,27 @@ class Step:
 
 class SimLoop:
     def __init__(self, mode: str = "realtime", seed: int = 0, episodes: int = 0, terminate_on_success: bool = False,
-                 start_ns: int = 0):
+                 start_ns: int = 0, task: TaskSpec | str | None = None):
         if mode not in MODES:
             raise ValueError(f"mode must be one of {', '.join(MODES)}, got {mode!r}")
         self.mode = mode
         self.seed = seed
         self.max_episodes = episodes  # 0: run until stopped
         self.start_ns = int(start_ns)
-        self.env = PusherReachEnv(terminate_on_success=terminate_on_success)
+        self.task = load_task(task)
+        self.env = make_env(self.task, terminate_on_success or self.task.reward.terminate_on_success)
+        self.layout = Layout(self.task.obs_dim, self.task.act_dim)
+        self.tick_ns = round(self.task.control_period * 1e9)
+        self.ticks_per_episode = self.task.episodes.max_steps
+        self.stamped_commands = False  # lockstep: a command with a stamp has come (see command_unstamped)
+        self.answerable = False  # lockstep: the current state is published and not yet answered
         self.episode = 0  # index of the current episode; it resets with seed + episode
         self.ticks = 0  # realtime: physics steps so far
         self.results: list[tuple[bool, float, float]] = []  # (success, final distance, return) per episode
+        self.abandoned = 0  # episodes cut short by a reset: counted as failures in the success rate
         self.ep_return = 0.0
         self.obs: np.ndarray | None = None
-        self.held_action = np.zeros(ACT_DIM, np.float32)
+        self.held_action = np.zeros(self.task.act_dim, np.float32)
         self.held_source = SOURCE_POLICY
         self.current: ArmState | None = None
 
@@ -87,22 +108,31 @@ class SimLoop:
         return self._snapshot()
 
     def reset(self) -> ArmState:
-        """Abandon the episode and start the next (the reset service)."""
+        """Abandon the episode and start the next (the reset service): the abandoned one is
+        counted, so resets cannot hide failing episodes from the success rate."""
+        self.abandoned += 1
         self.episode += 1
         return self.start_episode()
 
     def stamp_ns(self) -> int:
-        tick = self.episode * TICKS_PER_EPISODE + self.env.steps if self.mode == "lockstep" else self.ticks
-        return self.start_ns + tick * TICK_NS
+        tick = self.episode * self.ticks_per_episode + self.env.steps if self.mode == "lockstep" else self.ticks
+        return self.start_ns + tick * self.tick_ns
 
     def _snapshot(self) -> ArmState:
         env = self.env
-        self.current = ArmState(self.stamp_ns(), env.qpos.copy(), env.qvel.copy(),
-                                # N·m at the joints: the motors' force times their gear (actuator_force
-                                # is in actuation units, the action itself)
-                                np.array(env.data.qfrc_actuator[:ACT_DIM], np.float64),
-                                np.array(env.target, np.float64), np.array(env.fingertip, np.float64))
+        cartesian = self.task.goal.type != JOINT_STATE
+        self.current = ArmState(self.stamp_ns(), np.array(env.joint_positions, np.float64),
+                                np.array(env.joint_velocities, np.float64),
+                                np.array(env.joint_efforts, np.float64),
+                                np.array(env.goal_position, np.float64) if cartesian else None,
+                                np.array(env.goal, np.float64),
+                                {name: np.array(p, np.float64) for name, p in env.point_positions().items()})
+        self.answerable = False
         return self.current
+
+    def published(self) -> None:
+        """The node has published the current state: a headerless command may answer it now."""
+        self.answerable = True
 
     # ------------------------------------------------------------ stepping
     def command(self, stamp_ns: int | None, action: np.ndarray, source: int) -> Step | None:
@@ -112,9 +142,27 @@ class SimLoop:
         if self.mode == "realtime":
             self.held_action, self.held_source = action, source
             return None
+        self.stamped_commands = True
         if stamp_ns != self.current.stamp_ns:
             return None  # answers an older (or republished, already answered) state: stale
         return self._step(action, source)
+
+    def command_unstamped(self, action: np.ndarray, source: int) -> tuple[Step | None, Rejection | None]:
+        """A command without a stamp: held (realtime), or in lockstep the answer to the
+        current state if it is the first since that state was published; else (None, why)."""
+        if self.finished:
+            return None, None
+        if self.mode == "realtime":
+            self.held_action, self.held_source = action, source
+            return None, None
+        if self.stamped_commands:
+            return None, Rejection("unpaired", "a command without a stamp, while commands with stamps answer "
+                                               "the states (lockstep pairs those exactly)")
+        if not self.answerable:
+            return None, Rejection("unpaired", "a command without a stamp, but the current state is already "
+                                               "answered or not yet published (lockstep takes the first after "
+                                               "each state)")
+        return self._step(action, source), None
 
     def tick(self) -> Step | None:
         """Realtime: one step with the held command."""
@@ -126,17 +174,18 @@ class SimLoop:
     def _step(self, action: np.ndarray, source: int) -> Step:
         obs, step_index = self.obs, self.env.steps
         next_obs, reward, done, info = self.env.step(action)
-        row = np.empty(TRANSITION_WIDTH, np.float32)
-        row[LAYOUT_SLICES["obs"]] = obs
-        row[LAYOUT_SLICES["action"]] = action
-        row[LAYOUT_SLICES["reward"]] = reward
-        row[LAYOUT_SLICES["next_obs"]] = next_obs
-        row[LAYOUT_SLICES["terminated"]] = info["terminated"]
-        row[LAYOUT_SLICES["truncated"]] = info["truncated"]
-        row[LAYOUT_SLICES["success"]] = info["success"]
-        row[LAYOUT_SLICES["episode"]] = self.episode
-        row[LAYOUT_SLICES["step"]] = step_index
-        row[LAYOUT_SLICES["source"]] = source
+        at = self.layout.slices
+        row = np.empty(self.layout.width, np.float32)
+        row[at["obs"]] = obs
+        row[at["action"]] = action
+        row[at["reward"]] = reward
+        row[at["next_obs"]] = next_obs
+        row[at["terminated"]] = info["terminated"]
+        row[at["truncated"]] = info["truncated"]
+        row[at["success"]] = info["success"]
+        row[at["episode"]] = self.episode
+        row[at["step"]] = step_index
+        row[at["source"]] = source
         self.ep_return += reward
         self.obs = next_obs
         if not done:
@@ -147,12 +196,15 @@ class SimLoop:
 
     # ------------------------------------------------------------ results
     def summary(self) -> dict:
+        """Episodes run to their end, and ``abandoned`` ones (reset before it); the success rate
+        is over both, the distance and return over those that ended."""
         n = len(self.results)
+        abandoned = {"abandoned": self.abandoned} if self.abandoned else {}
         if n == 0:
-            return {"episodes": 0, "success_rate": 0.0, "mean_final_dist": None, "mean_return": None}
+            return {"episodes": 0, "success_rate": 0.0, "mean_final_dist": None, "mean_return": None, **abandoned}
         success, dist, ret = (np.array(col, np.float64) for col in zip(*self.results))
-        return {"episodes": n, "success_rate": float(success.mean()), "mean_final_dist": float(dist.mean()),
-                "mean_return": float(ret.mean())}
+        return {"episodes": n, "success_rate": float(success.sum() / (n + self.abandoned)),
+                "mean_final_dist": float(dist.mean()), "mean_return": float(ret.mean()), **abandoned}
 
 
 class TickTiming:

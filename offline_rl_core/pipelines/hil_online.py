@@ -35,6 +35,7 @@ from ..runs.loggers import DEFAULT_LOGGER, check_logger, curve_scalars, open_log
 from ..runs.online_loop import EVAL_SEED, TRAIN_SEED_BASE, steps_to
 from ..serving.checkpoint import load_checkpoint
 from ..serving.policy import load_policy
+from ..serving.signing import make_session_keys
 from ..evaluation.stats import wilson_ci
 from ..data.transitions import SOURCE_HUMAN
 
@@ -56,6 +57,7 @@ class OnlineHilConfig:
     prior_algo: str = "auto"  # auto: the best prior (README, "The best prior"); awac: the chapter's
     prior_steps: int = 8000  # of an AWAC prior
     bags: list[str] = field(default_factory=lambda: [DEFAULT_BAG])
+    task: str | None = None  # a built-in task or a task file; None: the one the bags record, else pusher_reach
     corrector: str = "scripted"  # scripted | keyboard | none
     mode: str = "lockstep"  # lockstep (paced, reproducible) | realtime (50 Hz)
     utd: int = 2
@@ -104,12 +106,13 @@ def run_hil_online(cfg: OnlineHilConfig, log: Callable[[str], None] = lambda s: 
     cfg.validate()
     check_logger(logger)
     out = Path(cfg.out)
-    from .hil import HilConfig, Loop, hil_session, resolve_prior
+    from .hil import HilConfig, Loop, hil_session, resolve_prior, resolve_task
 
     loop = Loop(HilConfig(out=str(out), seed=cfg.seed, bags=cfg.bags), log, logger)
     t0 = time.monotonic()
     curves = None  # in process: logged as the stage runs; over ROS: the curve scored after the session
     with hil_session(out, loop):
+        resolve_task(loop, cfg.task, cfg.bags, cfg.prior, out)
         prior_path, prior_from = (None, "none") if cfg.no_prior else resolve_prior(
             loop, cfg.prior, cfg.bags, cfg.seed, cfg.prior_steps, out, log, cfg.prior_algo)
         if cfg.in_process:
@@ -167,7 +170,7 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
     episodes = cfg.env_steps // EPISODE_STEPS
     lockstep = cfg.mode == "lockstep"
     arguments = {
-        "bag": cfg.bags[0], "prior": prior_path or "", "out": out,
+        "bag": cfg.bags[0], "prior": prior_path or "", "out": out, "task": loop.task_arg,
         # until the learner's first weights, the policy serves the prior (or the learner's initial weights)
         "checkpoint": prior_path or learner_dir / "policy.pt",
         "mode": cfg.mode, "paced_every": cfg.publish_every if lockstep else 0, "publish_every": cfg.publish_every,
@@ -180,6 +183,8 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
     }
     if len(cfg.bags) > 1:
         raise UserError("--online takes one offline bag (merge several with offline-rl dataset first)")
+    # this session's weights key pair: the policy node takes only weights the learner signed with it
+    arguments["keys"] = make_session_keys(out / "keys").signing_key.parent
     log(f"hil online: {cfg.env_steps} environment steps ({episodes} episodes, {cfg.mode}) with the "
         f"{cfg.corrector} corrector, learner utd {cfg.utd}, weights every {cfg.publish_every} steps -> {out} "
         f"(ROS_DOMAIN_ID {loop.env['ROS_DOMAIN_ID']})")

@@ -1,6 +1,7 @@
 """The chapter's experiment: BC vs an offline learner on the same fixed dataset.
 
-Per seed: collect the dataset (``collect_transitions(episodes, expert_frac, seed)``),
+Per seed: collect the dataset of the task (``collect_transitions(episodes, expert_frac, seed,
+task=...)``; pusher_reach unless ``ExperimentConfig.task`` names another),
 train BC and the offline learner, roll both out on the same 100 pooled held-out
 episodes (``n_seeds`` suites x ``eval_episodes``, reset seed
 ``500000 + seed + s * eval_episodes + e``), and score the gap with Newcombe's
@@ -23,17 +24,18 @@ from pathlib import Path
 from typing import Callable
 
 from ..data.collect import collect_transitions
-from ..common import seeds
 from ..common.seeds import eval_reset_seeds
 from ..common.atomic import write_json_atomic, write_text_atomic
-from ..evaluation.rollouts import RolloutResult, format_rate, round6, rollout
+from ..evaluation.rollouts import RolloutResult, format_rate, round6, rollout_task
 from ..learners import Progress, TrainConfig
-from .loggers import DEFAULT_LOGGER, Logger, check_logger, open_logger, progress_scalars
+from .loggers import DEFAULT_LOGGER, Logger, check_logger, history_reports, open_logger, progress_scalars
 from .parallel import TrainJob, run_jobs
 from ..learners.resume import ResumePoints
 from ..common.machine import available_cores
 from ..serving.checkpoint import save_checkpoint
+from ..task.spec import TaskSpec
 from ..evaluation.stats import excludes_zero, newcombe_diff_ci, wilson_ci
+from ..task.spec import DEFAULT_TASK, load_task
 
 
 METRIC_KEYS = tuple(sorted((
@@ -63,6 +65,10 @@ class ExperimentConfig:
     # the offline learner's training time, as steps from its measured rate (prior.py);
     # None: ``steps`` (for 'auto': the chapter's AWAC loop time on this machine)
     budget_s: float | None = None
+    task: str = DEFAULT_TASK  # the task collected from and evaluated on (a built-in name or a task file)
+    # where the training jobs run: "local" (worker processes of this machine) or "ray"
+    # (Ray tasks on the cluster connected by ``ray_engine.connected``); same results
+    engine: str = "local"
 
     @classmethod
     def smoke_settings(cls, **overrides) -> "ExperimentConfig":
@@ -131,6 +137,9 @@ def seed_metrics(cfg: ExperimentConfig, seed: int, bc: RolloutResult, offline: R
     }
     if tuple(sorted(metrics)) != METRIC_KEYS:
         raise AssertionError(f"metrics keys drifted from the chapter's: {sorted(metrics)}")
+    task = load_task(cfg.task)
+    if task.name != DEFAULT_TASK:  # pusher_reach's metrics stay the chapter's, byte for byte
+        metrics.update(task=task.name, task_digest=task.digest)
     return metrics
 
 
@@ -189,8 +198,9 @@ def _run(cfg: ExperimentConfig, out_dir: Path, seeds: list[int], seed_dirs: dict
 
     t0 = time.perf_counter()
     datasets = []
+    task = load_task(cfg.task)
     for s in seeds:
-        data = collect_transitions(cfg.episodes, cfg.expert_frac, s)
+        data = collect_transitions(cfg.episodes, cfg.expert_frac, s, task=task)
         datasets.append(data)
         log(f"seed {s}: collected {cfg.episodes} episodes ({len(data)} transitions, expert_frac {cfg.expert_frac})")
     log(f"collection took {time.perf_counter() - t0:.1f}s")
@@ -199,7 +209,8 @@ def _run(cfg: ExperimentConfig, out_dir: Path, seeds: list[int], seed_dirs: dict
 
     def resume_points(role: str, job_seeds: list[int]) -> ResumePoints:
         where = seed_dirs[job_seeds[0]] if len(job_seeds) == 1 else out_dir
-        points.append(ResumePoints(where / f"resume_{role}.pt", resume_every, resume))
+        # absolute: a Ray task writes it from a worker whose folder may not be this one
+        points.append(ResumePoints((where / f"resume_{role}.pt").absolute(), resume_every, resume))
         if resume:
             log(f"resuming from {points[-1].path}" if points[-1].path.exists() else
                 f"no resume point at {points[-1].path}; starting")
@@ -210,14 +221,15 @@ def _run(cfg: ExperimentConfig, out_dir: Path, seeds: list[int], seed_dirs: dict
             curves[s].scalars(p.step, progress_scalars(p, f"{role}/train", member=m))
 
     plans = [cfg.offline_config(data, log) for data in datasets]
-    trained = train_all(cfg, seeds, datasets, log, [p[0] for p in plans], resume_points, curve)
+    # the task collected from, recorded in bc.pt and offline.pt
+    trained = train_all(cfg, seeds, datasets, log, [p[0] for p in plans], resume_points, task=task, curve=curve)
     outcomes = []
     for m, s in enumerate(seeds):
         reset_seeds = eval_reset_seeds(s, cfg.n_seeds, cfg.eval_episodes)
         bc_res = trained["bc"][m]
         off_res = trained["offline"][m]
-        bc_roll = rollout(bc_res.policy.act, reset_seeds)
-        off_roll = rollout(off_res.policy.act, reset_seeds)
+        bc_roll = rollout_task(task, bc_res.policy.act, reset_seeds)
+        off_roll = rollout_task(task, off_res.policy.act, reset_seeds)
         offline_cfg, plan = plans[m]
         metrics = seed_metrics(cfg, s, bc_roll, off_roll, off_res.mean_abs_q, offline_cfg.steps)
         d = seed_dirs[s]
@@ -257,28 +269,33 @@ def seed_scalars(metrics: dict, bc: RolloutResult, offline: RolloutResult) -> di
 def train_all(cfg: ExperimentConfig, seeds: list[int], datasets: list, log: Callable[[str], None],
               offline_cfgs: list[TrainConfig] | None = None,
               resume_points: Callable[[str, list[int]], ResumePoints] | None = None,
+              task: TaskSpec | None = None,
               curve: Callable[[str, list[int], Progress], None] | None = None) -> dict:
     """{"bc": [TrainResult per seed], "offline": [...]}: BC and the offline learner for
     every seed, one process per core. ``offline_cfgs``: the offline learner's config per
     seed (default: ``cfg.train_config(cfg.algo)``). ``resume_points(role, seeds)``: the
     resume points of the job training ``role`` ("bc" or "offline") for those seeds.
-    ``curve(role, seeds, progress)``: every progress report of each job, beside the log."""
+    ``task``: the data's task, recorded in the checkpoints. ``curve(role, seeds, progress)``:
+    every progress report of each job, beside the log (on Ray, each run's logged history
+    once it is back, without timings)."""
     points = resume_points or (lambda role, job_seeds: None)
     offline_cfgs = offline_cfgs or [cfg.train_config(cfg.algo)] * len(seeds)
     per_seed = {"offline": offline_cfgs, "bc": [cfg.train_config("bc")] * len(seeds)}
     roles = ("offline", "bc")  # the heavier learner first: it starts first
     workers = cfg.worker_count()
-    if workers == 1 and all(c == offline_cfgs[0] for c in offline_cfgs):
-        jobs = [TrainJob(per_seed[role][0].algo, datasets, per_seed[role][0], seeds, points(role, seeds))
+    on_ray = cfg.engine == "ray"
+    if workers == 1 and not on_ray and all(c == offline_cfgs[0] for c in offline_cfgs):
+        jobs = [TrainJob(per_seed[role][0].algo, datasets, per_seed[role][0], seeds, points(role, seeds), task)
                 for role in roles]
         job_roles = list(roles)
     else:
-        jobs = [TrainJob(f"{per_seed[role][m].algo} s{s}", [datasets[m]], per_seed[role][m], [s], points(role, [s]))
+        jobs = [TrainJob(f"{per_seed[role][m].algo} s{s}", [datasets[m]], per_seed[role][m], [s], points(role, [s]),
+                         task)
                 for role in roles for m, s in enumerate(seeds)]
         job_roles = [role for role in roles for _ in seeds]
     role_of = {id(job): role for job, role in zip(jobs, job_roles)}
     workers = min(workers, len(jobs))
-    where = "together in this process" if workers == 1 else f"in {workers} worker processes"
+    where = "as Ray tasks" if on_ray else "together in this process" if workers == 1 else f"in {workers} worker processes"
     steps = sorted({c.steps for c in offline_cfgs})
     log(f"training {' / '.join(sorted({c.algo for c in offline_cfgs}))} ({' / '.join(map(str, steps))} steps) "
         f"and bc ({cfg.steps} steps), {len(seeds)} seed(s) {where}")
@@ -294,7 +311,16 @@ def train_all(cfg: ExperimentConfig, seeds: list[int], datasets: list, log: Call
             printer(p)
         return report
 
-    results = run_jobs(jobs, workers, progress_for=reporter)
+    if on_ray:
+        from .ray_engine import run_train_jobs
+
+        results = run_train_jobs(jobs, log)
+        if curve is not None:  # a Ray task reports no progress: its history, replayed
+            for job, job_results in zip(jobs, results):
+                for p in history_reports(job_results, job.cfg.steps):
+                    curve(role_of[id(job)], job.seeds, p)
+    else:
+        results = run_jobs(jobs, workers, progress_for=reporter)
     log(f"  training took {time.perf_counter() - t1:.1f}s")
     trained = {}
     per_role = len(jobs) // len(roles)

@@ -174,6 +174,19 @@ def progress_scalars(p: Progress, prefix: str = "train", member: int | None = No
     return out
 
 
+def history_reports(results: list, total: int) -> list[Progress]:
+    """The progress reports a job's runs (``TrainResult``s trained together) would have made,
+    rebuilt from their logged histories: for runs that could not report as they went (a Ray
+    task). No timings: ``elapsed_s`` is 0, so no steps per second are logged."""
+    histories = [r.history for r in results]
+    names = [k for k in histories[0] if k != "step"]
+    reports = []
+    for i, step in enumerate(histories[0]["step"]):
+        members = {k: [float(h[k][i]) for h in histories] for k in names}
+        reports.append(Progress(int(step), total, 0.0, {k: sum(v) / len(v) for k, v in members.items()}, members))
+    return reports
+
+
 def progress_logger(logger: Logger, prefix: str = "train",
                     then: Callable[[Progress], None] | None = None) -> Callable[[Progress], None]:
     """A ``learners.loop`` progress callback that logs each report, then calls ``then``."""

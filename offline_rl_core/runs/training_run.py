@@ -4,6 +4,11 @@ Reads one or more rosbag2 bags, trains one learner, evaluates it on held-out
 resets, and writes ``DIR/policy.pt`` (atomic), ``DIR/metrics.json`` and
 ``DIR/training_curve.png``. Everything is validated before anything is written, so a
 bad bag or flag leaves the output directory as it was.
+
+The run's task is ``--task`` or the one the bags record (``data.task_record``), else
+pusher_reach; every bag's transitions must have its sizes. The checkpoint records it
+(``checkpoint["task"]``); metrics.json names it for tasks other than pusher_reach (whose
+metrics keep the chapter's bytes).
 """
 
 from __future__ import annotations
@@ -16,12 +21,11 @@ from dataclasses import fields
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
 import torch
 
 from ..common import seeds
 from ..common.seeds import seed_arg
-from ..data.bag import read_transitions
+from ..data.fleet import bag_summary, expand_bags, read_fleet
 from ..common.errors import UserError
 from ..common.atomic import write_json_atomic
 from ..common.output_paths import check_output_dir
@@ -34,7 +38,10 @@ from .plots import plot_training_curve
 from .prior import plan_training
 from ..serving.checkpoint import load_checkpoint, save_checkpoint
 from ..data.raw_topics import transitions_from_topics
-from ..data.transitions import SOURCE_NAMES, Transitions
+from ..data.task_record import check_layout_fits, task_of_bag
+from ..data.transitions import Transitions
+from ..serving.policy import policy_for_task
+from ..task.spec import DEFAULT_TASK, TaskSpec, load_task
 
 DEFAULT_EVAL_SEED = seeds.HELD_OUT
 _CONFIG_FIELDS = {f.name for f in fields(TrainConfig)}
@@ -48,6 +55,9 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--from-topics", metavar="SPEC",
                         help="build the transitions from each bag's raw robot topics as this YAML spec says "
                              "(see `offline-rl dataset --help`, e.g. bags/pusher_topics.yaml)")
+    parser.add_argument("--task", metavar="NAME_OR_FILE",
+                        help="the task of the bags: a built-in task (pusher_reach, ...) or a task file (YAML); "
+                             "default: the one the bags record, else pusher_reach")
     parser.add_argument("--algo", choices=ALGORITHMS + ("auto",), default=d.algo,
                         help="learner; auto: chosen from what the bag holds, trained for --budget-s "
                              "(README, 'The best prior') (default: %(default)s)")
@@ -99,19 +109,42 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
         raise UserError(str(exc)) from None
 
 
-def load_bags(paths: list[str], from_topics: str | None = None) -> tuple[Transitions, list[dict]]:
-    """Read and merge bags; episode ids are offset so they stay unique per bag.
-    ``from_topics``: a raw-topic spec; the transitions are built from each bag's raw topics."""
+def task_of_run(paths: list[str], given: str | os.PathLike | TaskSpec | None = None) -> TaskSpec:
+    """The task of a run on ``paths`` (bags, directories of bags or globs): ``given`` (which
+    every bag that records a task must agree with), else the one they record (the same for
+    all), else pusher_reach."""
+    paths = expand_bags(paths)
+    tasks = [task_of_bag(path, given) for path in paths]
+    for path, task in zip(paths[1:], tasks[1:]):
+        if task.digest != tasks[0].digest:
+            raise UserError(f"{path}: the bag is of task {task.name} (digest {task.digest}), {paths[0]} of "
+                            f"{tasks[0].name} (digest {tasks[0].digest}); train on one task's bags")
+    return tasks[0] if tasks else load_task(given)
+
+
+def load_bags(paths: list[str], from_topics: str | None = None, task: TaskSpec | None = None,
+              workers: int | None = None) -> tuple[Transitions, list[dict]]:
+    """Read and merge bags; episode ids are offset so they stay unique per bag. A path may
+    be a directory of bags or a glob (a fleet, ``data/fleet.py``): its bags are decoded in
+    ``workers`` processes (default: as many as pay for themselves).
+    ``from_topics``: a raw-topic spec; the transitions are built from each bag's raw topics.
+    ``task``: the transitions must have its sizes (one line naming the bag otherwise)."""
+    paths = expand_bags(paths)
+    if not from_topics:
+        data, summary = read_fleet(paths, workers)
+        if task is not None:
+            check_layout_fits(paths[0] if len(paths) == 1 else f"{len(paths)} bags ({paths[0]}, ...)",
+                              data.layout.obs_dim, data.layout.act_dim, task)
+        return data, summary
     parts, summary, offset = [], [], 0
     for path in paths:
-        joined = transitions_from_topics(path, from_topics) if from_topics else None
-        data = joined[0] if joined else read_transitions(path)
+        data, spec = transitions_from_topics(path, from_topics)
+        if task is not None:
+            check_layout_fits(path, data.layout.obs_dim, data.layout.act_dim, task)
         data.episode = data.episode - data.episode.min() + offset
         offset = int(data.episode.max()) + 1
         parts.append(data)
-        counts = {SOURCE_NAMES.get(int(s), str(s)): int(n) for s, n in zip(*np.unique(data.source, return_counts=True))}
-        summary.append({"path": str(path), "transitions": len(data), "sources": counts,
-                        **({"from_topics": joined[1].as_dict()} if joined else {})})
+        summary.append({**bag_summary(path, data), "from_topics": spec.as_dict()})
     return (parts[0] if len(parts) == 1 else Transitions.concatenate(parts)), summary
 
 
@@ -141,25 +174,34 @@ def run_training(
     auto: bool = False,
     budget_s: float | None = None,
     steps: int | None = None,
+    task: str | os.PathLike | TaskSpec | None = None,
+    dataset: tuple[Transitions, list[dict]] | None = None,
+    decode_workers: int | None = None,
     logger: str = DEFAULT_LOGGER,
 ) -> Path:
     """Train ``cfg`` on the bags and write the run's files to ``out_dir``. ``auto``: the
     learner is the one ``prior.plan_training`` picks for the bag; ``auto`` or ``budget_s``:
     as many steps as the budget allows, unless ``steps`` is given (then ``steps``).
+    ``task``: the bags' task (default: the one they record, else pusher_reach).
+    ``dataset``: the bags already read (``load_bags(bags)``'s result, e.g. handed to the run
+    by a sweep's engine); else they are read here, in ``decode_workers`` processes.
     ``logger``: where the curves go besides metrics.json (``loggers``): the losses and
     steps/s while training, the evaluation, the settings and results as hyper-parameters."""
     out = check_output_dir(out_dir, "--out")
     check_logger(logger)
     if eval_episodes < 0:
         raise UserError(f"--eval-episodes must be >= 0, got {eval_episodes}")
-    data, bag_summary = load_bags(bags, from_topics)
+    task = task_of_run(bags, task)
+    if dataset is not None:
+        data, bags_read = dataset
+        check_layout_fits(bags[0], data.layout.obs_dim, data.layout.act_dim, task)
+    else:
+        data, bags_read = load_bags(bags, from_topics, task, decode_workers)
     cfg, plan = plan_training(data, cfg, auto, budget_s, steps, log)
     init_ckpt = None
     if init:
         init_ckpt = load_checkpoint(init)
-        if int(init_ckpt["obs_dim"]) != data.obs.shape[1] or int(init_ckpt["act_dim"]) != data.action.shape[1]:
-            raise UserError(f"{init}: checkpoint dims ({init_ckpt['obs_dim']}, {init_ckpt['act_dim']}) do not match "
-                            f"the bag's ({data.obs.shape[1]}, {data.action.shape[1]})")
+        policy_for_task(init_ckpt, init, task)  # a warm start of another task: one line naming both
         if int(init_ckpt["hidden"]) != cfg.hidden:
             raise UserError(f"{init}: checkpoint hidden size {init_ckpt['hidden']} differs from --hidden {cfg.hidden}")
     if resume_every <= 0:
@@ -170,16 +212,19 @@ def run_training(
     log(f"training {cfg.algo} on {len(data)} transitions from {len(bags)} bag(s), {cfg.steps} steps, seed {seed}")
     with open_logger(logger, out, name=out.name, resume=resume, config=cfg.to_dict()) as curves:
         # UserError: a bad resume point
-        result = train(data, cfg, seed, progress=progress_logger(curves, then=progress), init=init_ckpt, resume=points)
+        result = train(data, cfg, seed, progress=progress_logger(curves, then=progress), init=init_ckpt, resume=points,
+                       task=task)
         _check_finite(result.checkpoint, cfg, points)
-        metrics = _metrics(cfg, seed, data, bag_summary, result, init, plan)
-        if eval_episodes:
+        metrics = _metrics(cfg, seed, data, bags_read, result, init, plan, task)
+        if eval_episodes and not task.sim:
+            log(f"no held-out rollouts: no sim hosts task {task.name}")
+        elif eval_episodes:
             log(f"evaluating on {eval_episodes} held-out rollouts "
                 f"(reset seeds {eval_seed}..{eval_seed + eval_episodes - 1})")
-            metrics["eval"] = evaluate_policy(result.policy, eval_episodes, eval_seed)
+            metrics["eval"] = evaluate_policy(result.policy, eval_episodes, eval_seed, task=task)
             curves.scalars(cfg.steps, eval_scalars(metrics["eval"]))
-        curves.hparams({"algorithm": cfg.algo, "seed": seed, "transitions": len(data), "init": metrics["init"],
-                        "config": cfg.to_dict()}, _hparam_metrics(metrics))
+        curves.hparams({"algorithm": cfg.algo, "seed": seed, "task": task.name, "transitions": len(data),
+                        "init": metrics["init"], "config": cfg.to_dict()}, _hparam_metrics(metrics))
     result.checkpoint["metrics"] = metrics
     out.mkdir(parents=True, exist_ok=True)
     save_checkpoint(out / "policy.pt", result.checkpoint)
@@ -190,15 +235,15 @@ def run_training(
     return out
 
 
-def _metrics(cfg: TrainConfig, seed: int, data: Transitions, bag_summary: list[dict], result, init: str | None,
-             plan: dict | None) -> dict:
+def _metrics(cfg: TrainConfig, seed: int, data: Transitions, bags_read: list[dict], result, init: str | None,
+             plan: dict | None, task: TaskSpec) -> dict:
     """metrics.json of a run, before its evaluation."""
     metrics: dict = {
         "algorithm": cfg.algo,
         "seed": seed,
         "steps": cfg.steps,
         "transitions": len(data),
-        "bags": bag_summary,
+        "bags": bags_read,
         "dataset_hash": result.checkpoint["dataset_hash"],
         "config": cfg.to_dict(),
         "init": str(init) if init else None,
@@ -207,6 +252,8 @@ def _metrics(cfg: TrainConfig, seed: int, data: Transitions, bag_summary: list[d
     }
     if plan is not None:
         metrics["plan"] = plan  # what --algo auto / --budget-s decided, and from what
+    if task.digest != load_task(DEFAULT_TASK).digest:  # pusher_reach's metrics keep the chapter's bytes
+        metrics["task"] = task.layout()
     return metrics
 
 
@@ -238,7 +285,7 @@ def run_training_from_args(args: argparse.Namespace, progress: Callable[[Progres
     return run_training(args.bag, cfg, args.seed, out, args.eval_episodes, args.eval_seed, args.init,
                         progress=progress or console_progress(), resume=args.resume, resume_every=args.resume_every,
                         from_topics=args.from_topics, auto=args.algo == "auto", budget_s=args.budget_s,
-                        steps=args.steps, logger=getattr(args, "logger", DEFAULT_LOGGER))
+                        steps=args.steps, task=args.task, logger=getattr(args, "logger", DEFAULT_LOGGER))
 
 
 def summary_line(out: Path) -> str:

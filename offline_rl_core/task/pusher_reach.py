@@ -2,11 +2,12 @@
 
 Faithful to the chapter's environment (see docs in README): 50 Hz control,
 two 0.01 s physics steps per action, reward ``-dist`` plus a one-time success
-bonus, success latched for the episode, truncation at 100 steps.
+bonus, success latched for the episode, truncation at 100 steps. The task file
+``builtin/pusher_reach.yaml`` says all of that; this module is its MuJoCo env.
 
-The task's maths lives here once, in batch form over N arms: the observation
-(:func:`batch_observations`), the action (:func:`clip_actions`, :func:`apply_action`)
-and the reward / success latch / episode end (:func:`score_steps`).
+The task's maths is the task file's (``features``), in batch form over N arms: the
+observation (:func:`batch_observations`), the action (:func:`clip_actions`,
+:func:`apply_action`) and the reward / success latch / episode end (:func:`score_steps`).
 ``PusherReachEnv`` calls them with N = 1, ``evaluation.BatchedPusherEnv`` with N
 episodes at once (its physics: :func:`apply_action`'s, stepped in one
 ``mujoco.batch``), so the two agree bit for bit. The ROS nodes build observations
@@ -17,21 +18,25 @@ so a policy trained here drives any arm that publishes those topics.
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
 
 import mujoco
 import numpy as np
 
-OBS_DIM = 8
-ACT_DIM = 2
-MAX_STEPS = 100
-CONTROL_HZ = 50
+from . import features
+from .features import StepScore, wrap_angle  # noqa: F401 - part of this module's API
+from .spec import load_task
+
+TASK = load_task("pusher_reach")
+OBS_DIM = TASK.obs_dim
+ACT_DIM = TASK.act_dim
+MAX_STEPS = TASK.episodes.max_steps
+CONTROL_HZ = round(1.0 / TASK.control_period)
 FRAME_SKIP = 2
-LINK_LEN = 0.1
-SUCCESS_TOL = 0.02
-SUCCESS_BONUS = 1.0
+LINK_LEN = TASK.point("fingertip").link_lengths[0]
+SUCCESS_TOL = TASK.reward.success_within
+SUCCESS_BONUS = TASK.reward.success_bonus
 TARGET_RADIUS_RANGE = (0.05, 0.19)
-JOINT_NAMES = ("shoulder", "elbow")
+JOINT_NAMES = TASK.state.joints
 
 PUSHER_XML = """
 <mujoco model="pusher_reach">
@@ -66,11 +71,6 @@ PUSHER_XML = """
 """
 
 
-def wrap_angle(angle):
-    """Wrap angles to [-pi, pi)."""
-    return (np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi
-
-
 def fingertip_from_joints(qpos) -> np.ndarray:
     """Planar forward kinematics of the fingertip (for arms that publish no site)."""
     sh, el = float(qpos[0]), float(qpos[1])
@@ -84,17 +84,12 @@ def batch_observations(qpos, qvel, target_xy, fingertip_xy) -> np.ndarray:
 
     Row ``[cos sh, sin sh, cos el, sin el, sh_vel, el_vel, dx, dy]`` with the angles
     wrapped to [-pi, pi) and ``(dx, dy) = target - fingertip``, all computed in
-    float64 and rounded to float32 once. The one implementation of the observation:
-    ``PusherReachEnv`` (N = 1), ``BatchedPusherEnv`` and :func:`observation_from_joints`
-    all call it.
+    float64 and rounded to float32 once: the task file's observation (``features.observe``),
+    which ``PusherReachEnv`` (N = 1), ``BatchedPusherEnv`` and :func:`observation_from_joints`
+    all call through here.
     """
-    angles = wrap_angle(np.asarray(qpos, dtype=np.float64)[:, :2])
-    obs = np.empty((angles.shape[0], OBS_DIM), dtype=np.float32)
-    obs[:, 0:4:2] = np.cos(angles)
-    obs[:, 1:4:2] = np.sin(angles)
-    obs[:, 4:6] = np.asarray(qvel, dtype=np.float64)[:, :2]
-    obs[:, 6:8] = np.asarray(target_xy, dtype=np.float64)[:, :2] - np.asarray(fingertip_xy, dtype=np.float64)[:, :2]
-    return obs
+    return features.observe(TASK, np.asarray(qpos)[:, :2], np.asarray(qvel)[:, :2],
+                            {"goal": np.asarray(target_xy)[:, :2], "fingertip": np.asarray(fingertip_xy)[:, :2]})
 
 
 def observation_from_joints(qpos, qvel, target_xy, fingertip_xy=None) -> np.ndarray:
@@ -130,43 +125,19 @@ def apply_action(model: mujoco.MjModel, data: mujoco.MjData, action: np.ndarray)
 
 
 def planar_distances(target_xy, fingertip_xy) -> np.ndarray:
-    """|target - fingertip| in the plane for N rows, float64 (N,).
-
-    Elementwise rather than ``np.linalg.norm``: the norm of a 2-vector goes through
-    BLAS ``ddot``, whose kernel (fused multiply-add or not) depends on the machine.
-    """
-    delta = np.asarray(target_xy, dtype=np.float64)[:, :2] - np.asarray(fingertip_xy, dtype=np.float64)[:, :2]
-    return np.sqrt(delta[:, 0] * delta[:, 0] + delta[:, 1] * delta[:, 1])
-
-
-class StepScore(NamedTuple):
-    """The outcome of one control step for N envs, as arrays of length N."""
-
-    reward: np.ndarray  # float64: -dist, plus SUCCESS_BONUS on the latching step
-    dist: np.ndarray  # float64: |target - fingertip| in the plane
-    success: np.ndarray  # bool: latched success after this step
-    terminated: np.ndarray  # bool: success latched and terminate_on_success
-    truncated: np.ndarray  # bool: the step count reached MAX_STEPS
+    """|target - fingertip| in the plane for N rows, float64 (N,) (``features.distances``)."""
+    return features.distances(np.asarray(target_xy)[:, :2], np.asarray(fingertip_xy)[:, :2])
 
 
 def score_steps(target_xy, fingertip_xy, steps, success_before, terminate_on_success: bool) -> StepScore:
-    """Reward, success latch and episode end for N envs after their ``steps``-th step.
+    """Reward, success latch and episode end for N envs after their ``steps``-th step
+    (the task file's rule, ``features.score``).
 
     ``target_xy``, ``fingertip_xy``: (N, 2); ``steps`` (int) and ``success_before``
     (bool, the latch before this step): (N,).
-
-    The one implementation of the task's reward and episode logic, shared by
-    ``PusherReachEnv.step`` (N = 1) and ``BatchedPusherEnv.step``.
     """
-    dist = planar_distances(target_xy, fingertip_xy)
-    success_before = np.asarray(success_before, dtype=bool)
-    reward = -dist
-    newly = ~success_before & (dist < SUCCESS_TOL)
-    reward[newly] += SUCCESS_BONUS  # a masked add: -dist + 0.0 would turn -0.0 into +0.0
-    success = success_before | newly
-    terminated = success & bool(terminate_on_success)
-    truncated = np.asarray(steps) >= MAX_STEPS
-    return StepScore(reward, dist, success, terminated, truncated)
+    vectors = {"goal": np.asarray(target_xy)[:, :2], "fingertip": np.asarray(fingertip_xy)[:, :2]}
+    return features.score(TASK, None, vectors, steps, success_before, terminate_on_success)
 
 
 def sample_reset(seed: int):
@@ -186,6 +157,7 @@ class PusherReachEnv:
     ``(obs, reward, done, info)`` with ``info = {terminated, truncated, success, dist}``.
     """
 
+    task = TASK
     obs_dim = OBS_DIM
     act_dim = ACT_DIM
     max_steps = MAX_STEPS
@@ -217,6 +189,32 @@ class PusherReachEnv:
     @property
     def fingertip(self) -> np.ndarray:
         return self.data.site_xpos[self._fingertip]
+
+    # -- the state as a robot publishes it, under the names every task env has (task.envs) --
+    @property
+    def joint_positions(self) -> np.ndarray:
+        return self.qpos
+
+    @property
+    def joint_velocities(self) -> np.ndarray:
+        return self.qvel
+
+    @property
+    def joint_efforts(self) -> np.ndarray:
+        """N·m at the joints: the motors' force times their gear (actuator_force is the action)."""
+        return self.data.qfrc_actuator[:ACT_DIM]
+
+    @property
+    def goal(self) -> np.ndarray:
+        """The task's goal vector: the target's x, y."""
+        return self.target[:2]
+
+    @property
+    def goal_position(self) -> np.ndarray:
+        return self.target
+
+    def point_positions(self) -> dict[str, np.ndarray]:
+        return {"fingertip": self.fingertip}
 
     def distance(self) -> float:
         return float(planar_distances(self.target[None, :2], self.fingertip[None, :2])[0])

@@ -6,7 +6,7 @@
   node): at most the last flush interval is lost if its process is killed; splits files.
 - ``repair_bag(path)``: ``offline-rl bag repair``: makes a bag cut off by a kill whole again.
 - ``bag_info(path)``: ``ros2 bag info`` plus a dataset summary, for any rosbag2 bag.
-- ``encode_transition_rows`` / ``decode_transition_payloads``: vectorised CDR of
+- ``encode_transition_rows`` / ``decode_transitions``: vectorised CDR of
   std_msgs/Float32MultiArray transitions; ``transition_ends_episode`` reads one's done flags.
 
 Paths: ``x.db3`` / ``x.mcap`` is a single self-describing storage file, any other path a bag
@@ -31,6 +31,9 @@ _EXPORTS = {
     "TransitionDecodeError": "cdr",
     "bag_info": "info",
     "decode_transition_payloads": "cdr",
+    "decode_transitions": "cdr",
+    "cdr_header": "cdr",
+    "message_size": "cdr",
     "encode_transition_rows": "cdr",
     "open_bag": "reader",
     "read_transition_rows": "reader",

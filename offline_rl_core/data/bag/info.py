@@ -17,7 +17,7 @@ from rosbags.rosbag2.storage_mcap import McapReader
 from ...common.errors import UserError
 from ..transitions import SOURCE_NAMES, Transitions
 from .cdr import TRANSITION_TOPIC
-from .reader import sqlite_storages, open_bag, transition_rows_from_reader, transition_topic
+from .reader import sqlite_storages, open_bag, transition_rows_and_layout, transition_topic
 from .storage_sqlite import WalSqlite3Reader
 
 _SERVICE_EVENT_SUFFIX = "/_service_event"
@@ -150,8 +150,8 @@ def bag_info(path: str | os.PathLike) -> BagInfo:
             storages = getattr(reader.storage, "storages", [])
             storage_id = "mcap" if storages and isinstance(storages[0], McapReader) else "sqlite3"
         distro = reader.ros_distro
-        if distro is None and path.suffix.lower() == ".db3":
-            distro = _sqlite_distro(reader)
+        for storage in sqlite_storages(reader) or ():  # sqlite3 files name it in their schema table
+            distro = distro or _sqlite_distro(storage)
         count = reader.message_count
         info = BagInfo(
             path=path,
@@ -170,6 +170,8 @@ def bag_info(path: str | os.PathLike) -> BagInfo:
                 info.services.append(TopicSummary(name[: -len(_SERVICE_EVENT_SUFFIX)], msgtype[: -len("_Event")], topic.msgcount, fmt))
             else:
                 info.topics.append(TopicSummary(name, msgtype, topic.msgcount, fmt))
+        if path.is_dir() and not (path / "metadata.yaml").is_file():
+            info.notes.append(f"no metadata.yaml: read from the storage files; `offline-rl bag repair {path}` writes it")
         for storage in sqlite_storages(reader) or ():
             if isinstance(storage, WalSqlite3Reader):
                 name = Path(storage.path).name
@@ -179,7 +181,7 @@ def bag_info(path: str | os.PathLike) -> BagInfo:
                 )
         if transition_topic(reader) is not None:
             try:
-                transitions = Transitions.from_rows(transition_rows_from_reader(reader, path))
+                transitions = Transitions.from_rows(*transition_rows_and_layout(reader, path))
             except UserError as exc:
                 info.transition_problem = str(exc).removeprefix(f"{path}: ")
             else:
@@ -189,9 +191,10 @@ def bag_info(path: str | os.PathLike) -> BagInfo:
     return info
 
 
-def _sqlite_distro(reader) -> str | None:
+def _sqlite_distro(storage) -> str | None:
+    """The distro a rosbag2 sqlite3 file names in its schema table."""
     try:
-        row = reader.storage.dbconn.execute("SELECT ros_distro FROM schema").fetchone()
+        row = storage.dbconn.execute("SELECT ros_distro FROM schema").fetchone()
     except Exception:
         return None
     return row[0] if row else None

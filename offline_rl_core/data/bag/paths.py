@@ -17,6 +17,7 @@ half-written and an existing bag is replaced only by a complete one. The recorde
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import tempfile
 from dataclasses import dataclass
@@ -70,6 +71,17 @@ def check_replaceable(target: BagTarget, overwrite: bool) -> None:
         raise UserError(f"{path} exists and is not a rosbag2 bag directory (no metadata.yaml); not replacing it")
     if target.single_file and not _is_bag_file(path):
         raise UserError(f"{path} exists and is not a rosbag2 {target.storage} bag file; not replacing it")
+
+
+def _split_order(name: str) -> tuple[int, str]:
+    match = re.search(r"_(\d+)\.[^.]+$", name)
+    return (int(match.group(1)) if match else -1, name)
+
+
+def storage_files(bag_dir: Path) -> list[Path]:
+    """The .db3 and .mcap files of a bag directory, in split order (x_0, x_1, ..., x_10)."""
+    return sorted((p for p in Path(bag_dir).iterdir() if p.suffix.lower() in SUFFIX_STORAGE and p.is_file()),
+                  key=lambda p: _split_order(p.name))
 
 
 def _is_bag_file(path: Path) -> bool:

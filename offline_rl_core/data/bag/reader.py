@@ -2,7 +2,7 @@
 
 Only ``/pusher/transition`` is read; other topics are ignored and need no definitions. Raw
 CDR payloads are fetched without deserializing (for sqlite3 storage, one SQL query on the
-``messages`` table) and decoded together by ``decode_transition_payloads``.
+``messages`` table) and decoded together by ``decode_transitions``.
 """
 
 from __future__ import annotations
@@ -10,22 +10,22 @@ from __future__ import annotations
 import itertools
 import os
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager, suppress
 from pathlib import Path
 
 import numpy as np
+from rosbags.interfaces import MessageDefinitionFormat
 from rosbags.rosbag2 import Reader
+from rosbags.rosbag2.metadata import ReaderMetadata
 from rosbags.rosbag2.reader import DirectoryReader
-from rosbags.rosbag2.storage_mcap import McapReader
 from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
 
 from ...common.errors import UserError
-from ..transitions import Transitions
-from .cdr import TRANSITION_MSGTYPE, TRANSITION_TOPIC, TransitionDecodeError, decode_transition_payloads
-from .paths import SUFFIX_STORAGE
-from .storage_mcap import has_footer, summary_problem
+from ..transitions import Layout, Transitions
+from .cdr import TRANSITION_MSGTYPE, TRANSITION_TOPIC, TransitionDecodeError, decode_transitions
+from .mcap_reader import CheckedMcapReader
+from .paths import SUFFIX_STORAGE, storage_files
 from .storage_sqlite import SQLITE_MAGIC, MessageDigest, WalSqlite3Reader, stored_digest, wal_path
-from .writer import field_of_column
 
 RECORD_HINT = "record one with `offline-rl collect` or `ros2 run recorder node`"
 
@@ -40,10 +40,10 @@ def check_bag_path(path: Path) -> None:
     if not path.exists():
         raise UserError(f"{path}: no such file or directory")
     if path.is_dir():
-        if not (path / "metadata.yaml").is_file():
-            raise UserError(f"{path} is not a rosbag2 bag: the directory has no metadata.yaml")
+        if not (path / "metadata.yaml").is_file() and not storage_files(path):
+            raise UserError(f"{path} is not a rosbag2 bag: the directory has no metadata.yaml and no .db3 or .mcap files")
     elif path.suffix.lower() not in SUFFIX_STORAGE:
-        raise UserError(f"{path} is not a rosbag2 bag: expected a bag directory with metadata.yaml, or a .db3 or .mcap file")
+        raise UserError(f"{path} is not a rosbag2 bag: expected a bag directory, or a .db3 or .mcap file")
 
 
 def check_sqlite_size(path: Path) -> None:
@@ -69,22 +69,6 @@ def sqlite_storage(path: Path) -> Sqlite3Reader:
     one killed): rosbags opens files immutable, which a recorder's next flush would change
     under it, even when its WAL was just emptied into the file."""
     return WalSqlite3Reader(path) if wal_path(Path(path)).exists() else Sqlite3Reader(path)
-
-
-class CheckedMcapReader(McapReader):
-    """rosbags' MCAP reader; a file without its footer (its writer was killed mid-flush)
-    is refused with the way out rather than a parse error."""
-
-    def open(self) -> None:
-        path = Path(self.path)
-        if path.stat().st_size > 8 and not has_footer(path):
-            raise UserError(
-                f"{path}: the MCAP file ends without its summary (its recording was cut off); "
-                f"`offline-rl bag repair {path}` makes it whole"
-            )
-        if problem := summary_problem(path):
-            raise UserError(f"{path}: the MCAP file is corrupt: {problem}")
-        super().open()
 
 
 class BagDirectoryReader(DirectoryReader):
@@ -119,10 +103,83 @@ class BagDirectoryReader(DirectoryReader):
         )
 
 
+class StorageFilesReader(DirectoryReader):
+    """A bag directory without metadata.yaml (its recorder died before writing it, or it was
+    copied without it): the storage files describe themselves, so they are read as they are,
+    in split order (what ``ros2 bag reindex`` would list). Topics of split files match by
+    name and type."""
+
+    STORAGE_PLUGINS = BagDirectoryReader.STORAGE_PLUGINS
+
+    def __init__(self, path: Path):  # DirectoryReader's own needs metadata.yaml
+        self.path = path
+        self.connections = []
+        self.metadata = ReaderMetadata(0, 2**63 - 1, 0, 0, None, None, None, None)
+        self.files = []
+        self.storages = []
+        self.stack = None
+
+    def open(self) -> None:
+        self.stack = ExitStack()
+        try:
+            paths = storage_files(self.path)
+            kinds = {SUFFIX_STORAGE[p.suffix.lower()] for p in paths}
+            if len(kinds) != 1:
+                raise UserError(f"{self.path}: holds both sqlite3 and MCAP files; expected one storage per bag")
+            plugin = self.STORAGE_PLUGINS[kinds.pop()]
+            for file in paths:
+                storage = plugin(file)
+                storage.open()
+                self.stack.callback(storage.close)
+                self.storages.append(storage)
+            self._describe(paths)
+        except BaseException:
+            with suppress(Exception):
+                self.close()
+            raise
+
+    def _describe(self, paths: list[Path]) -> None:
+        merged: dict[tuple[str, str], object] = {}
+        for storage in self.storages:
+            for conn in storage.connections:
+                key = (conn.topic, conn.msgtype)
+                if key not in merged:
+                    merged[key] = conn._replace(id=len(merged) + 1, msgcount=0, owner=self)
+                old = merged[key]
+                if old.msgdef.format == MessageDefinitionFormat.NONE:
+                    old = old._replace(msgdef=conn.msgdef)
+                merged[key] = old._replace(msgcount=old.msgcount + conn.msgcount)
+        self.connections = list(merged.values())
+        counted = [s.metadata for s in self.storages if s.metadata.message_count]
+        total = sum(m.message_count for m in counted)
+        start = min((m.start_time for m in counted), default=2**63 - 1)
+        end = max((m.end_time for m in counted), default=0)
+        self.metadata = ReaderMetadata(end - start if total else 0, start, end, total, None, None, None, None)
+        self.files = [
+            {"path": p.name, "message_count": s.metadata.message_count,
+             "starting_time": {"nanoseconds_since_epoch": s.metadata.start_time if s.metadata.message_count else 0},
+             "duration": {"nanoseconds": s.metadata.duration}}
+            for p, s in zip(paths, self.storages)
+        ]
+
+    def messages(self, connections, start=None, stop=None):
+        wanted = {(c.topic, c.msgtype): c for c in connections}
+        for storage in self.storages:
+            conns = [c for c in storage.connections if (c.topic, c.msgtype) in wanted]
+            if conns:
+                for conn, stamp, data in storage.messages(conns, start, stop):
+                    yield wanted[(conn.topic, conn.msgtype)], stamp, data
+
+
+def directory_reader(path: Path) -> DirectoryReader:
+    """The reader of a bag directory: from its metadata.yaml, or from its files alone."""
+    return BagDirectoryReader(path) if (Path(path) / "metadata.yaml").is_file() else StorageFilesReader(path)
+
+
 class BagReader(Reader):
     """rosbags' Reader with the storages above."""
 
-    STORAGE_PLUGINS = {"dir": BagDirectoryReader, ".mcap": CheckedMcapReader, ".db3": sqlite_storage}
+    STORAGE_PLUGINS = {"dir": directory_reader, ".mcap": CheckedMcapReader, ".db3": sqlite_storage}
 
 
 @contextmanager
@@ -216,8 +273,8 @@ def topic_payloads(reader: Reader, topic: str) -> list[bytes]:
     return [p for block in topic_payload_chunks(reader, topic) for p in block]
 
 
-def _finite_problem(path: Path, bad_rows: int, total: int, bad_columns: set[int]) -> UserError:
-    fields = list(dict.fromkeys(field_of_column(int(c)) for c in sorted(bad_columns)))
+def _finite_problem(path: Path, bad_rows: int, total: int, bad_columns: set[int], layout: Layout) -> UserError:
+    fields = list(dict.fromkeys(layout.field_of_column(int(c)) for c in sorted(bad_columns)))
     return UserError(
         f"{path}: {bad_rows} of {total} {TRANSITION_TOPIC} rows hold NaN or inf "
         f"(in field{'s' if len(fields) > 1 else ''} {', '.join(fields)})"
@@ -249,39 +306,57 @@ def _transition_connections(reader: Reader, path: Path) -> list:
 
 
 def _decode_into(reader: Reader, path: Path, put) -> int:
-    """Decode /pusher/transition block by block, handing each (k, 25) block to
-    ``put(start, rows)``; checks layout and finiteness; returns the row count."""
+    """Decode /pusher/transition block by block, handing each (k, width) block and its
+    layout to ``put(start, rows, layout)``; checks that every block has one layout, and
+    finiteness; returns the row count."""
     topic = _transition_connections(reader, path)[0].topic
     total, bad_rows, bad_columns = 0, 0, set()
+    layout = None
     for payloads in topic_payload_chunks(reader, topic):
         try:
-            rows = decode_transition_payloads(payloads)
+            rows, block_layout = decode_transitions(payloads)
         except TransitionDecodeError as exc:
             raise UserError(f"{path}: {topic}: {exc}") from exc
+        if layout is not None and block_layout != layout:
+            raise UserError(f"{path}: {topic}: messages of two layouts: [{layout.describe()}] and "
+                            f"[{block_layout.describe()}]")
+        layout = block_layout
         bad = ~np.isfinite(rows)
         if bad.any():
             bad_rows += int(bad.any(axis=1).sum())
             bad_columns.update(np.flatnonzero(bad.any(axis=0)).tolist())
-        put(total, rows)
+        put(total, rows, layout)
         total += len(rows)
     if total == 0:
         raise UserError(f"{path}: {topic} has no messages; {RECORD_HINT}")
     if bad_rows:
-        raise _finite_problem(path, bad_rows, total, bad_columns)
+        raise _finite_problem(path, bad_rows, total, bad_columns, layout)
     return total
 
 
 def transition_rows_from_reader(reader: Reader, path: Path) -> np.ndarray:
-    """The (N, 25) float32 transition rows of an open bag, checked; UserError otherwise."""
+    """The (N, width) float32 transition rows of an open bag, checked; UserError otherwise."""
+    return transition_rows_and_layout(reader, path)[0]
+
+
+def transition_rows_and_layout(reader: Reader, path: Path) -> tuple[np.ndarray, Layout]:
+    """The transition rows of an open bag and the layout they carry."""
     blocks: list[np.ndarray] = []
-    _decode_into(reader, path, lambda start, rows: blocks.append(rows))
-    return np.concatenate(blocks)
+    layouts: list[Layout] = []
+    _decode_into(reader, path, lambda start, rows, layout: (blocks.append(rows), layouts.append(layout)))
+    return np.concatenate(blocks), layouts[0]
 
 
 def read_transition_rows(path: str | os.PathLike) -> np.ndarray:
-    """The (N, 25) float32 rows of ``/pusher/transition`` in a bag, in timestamp order."""
+    """The (N, width) float32 rows of ``/pusher/transition`` in a bag, in timestamp order."""
     with open_bag(path) as reader:
         return transition_rows_from_reader(reader, Path(path))
+
+
+def count_transition_messages(path: str | os.PathLike) -> int:
+    """The /pusher/transition messages a bag's index counts; no payload is read."""
+    with open_bag(path) as reader:
+        return sum(c.msgcount for c in _transition_connections(reader, Path(path)))
 
 
 def read_transitions(path: str | os.PathLike) -> Transitions:
@@ -295,10 +370,13 @@ def read_transitions(path: str | os.PathLike) -> Transitions:
     path = Path(path)
     with open_bag(path) as reader:
         expected = sum(c.msgcount for c in _transition_connections(reader, path))
-        out = Transitions.empty(expected)
+        out: Transitions | None = None  # allocated once the first block says the layout
         blocks: list[np.ndarray] = []  # only if the index under-counted
 
-        def put(start: int, rows: np.ndarray) -> None:
+        def put(start: int, rows: np.ndarray, layout: Layout) -> None:
+            nonlocal out
+            if out is None:
+                out = Transitions.empty(expected, layout)
             fit = max(0, min(len(rows), expected - start))
             if fit:
                 out.fill_rows(start, rows[:fit])
@@ -307,5 +385,5 @@ def read_transitions(path: str | os.PathLike) -> Transitions:
 
         total = _decode_into(reader, path, put)
     if blocks:  # more messages than the metadata said: append the extra rows
-        return Transitions.concatenate([out, Transitions.from_rows(np.concatenate(blocks))])
+        return Transitions.concatenate([out, Transitions.from_rows(np.concatenate(blocks), out.layout)])
     return out if total == expected else out.select(slice(0, total))

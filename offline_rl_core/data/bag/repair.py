@@ -17,7 +17,6 @@ atomically. A bag still being recorded (its lock is held) is refused.
 from __future__ import annotations
 
 import os
-import re
 from pathlib import Path
 
 from rosbags.rosbag2.errors import ReaderError
@@ -26,9 +25,9 @@ from ruamel.yaml.error import YAMLError
 
 from ...common.errors import UserError
 from .metadata import FileStats, Topic, bag_metadata, dump_yaml, ros_distro, storage_metadata_text, write_metadata_yaml
-from .paths import SUFFIX_STORAGE
+from .mcap_scan import repair_mcap, scan_mcap
+from .paths import SUFFIX_STORAGE, storage_files
 from .recording import lock_bag
-from .storage_mcap import repair_mcap, scan_mcap
 from .storage_sqlite import repair_sqlite, scan_sqlite
 
 
@@ -48,11 +47,6 @@ def repair_storage_file(path: Path) -> tuple[list[str], list[Topic], FileStats]:
         scan = scan_mcap(path)
         topics, stats = scan.index.topics(), scan.index.stats(path.name)
     return done, topics, stats
-
-
-def _split_order(name: str) -> tuple[int, str]:
-    match = re.search(r"_(\d+)\.[^.]+$", name)
-    return (int(match.group(1)) if match else -1, name)
 
 
 def _old_metadata(bag_dir: Path) -> dict:
@@ -82,7 +76,7 @@ def _facts(info: dict) -> tuple | None:
 def _repair_directory(bag_dir: Path) -> list[str]:
     old = _old_metadata(bag_dir)
     listed = [Path(str(p)).name for p in old.get("relative_file_paths") or []]
-    present = sorted((p.name for p in bag_dir.iterdir() if p.suffix.lower() in SUFFIX_STORAGE and p.is_file()), key=_split_order)
+    present = [p.name for p in storage_files(bag_dir)]
     names = [n for n in listed if (bag_dir / n).is_file()] + [n for n in present if n not in listed]
     if not names:
         raise UserError(f"{bag_dir}: no .db3 or .mcap storage files to rebuild the bag from")

@@ -277,16 +277,20 @@ def repair_sqlite(path: Path, metadata_text) -> list[str]:
     done = []
     if has_pending_wal(path):
         done.append(f"folded {wal_path(path).stat().st_size} bytes of write-ahead log into {path.name}")
+    # A WAL left beside the file is a killed writer's: fold it in and leave WAL mode, so the
+    # file stands alone. A WAL-mode file closed by its writer (rosbag2's resilient preset)
+    # has none, and is left in its mode.
+    left_wal = wal_path(path).exists()
     try:
         db = sqlite3.connect(path, isolation_level=None)
         try:
-            db.execute("PRAGMA wal_checkpoint(TRUNCATE)").fetchall()
-            mode = db.execute("PRAGMA journal_mode=DELETE").fetchone()[0]
+            if left_wal:
+                db.execute("PRAGMA wal_checkpoint(TRUNCATE)").fetchall()
+                if db.execute("PRAGMA journal_mode=DELETE").fetchone()[0] != "delete":
+                    raise UserError(f"{path}: cannot leave WAL mode (another process has it open?)")
             check = db.execute("PRAGMA quick_check").fetchone()[0]
             if check != "ok":
                 raise UserError(f"{path}: the sqlite3 file is corrupt ({check}); it cannot be repaired in place")
-            if mode != "delete":
-                raise UserError(f"{path}: cannot leave WAL mode (another process has it open?)")
         finally:
             db.close()
         topics, stats = scan_sqlite(path)

@@ -11,11 +11,14 @@ from __future__ import annotations
 import os
 
 import numpy as np
+from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 from rosbags.rosbag2 import Writer
 
 from ...common.errors import UserError
-from ..transitions import LAYOUT_SLICES, TRANSITION_LAYOUT, TRANSITION_WIDTH, Transitions
-from .cdr import TRANSITION_MESSAGE_SIZE, TRANSITION_MSGTYPE, TRANSITION_TOPIC, encode_transition_blob
+from ...task.spec import TaskSpec
+from ..task_record import TASK_MSGTYPE, TASK_TOPIC, encode_task_message
+from ..transitions import PUSHER_LAYOUT, Layout, Transitions
+from .cdr import TRANSITION_MSGTYPE, TRANSITION_TOPIC, encode_transition_blob, message_size
 from .metadata import ROSBAG2_VERSION, typestore
 from .paths import STORAGE_PLUGIN, StagedBag, resolve_target
 
@@ -25,20 +28,24 @@ TRANSITION_START_NS = 1_735_689_600 * 10**9
 TRANSITION_PERIOD_NS = 20_000_000
 
 
-def _check_rows(path, rows: np.ndarray) -> None:
-    if rows.ndim != 2 or rows.shape[1] != TRANSITION_WIDTH:
-        raise UserError(f"{path}: expected ({TRANSITION_WIDTH},)-wide transition rows, got shape {rows.shape}")
+def _check_rows(path, rows: np.ndarray, layout: Layout) -> None:
+    if rows.ndim != 2 or rows.shape[1] != layout.width:
+        raise UserError(f"{path}: expected ({layout.width},)-wide transition rows, got shape {rows.shape}")
     if rows.shape[0] == 0:
         raise UserError(f"{path}: no transitions to write")
     bad = ~np.isfinite(rows)
     if bad.any():
         column = int(np.flatnonzero(bad.any(axis=0))[0])
-        raise UserError(f"{path}: {int(bad.any(axis=1).sum())} transition rows hold NaN or inf (first in field {field_of_column(column)!r}); not writing them")
+        raise UserError(f"{path}: {int(bad.any(axis=1).sum())} transition rows hold NaN or inf "
+                        f"(first in field {layout.field_of_column(column)!r}); not writing them")
 
 
-def field_of_column(column: int) -> str:
-    """The layout label of a column of the (N, 25) transition matrix."""
-    return next(label for label, _ in TRANSITION_LAYOUT if column < LAYOUT_SLICES[label].stop)
+def _latched_qos() -> Qos:
+    """The QoS the sim offers ``/task_description`` with (as robot_description): ``ros2 bag
+    play`` then offers it to late subscribers too."""
+    zero = QosTime(0, 0)
+    return Qos(QosHistory.KEEP_LAST, 1, QosReliability.RELIABLE, QosDurability.TRANSIENT_LOCAL, zero, zero,
+               QosLiveliness.AUTOMATIC, zero, False)
 
 
 def write_transitions(
@@ -46,29 +53,41 @@ def write_transitions(
     transitions: Transitions | np.ndarray,
     storage: str | None = None,
     custom_data: dict[str, str] | None = None,
+    task: TaskSpec | None = None,
 ) -> None:
     """Write transitions as a rosbag2 bag with one ``/pusher/transition`` message per row.
 
     ``path``: ``x.db3`` or ``x.mcap`` gives a single self-describing storage file, any other
     path a bag directory whose storage is ``storage`` ('sqlite3', the default, or 'mcap').
     An existing bag at ``path`` is replaced atomically; on any error it is left untouched and
-    nothing half-written remains. Stamps are TRANSITION_START_NS + i * 20 ms.
+    nothing half-written remains. Stamps are TRANSITION_START_NS + i * 20 ms, or with
+    ``task`` i * its control period, and the bag records the task on ``/task_description``
+    (data.task_record) at TRANSITION_START_NS; without one the bag is pusher_reach's.
     """
-    rows = transitions.to_rows() if isinstance(transitions, Transitions) else np.asarray(transitions, np.float32)
+    if isinstance(transitions, Transitions):
+        rows, layout = transitions.to_rows(), transitions.layout
+    else:
+        rows, layout = np.asarray(transitions, np.float32), PUSHER_LAYOUT
     target = resolve_target(path, storage)
-    _check_rows(target.path, rows)
-    blob = encode_transition_blob(rows)
-    size = TRANSITION_MESSAGE_SIZE
+    _check_rows(target.path, rows, layout)
+    blob = encode_transition_blob(rows, layout)
+    size = message_size(layout)
     staged = StagedBag(target, overwrite=True)
     try:
         writer = Writer(staged.bag_dir, version=ROSBAG2_VERSION, storage_plugin=STORAGE_PLUGIN[target.storage])
         with writer:
             for key, value in (custom_data or {}).items():
                 writer.set_custom_data(key, value)
+            period_ns = TRANSITION_PERIOD_NS
+            if task is not None:
+                period_ns = round(task.control_period * 1e9)
+                record = writer.add_connection(TASK_TOPIC, TASK_MSGTYPE, typestore=typestore(),
+                                               offered_qos_profiles=[_latched_qos()])
+                writer.write(record, TRANSITION_START_NS, encode_task_message(task))
             conn = writer.add_connection(TRANSITION_TOPIC, TRANSITION_MSGTYPE, typestore=typestore())
             write = writer.write
             for i, offset in enumerate(range(0, len(blob), size)):
-                write(conn, TRANSITION_START_NS + i * TRANSITION_PERIOD_NS, blob[offset : offset + size])
+                write(conn, TRANSITION_START_NS + i * period_ns, blob[offset : offset + size])
         staged.publish()
     except OSError as exc:
         raise UserError(f"{target.path}: cannot write the bag: {exc}") from exc

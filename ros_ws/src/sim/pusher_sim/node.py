@@ -1,16 +1,40 @@
-"""``ros2 run sim node``: the MuJoCo pusher-reach arm behind ROS 2 topics.
+"""``ros2 run sim node``: a task's MuJoCo arm behind ROS 2 topics (``-p task:=NAME_OR_FILE``).
 
-Publishes ``pusher/state`` (JointState; also on ``joint_states`` for robot_state_publisher),
-``pusher/target`` and ``pusher/fingertip`` (PointStamped, frame ``world``),
-``pusher/transition`` (Float32MultiArray, the 25-float layout of
-offline_rl_core.data.transitions) and ``/clock`` (its sim time); obeys JointState commands
-(effort = action in [-1, 1]) and, where ``effort_topic`` is set, Float64MultiArray torques
-in N·m as an effort controller takes them; serves ``pusher/reset`` (std_srvs/Trigger).
+The arm is any task with a ``sim`` section (``offline_rl_core.task.envs``): the default,
+``pusher_reach`` (the chapter's planar arm), or e.g. ``pusher7_reach`` (Gymnasium's 7-joint
+Pusher model), exposed as a ros2_control arm is. For the task it publishes
 
-Who acted (the transition's ``source``) is the command topic a command came on:
-``pusher/command/expert``, ``.../random``, ``.../policy``, ``.../human``; plain
-``pusher/command`` counts as policy (or, for older publishers, the source named in
-``header.frame_id``, which is deprecated: frame_id names a TF frame).
+- the state on the task's state topic (sensor_msgs/JointState: the state joints' names,
+  positions, velocities, and as effort what the actuators applied, N·m), pusher_reach's
+  on ``pusher/state`` and, for robot_state_publisher, also on ``joint_states``;
+- the goal on the task's goal topic (PointStamped, PoseStamped or JointState, as the task
+  says) and each tracked point that has a topic (PointStamped, frame ``world``);
+- ``pusher/transition`` (Float32MultiArray, the task's layout of
+  offline_rl_core.data.transitions), ``/clock`` (its sim time), and the task itself on
+  ``task_description`` (std_msgs/String, the task's JSON, reliable and transient local as
+  robot_description is: a late subscriber, a recorder, gets it);
+
+and takes commands on
+
+- the task's command topic, as its controller would (std_msgs/Float64MultiArray in the
+  controller's joint order, or JointState): action = (command - offset) / scale, clipped to
+  the controller's limits; a command of another length is refused and counted. pusher_reach
+  takes these only where ``effort_topic`` is set (its closed loops send the action on
+  pusher/command too, and a state must not be answered twice);
+- ``pusher/command``, ``pusher/command/expert``, ``.../random``, ``.../policy``, ``.../human``
+  (JointState, effort = the action in [-1, 1], as the mux sends): who acted (the
+  transition's ``source``) is the topic; plain ``pusher/command`` counts as policy (or, for
+  older publishers, the source named in ``header.frame_id``, deprecated: frame_id names a
+  TF frame).
+
+It serves ``pusher/reset`` (std_srvs/Trigger).
+
+Lockstep: a stamped command steps the arm when its stamp is the current state's. A
+Float64MultiArray has no header, so it cannot name the state it answers: the first one that
+arrives after a state was published is taken as that state's answer (one that answers a
+republished state late can be taken for the next state's: a controller that falls behind
+the republish period should send stamped JointState commands). Once stamped commands have
+come, headerless ones are refused (counted as ``unpaired``): stamps pair exactly.
 
 The protocol (realtime / lockstep, sim time, episodes) is ``offline_rl_core.nodes.sim_loop``;
 this node moves messages to it and publishes what it returns. A command it cannot take
@@ -26,26 +50,31 @@ import json
 import sys
 import time
 
+import numpy as np
+
 import rclpy
-from geometry_msgs.msg import PointStamped
+from geometry_msgs.msg import PointStamped, PoseStamped
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float32MultiArray, Float64MultiArray
+from std_msgs.msg import Float32MultiArray, Float64MultiArray, String
 from std_srvs.srv import Trigger
 
 from offline_rl_core.common.atomic import atomic_path
 from offline_rl_core.data.bag.cdr import encode_transition_rows
-from offline_rl_core.task.pusher_reach import CONTROL_HZ, JOINT_NAMES
-from offline_rl_core.nodes.joint_messages import action_from_effort, action_from_torques
+from offline_rl_core.data.task_record import task_json
+from offline_rl_core.nodes.joint_messages import action_from_command, action_from_effort
 from offline_rl_core.nodes.pairing import check_answer_stamp, check_stamp
 from offline_rl_core.common.errors import UserError
 from offline_rl_core.common.output_paths import check_output_file
 from offline_rl_core.nodes.sim_loop import MAX_START_TIME_S, MODES, ArmState, SimLoop, Step, TickTiming
 from offline_rl_core.data.transitions import SOURCE_NAMES, SOURCE_POLICY, source_from_tag
+from offline_rl_core.task.spec import (
+    DEFAULT_TASK, FLOAT64_MULTI_ARRAY, JOINT_STATE, POSE_STAMPED, load_task,
+)
 from pusher_common.node_main import run_node
 from pusher_common.params import Param, Settings
 from pusher_common.scheduling import THREAD_PRIORITY, apply_thread_priority
@@ -55,27 +84,35 @@ from pusher_common.status import NodeStatus
 
 # Transitions must not be dropped by a slow reader: a deep reliable history.
 TRANSITION_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+# The task, as robot_description is published: kept for subscribers that come later.
+LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+FIELD_OF_INTERFACE = {"effort": "effort", "velocity": "velocity", "position": "position"}
 
 PARAMS = (
-    Param("mode", "realtime", "realtime: a 50 Hz timer steps the arm with the latest command held; "
-          "lockstep: the arm steps once per command stamped with the current state's stamp",
+    Param("task", DEFAULT_TASK, "the task the sim hosts: a built-in task's name (pusher_reach, pusher7_reach) or "
+          "the path of a task file with a sim section", read_only=True),
+    Param("mode", "realtime", "realtime: a timer steps the arm every control period with the latest command held; "
+          "lockstep: the arm steps once per command answering the current state",
           choices=MODES, read_only=True),
     Param("seed", 0, "episode e resets with reset seed seed + e", low=0, read_only=True),
     Param("episodes", 0, "episodes to run before exiting (0: run until stopped)", low=0),
-    Param("summary", "", "JSON file written on exit: episodes, success_rate, mean_final_dist, mean_return "
-          "(empty: none); checked at start, missing directories made on writing"),
-    Param("terminate_on_success", False, "end an episode as soon as the fingertip reaches the target"),
+    Param("summary", "", "JSON file written on exit: episodes, success_rate, mean_final_dist, mean_return, "
+          "abandoned (episodes cut short by pusher/reset, failures in the success rate; absent when none) "
+          "(empty: none); checked at start, missing directories made on writing; fixed at start, so no one "
+          "on the domain can point it at another file", read_only=True),
+    Param("terminate_on_success", False, "end an episode as soon as it succeeds (also where the task's "
+          "reward.terminate_on_success says so)"),
     Param("republish_period", 0.1, "lockstep: seconds before a state whose command has not come is published again",
           low=0.001, high=60.0),
     # a passive recorder started beside the sim then gets every transition from the first on
     Param("wait_for_subscribers", 0, "hold the first state (lockstep) or the first tick (realtime) until this "
           "many pusher/transition readers are matched", low=0, read_only=True),
     Param("start_time", 0.0, "sim time of the first state, in seconds since the epoch (0: the wall clock at start, "
-          "whole seconds); every stamp and /clock count 20 ms per tick from it (stamps are int32 seconds: "
+          "whole seconds); every stamp and /clock count one control period per tick from it (stamps are int32 seconds: "
           "at most a year before 2038)", low=0.0, high=float(MAX_START_TIME_S), read_only=True),
-    Param("effort_topic", "", "also take commands as std_msgs/Float64MultiArray joint torques in N·m on this "
-          "topic, as an effort controller does (realtime; e.g. effort_controller/commands; empty: off)",
-          read_only=True),
+    Param("effort_topic", "", "also take commands as std_msgs/Float64MultiArray in the task's units (torques in "
+          "N·m for an effort interface) on this topic, as its controller does (besides the task's command topic, "
+          "which pusher_reach takes only through this; empty: off)", read_only=True),
     THREAD_PRIORITY,
 )
 
@@ -83,53 +120,75 @@ PARAMS = (
 class PusherSim(Node):
     def __init__(self, overrides=()):
         super().__init__("sim", parameter_overrides=list(overrides))
-        self.settings = s = Settings(self, PARAMS, on_change=self.on_parameter_change, check=self.check_parameter)
+        self.settings = s = Settings(self, PARAMS, on_change=self.on_parameter_change)
         if s.summary:  # checked now, not after the whole run
             check_output_file(s.summary, "parameter summary:")
+        self.task = task = load_task(s.task)
         apply_thread_priority(self.settings.thread_priority, self.get_logger())
         start_ns = int(s.start_time * NS_PER_S) if s.start_time > 0 else time.time_ns() // NS_PER_S * NS_PER_S
-        self.loop = SimLoop(s.mode, s.seed, s.episodes, s.terminate_on_success, start_ns)
+        self.loop = SimLoop(s.mode, s.seed, s.episodes, s.terminate_on_success, start_ns, task=task)
         self.mode = s.mode
         self.wait_for_subscribers = s.wait_for_subscribers
         self.finished = Future()  # done when `episodes` episodes have run
         self.last_publish = 0.0
-        self.timing = TickTiming()
+        self.timing = TickTiming(task.control_period)
         self.status = NodeStatus(self, fields=lambda: {"episode": self.loop.episode,
                                                        "episodes_done": len(self.loop.results)})
 
         self.clock_pub = self.create_publisher(ClockMsg, "/clock", 10)
-        self.state_pub = self.create_publisher(JointState, "pusher/state", 10)
-        self.joint_states_pub = self.create_publisher(JointState, "joint_states", 10)
-        self.target_pub = self.create_publisher(PointStamped, "pusher/target", 10)
-        # The fingertip the env's observation uses (MuJoCo's site, see env.apply_action):
-        # lets a ROS policy rebuild the training observation exactly.
-        self.fingertip_pub = self.create_publisher(PointStamped, "pusher/fingertip", 10)
+        self.state_pub = self.create_publisher(JointState, task.state.topic, 10)
+        # robot_state_publisher reads joint_states: the state goes there too (when someone listens)
+        self.joint_states_pub = None if self.resolve(task.state.topic) == self.resolve("joint_states") else \
+            self.create_publisher(JointState, "joint_states", 10)
+        goal_type = {JOINT_STATE: JointState, POSE_STAMPED: PoseStamped}.get(task.goal.type, PointStamped)
+        self.goal_pub = self.create_publisher(goal_type, task.goal.topic, 10)
+        self.goal_msg = goal_type()
+        # Tracked points with a topic (pusher_reach's fingertip: MuJoCo's site, see env.apply_action,
+        # so a ROS policy rebuilds the training observation exactly).
+        self.point_pubs = [(p.name, self.create_publisher(PoseStamped if p.type == POSE_STAMPED else PointStamped,
+                                                          p.topic, 10),
+                            PoseStamped() if p.type == POSE_STAMPED else PointStamped())
+                           for p in task.points if p.topic]
+        for msg in [self.goal_msg] + [m for _, _, m in self.point_pubs]:
+            msg.header.frame_id = "world"
+        if task.goal.type == JOINT_STATE:
+            self.goal_msg.name = list(task.goal.joints)
         self.transition_pub = self.create_publisher(Float32MultiArray, "pusher/transition", TRANSITION_QOS)
+        self.task_pub = self.create_publisher(String, "task_description", LATCHED_QOS)
+        self.task_pub.publish(String(data=task_json(task)))
         self.create_subscription(JointState, "pusher/command", lambda m: self.on_command(m, None, "pusher/command"), 10)
         for code, name in SOURCE_NAMES.items():
             topic = f"pusher/command/{name}"
             self.create_subscription(JointState, topic, lambda m, c=code, t=topic: self.on_command(m, c, t), 10)
-        if s.effort_topic:
-            self.create_subscription(Float64MultiArray, s.effort_topic, self.on_effort, 10)
+        # the controller's topics: the task's (pusher_reach's only through effort_topic), and effort_topic
+        self.controller_topics = [] if task.name == DEFAULT_TASK else [(task.command.topic, task.command.type)]
+        if s.effort_topic and self.resolve(s.effort_topic) not in {self.resolve(t) for t, _ in self.controller_topics}:
+            self.controller_topics.append((s.effort_topic, FLOAT64_MULTI_ARRAY))
+        for topic, kind in self.controller_topics:
+            if kind == JOINT_STATE:
+                self.create_subscription(JointState, topic, lambda m, t=topic: self.on_controller_state(m, t), 10)
+            else:
+                self.create_subscription(Float64MultiArray, topic, lambda m, t=topic: self.on_controller(m, t), 10)
         self.create_service(Trigger, "pusher/reset", self.on_reset)
-        self.state_msg = JointState(name=list(JOINT_NAMES))
-        self.target_msg = PointStamped()
-        self.target_msg.header.frame_id = "world"
-        self.fingertip_msg = PointStamped()
-        self.fingertip_msg.header.frame_id = "world"
+        self.state_msg = JointState(name=list(task.state.joints))
 
         self.publish_state(self.loop.start_episode())
         # Wall-clock timers: the sim is the clock, so they must not wait for /clock.
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.republish_timer = None
         if self.mode == "realtime":
-            self.create_timer(1.0 / CONTROL_HZ, self.on_tick, clock=steady)
+            self.create_timer(task.control_period, self.on_tick, clock=steady)
         else:
             self.republish_timer = self.create_timer(s.republish_period, self.on_republish_timer, clock=steady)
+        commands = ", ".join(t for t, _ in self.controller_topics) or "pusher/command"
         self.get_logger().info(
-            f"{self.mode} pusher-reach, seed {s.seed}, "
+            f"{self.mode} {task.name}, seed {s.seed}, "
             f"{'endless' if not s.episodes else f'{s.episodes} episodes'}"
+            + ("" if task.name == DEFAULT_TASK else f"; state on {task.state.topic}, commands on {commands}")
         )
+
+    def resolve(self, topic: str) -> str:
+        return self.resolve_topic_name(topic)
 
     def check_parameter(self, name: str, value) -> str | None:
         if name == "summary" and value:
@@ -145,10 +204,10 @@ class PusherSim(Node):
             if self.loop.finished:
                 self.finish()
         elif name == "terminate_on_success":
-            self.loop.env.terminate_on_success = value  # from the next step on
+            # from the next step on
+            self.loop.env.terminate_on_success = value or self.task.reward.terminate_on_success
         elif name == "republish_period" and self.republish_timer is not None:
             self.republish_timer.timer_period_ns = int(value * 1e9)
-        # summary: read when written, on exit
 
     # -------------------------------------------------------------- publishing
     def publish_state(self, state: ArmState | None = None, new: bool = True) -> None:
@@ -160,27 +219,38 @@ class PusherSim(Node):
         # lockstep loop as much as a physics step
         if new and self.clock_pub.get_subscription_count():
             self.clock_pub.publish(ClockMsg(clock=stamp))
-        for msg, point in ((self.target_msg, state.target), (self.fingertip_msg, state.fingertip)):
+        self.fill_goal(state, stamp)
+        for name, _, msg in self.point_pubs:
             msg.header.stamp = stamp
-            msg.point.x, msg.point.y, msg.point.z = (float(v) for v in point)
+            fill_point(msg, state.points[name])
         msg = self.state_msg
         msg.header.stamp = stamp
         msg.position = array.array("d", state.position.tobytes())
         msg.velocity = array.array("d", state.velocity.tobytes())
         msg.effort = array.array("d", state.torque.tobytes())
-        # Target and fingertip first: a subscriber pairing by stamp then usually has them
+        # Goal and points first: a subscriber pairing by stamp then usually has them
         # when the state lands.
-        self.target_pub.publish(self.target_msg)
-        self.fingertip_pub.publish(self.fingertip_msg)
+        self.goal_pub.publish(self.goal_msg)
+        for _, pub, point in self.point_pubs:
+            pub.publish(point)
         self.state_pub.publish(msg)
-        if self.joint_states_pub.get_subscription_count():
+        if self.joint_states_pub is not None and self.joint_states_pub.get_subscription_count():
             self.joint_states_pub.publish(msg)
         self.last_publish = time.monotonic()
+        self.loop.published()
+
+    def fill_goal(self, state: ArmState, stamp) -> None:
+        msg = self.goal_msg
+        msg.header.stamp = stamp
+        if self.task.goal.type == JOINT_STATE:
+            msg.position = array.array("d", np.asarray(state.goal, np.float64).tobytes())
+        else:
+            fill_point(msg, state.target)
 
     def publish_step(self, step: Step | None) -> None:
         if step is None:
             return
-        self.transition_pub.publish(encode_transition_rows(step.transition[None, :])[0])
+        self.transition_pub.publish(encode_transition_rows(step.transition[None, :], self.loop.layout)[0])
         if step.next_state is not None:
             self.publish_state(step.next_state)
         elif step.new_episode is not None:
@@ -206,8 +276,10 @@ class PusherSim(Node):
             # checked before parsing: a late duplicate costs no more than a count
             problem = check_answer_stamp(stamp_key(stamp), self.loop.current.stamp_ns)
         if problem is None:
-            action, problem = action_from_effort(msg.name, msg.effort)
+            action, problem = action_from_effort(msg.name, msg.effort, joints=self.task.command.joints)
         if problem:
+            if self.mode == "lockstep":
+                self.loop.stamped_commands = True  # a stamped command came, even if refused
             self.status.reject(topic, problem)
             return
         if source is None:
@@ -223,20 +295,35 @@ class PusherSim(Node):
         self.get_logger().warning("a source tag in header.frame_id is deprecated; publish on "
                                   "pusher/command/<expert|random|policy|human> instead", once=True)
 
-    def on_effort(self, msg: Float64MultiArray) -> None:
-        self.status.took(self.settings.effort_topic)
-        if self.mode != "realtime":
-            self.warn_effort_in_lockstep()
+    def on_controller(self, msg: Float64MultiArray, topic: str) -> None:
+        """Take the task's controller command (Float64MultiArray: no header, no names)."""
+        self.status.took(topic)
+        if self.finished.done():
             return
-        action, problem = action_from_torques(msg.data)
-        if action is None:
-            self.status.reject(self.settings.effort_topic, problem)
+        action, problem = action_from_command(self.task, msg.data)
+        if problem is None:
+            step, problem = self.loop.command_unstamped(action, SOURCE_POLICY)
+        if problem:
+            self.status.reject(topic, problem)
             return
-        self.loop.command(None, action, SOURCE_POLICY)
+        self.publish_step(step)
 
-    def warn_effort_in_lockstep(self) -> None:
-        self.get_logger().warning(f"ignoring {self.settings.effort_topic}: torques carry no stamp, and lockstep "
-                                  "steps on the command for a state's stamp (use pusher/command)", once=True)
+    def on_controller_state(self, msg: JointState, topic: str) -> None:
+        """Take a JointState command: the interface's field, named; stamped, so lockstep pairs it by stamp."""
+        self.status.took(topic)
+        if self.finished.done():
+            return
+        stamp = msg.header.stamp
+        problem = check_stamp(stamp.sec, stamp.nanosec)
+        if problem is None and self.mode == "lockstep":
+            problem = check_answer_stamp(stamp_key(stamp), self.loop.current.stamp_ns)
+        if problem is None:
+            values = getattr(msg, FIELD_OF_INTERFACE[self.task.command.interface])
+            action, problem = action_from_command(self.task, values, msg.name)
+        if problem:
+            self.status.reject(topic, problem)
+            return
+        self.publish_step(self.loop.command(stamp_key(stamp), action, SOURCE_POLICY))
 
     def readers_matched(self) -> bool:
         """Whether the transition readers asked for are there (matched once: never hold again)."""
@@ -278,9 +365,17 @@ class PusherSim(Node):
             print(f"sim: realtime timing: {report}", file=sys.stderr)
 
 
+def fill_point(msg, xyz) -> None:
+    """Set a PointStamped's point, or a PoseStamped's position (orientation: identity)."""
+    where = msg.pose.position if isinstance(msg, PoseStamped) else msg.point
+    where.x, where.y, where.z = (float(v) for v in xyz)
+    if isinstance(msg, PoseStamped):
+        msg.pose.orientation.w = 1.0
+
+
 def main(argv: list[str] | None = None) -> int:
     return run_node(PusherSim, prog="sim", argv=argv, spin=spin_node_fast,
-                    description="The MuJoCo pusher-reach arm behind ROS 2 topics.")
+                    description="A task's MuJoCo arm behind ROS 2 topics (pusher-reach by default).")
 
 
 if __name__ == "__main__":

@@ -1,0 +1,105 @@
+"""The env, model and scripted expert of any task that a sim can host (a ``sim`` section).
+
+- ``make_env(task)``: ``sim: {env: pusher_reach}`` is the chapter's ``PusherReachEnv``
+  (its bytes); ``sim: {model: ...}`` is a ``MujocoTaskEnv`` of that model.
+- ``task_model(task)``: the MuJoCo model the task's kinematics need (``site:`` / ``body:``
+  points), or None for a task without a model.
+- ``task_expert(task)``: the task's scripted expert as one function of the joint state and
+  the goal, ``expert(positions, velocities, goal) -> action`` (float32, in [-1, 1]), so
+  ``collect``, ``eval --expert`` and a corrector that only hears topics act alike;
+  ``expert_action(env)`` asks it about an env's current state.
+
+Every env has the same face: ``reset(seed) -> obs``; ``step(action) -> (obs, reward, done,
+info)``; ``observation()``; ``steps``, ``success``, ``terminate_on_success``, ``obs_dim``,
+``act_dim``, ``max_steps``, ``task``, ``model``, ``data``; the state as a robot publishes it:
+``joint_positions``, ``joint_velocities``, ``joint_efforts`` (state-joint order), ``goal``
+(the task's goal vector), ``goal_position`` (x, y, z of a Cartesian goal) and
+``point_positions()`` (each tracked point's x, y, z).
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Callable
+
+import numpy as np
+
+from ..common.errors import UserError
+from .spec import TaskSpec, load_task
+
+Expert = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+SIM_ENVS = ("pusher_reach",)
+
+_models: dict = {}
+_experts: dict = {}
+
+
+def _kind(task: TaskSpec) -> str:
+    """'pusher_reach', 'model', or a UserError saying why no sim can host the task."""
+    sim = task.sim or {}
+    if not sim:
+        raise UserError(f"{task.source_file()}: task {task.name} has no sim section: no simulator hosts it "
+                        "(give sim: {model: FILE} to host it in MuJoCo)")
+    if "env" in sim:
+        if sim["env"] not in SIM_ENVS or len(sim) != 1:
+            raise UserError(f"{task.source_file()}: field sim.env: expected one of {', '.join(SIM_ENVS)} "
+                            f"(and no other sim field), got {sim!r}")
+        return "pusher_reach"
+    return "model"
+
+
+def _key(task: TaskSpec) -> tuple:
+    return task.digest, str(task.path)
+
+
+def task_model(task: TaskSpec | str | os.PathLike | None) -> "mujoco.MjModel | None":  # noqa: F821
+    """The task's compiled MuJoCo model (shared: read it, do not change it), or None for a
+    task without a sim section."""
+    task = load_task(task)
+    if not task.sim:
+        return None
+    key = _key(task)
+    if key not in _models:
+        if _kind(task) == "pusher_reach":
+            from .pusher_reach import build_model
+
+            _models[key] = build_model()
+        else:
+            from .mujoco_task import load_model
+
+            _models[key] = load_model(task)
+    return _models[key]
+
+
+def make_env(task: TaskSpec | str | os.PathLike | None, terminate_on_success: bool | None = None):
+    """A fresh env of the task (None: the task's ``reward.terminate_on_success``)."""
+    task = load_task(task)
+    terminate = task.reward.terminate_on_success if terminate_on_success is None else bool(terminate_on_success)
+    if _kind(task) == "pusher_reach":
+        from .pusher_reach import PusherReachEnv
+
+        return PusherReachEnv(terminate_on_success=terminate)
+    from .mujoco_task import MujocoTaskEnv
+
+    return MujocoTaskEnv(task, terminate, model=task_model(task))
+
+
+def task_expert(task: TaskSpec | str | os.PathLike | None) -> Expert:
+    """The task's scripted expert: ``expert(positions, velocities, goal) -> action``."""
+    task = load_task(task)
+    key = _key(task)
+    if key not in _experts:
+        if _kind(task) == "pusher_reach":
+            from .expert import expert_action
+
+            _experts[key] = expert_action  # its goal vector is the target's x, y
+        else:
+            from .jacobian_expert import ReachExpert
+
+            _experts[key] = ReachExpert(task, task_model(task))
+    return _experts[key]
+
+
+def expert_action(env) -> np.ndarray:
+    """The task's expert's action for an env's current state."""
+    return task_expert(env.task)(env.joint_positions, env.joint_velocities, env.goal)
