@@ -77,9 +77,19 @@ def test_the_experiment_on_ray_gives_the_local_metrics(cluster, tmp_path):
     tiny = dict(episodes=4, steps=30, batch_size=16, hidden=16, n_seeds=2, eval_episodes=2, seeds=[0, 1])
     run_experiment(ExperimentConfig.smoke_settings(**tiny), tmp_path / "local", log=lambda line: None)
     run_experiment(ExperimentConfig.smoke_settings(engine="ray", **tiny), tmp_path / "ray", log=lambda line: None)
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
     for s in (0, 1):
         assert (tmp_path / "local" / f"seed_{s}" / "metrics.json").read_bytes() == \
             (tmp_path / "ray" / f"seed_{s}" / "metrics.json").read_bytes()
+        # a Ray task reports no progress as it trains: its curves come from its history, the same points
+        curves = {}
+        for where in ("local", "ray"):
+            acc = EventAccumulator(str(tmp_path / where / f"seed_{s}"))
+            acc.Reload()
+            curves[where] = [(e.step, e.value) for tag in ("bc/train/policy_loss", "offline/train/critic_loss")
+                             for e in acc.Scalars(tag)]
+        assert curves["ray"] == curves["local"] and curves["local"]
 
 
 def test_a_cluster_that_does_not_answer_is_one_line_saying_how_to_start_one(tmp_path):

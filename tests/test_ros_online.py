@@ -67,6 +67,15 @@ def test_the_stage_over_ros_reproduces_the_in_process_run(ros_env, tmp_path, pri
     assert summary["counts"]["human"] == reference["counts"]["human"] > 0  # the corrector's takeovers
     assert [p["successes"] for p in summary["curve"]] == [p["successes"] for p in reference["curve"]]
     _assert_same_weights(out / "learner" / "policy.pt", reference)
+    # the curves in TensorBoard's event files: the stage's learning curve in DIR, the learner's versions in DIR/learner
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    stage, learner = EventAccumulator(str(out)), EventAccumulator(str(out / "learner"))
+    stage.Reload()
+    learner.Reload()
+    assert [(e.step, e.value) for e in stage.Scalars("eval/success_rate")] == \
+        [(p["env_steps"], pytest.approx(p["success"])) for p in summary["curve"]]
+    assert learner.Scalars("online/weights_version")[-1].value == 12
     # the bag says which weights acted: every answer of the policy node is on policy/provenance
     from offline_rl_core.data.bag import read_transitions
 

@@ -202,6 +202,12 @@ def test_trainer_node_from_the_card_command_publishes_progress(spawn, data, tmp_
     assert echo.wait(timeout=20) == 0, echo.output()
     report = echo.output().split("data: ", 1)[1].split("\n---", 1)[0].strip().strip("'")
     assert json.loads(report)["total"] == 1500
+    # the curves in TensorBoard's event files beside metrics.json, as `offline-rl train` writes them
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    curves = EventAccumulator(str(out))
+    curves.Reload()
+    assert curves.Scalars("train/critic_loss")[-1].step == 1500 and "eval/success_rate" in curves.Tags()["scalars"]
 
     bad = spawn(ros2("run", "trainer", "node", "--bag", tmp_path / "none.db3", "--out", tmp_path / "x"), "bad")
     assert bad.wait(timeout=60) == 2

@@ -101,6 +101,79 @@ def test_a_graph_that_was_slow_to_discover_is_waited_for_as_long_again():
     assert quiet_enough(start=0.0, last_change=1.5, now=3.0)
 
 
+# what the sim publishes and subscribes to, in a namespace (/clock stays global)
+SIM_TOPICS = ["/clock", "/arm2/joint_states", "/arm2/pusher/state", "/arm2/pusher/target", "/arm2/pusher/fingertip",
+              "/arm2/pusher/transition", "/arm2/sim/status", "/arm2/pusher/command", "/arm2/pusher/command/human"]
+# `ros2 topic list` with its imports done beforehand: the listing starts the moment a line comes in
+PRIMED_LIST = "import sys, rclpy, ros2_shim.topic; sys.stdin.readline(); from ros2_shim.cli import main; " \
+              "sys.exit(main(['topic', 'list']))"
+
+
+@pytest.mark.ros
+def test_topic_list_called_while_a_sim_starts_lists_all_it_has(spawn, ros_env):
+    """A user starts a sim in /arm2 and lists the topics at once: a node's /rosout shows
+    before the rest of what it is building (a loaded machine has seen /clock missing from
+    the list), so each call waits until every participant's announced endpoints are
+    discovered and its announcements have settled. Three calls at once, the moment the
+    sim's node appears, twice over."""
+    import os
+    import sys
+
+    from ros_helpers import probe_node
+
+    with probe_node("_shim_test_probe") as probe:  # hidden: not a node of the user's, as the shim sees it
+        for attempt in range(2):
+            lists = [subprocess.Popen([sys.executable, "-c", PRIMED_LIST], stdin=subprocess.PIPE,
+                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ros_env,
+                                      cwd=REPO, start_new_session=True) for _ in range(3)]
+            try:
+                sim = spawn(ros2("run", "sim", "node", "--ros-args", "-r", "__ns:=/arm2"), f"sim{attempt}")
+                assert probe.spin_until(lambda: ("sim", "/arm2") in probe.get_node_names_and_namespaces(), 60), \
+                    sim.output()
+                for p in lists:
+                    p.stdin.write("\n")
+                    p.stdin.flush()
+                listed = [p.communicate(timeout=60) for p in lists]
+            finally:
+                for p in lists:
+                    if p.poll() is None:
+                        os.killpg(p.pid, signal.SIGKILL)
+                        p.wait()
+            for out, err in listed:
+                missing = [t for t in SIM_TOPICS if t not in out.splitlines()]
+                assert not missing, f"missing {missing} from:\n{out}{err}"
+            if attempt == 0:
+                _check_the_sims_announcement(probe)
+            assert sim.stop() == 0
+            assert probe.spin_until(lambda: ("sim", "/arm2") not in probe.get_node_names_and_namespaces(), 30)
+
+
+def _check_the_sims_announcement(probe) -> None:
+    """What the shim reads from ros_discovery_info: the sim's node, with the gid of the
+    /clock writer that endpoint discovery reports."""
+    from ros2_shim.discovery_info import DiscoveryInfo, last_change_age_s, undiscovered_endpoints
+
+    announcements = DiscoveryInfo.open(probe)
+    assert announcements is not None, "ros_discovery_info cannot be read on this rmw"
+    try:
+        def sim_writers():
+            for info in announcements.poll().values():
+                for n in info.node_entities_info_seq:
+                    if (n.node_namespace, n.node_name) == ("/arm2", "sim"):
+                        return {bytes(g.data) for g in n.writer_gid_seq}
+            return set()
+
+        def clock_writers():
+            return {bytes(p.endpoint_gid) for p in probe.get_publishers_info_by_topic("/clock") if p.node_name == "sim"}
+
+        assert probe.spin_until(lambda: clock_writers() and clock_writers() <= sim_writers(), 10), \
+            (clock_writers(), sim_writers())
+        assert undiscovered_endpoints(probe, announcements, probe.get_name()) == 0
+        assert last_change_age_s(probe, announcements, probe.get_name()) > 0
+    finally:
+        announcements.close()
+
+
 def test_node_list_and_param_list_get_set_describe(spawn, ros_env):
     sim = spawn(ros2("run", "sim", "node", "--ros-args", "-p", "mode:=lockstep", "-p", "seed:=3"), "sim")
     assert sim.wait_for_output("lockstep pusher_reach", timeout=30), sim.output()

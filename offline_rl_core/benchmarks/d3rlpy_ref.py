@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import time
 
-import numpy as np
 import torch
 
+from ..data.interop import d3rlpy_dataset, import_d3rlpy
 from ..data.transitions import Transitions
 from ..learners.config import TrainConfig
 
@@ -22,49 +22,17 @@ D3RLPY_VERSION = "2.8.1"
 def available() -> str | None:
     """d3rlpy's version when importable, else None."""
     try:
-        d3rlpy = _import_quietly()
+        d3rlpy = import_d3rlpy()
     except Exception:
         return None
     return str(d3rlpy.__version__)
-
-
-def _import_quietly():
-    """Import d3rlpy without its banner noise: gym's deprecation notice on stderr and
-    structlog info lines for every dataset it builds."""
-    import contextlib
-    import io
-    import logging
-
-    with contextlib.redirect_stderr(io.StringIO()):
-        import d3rlpy
-    try:
-        import structlog
-
-        structlog.configure(wrapper_class=structlog.make_filtering_bound_logger(logging.WARNING))
-    except Exception:
-        pass
-    return d3rlpy
-
-
-def mdp_dataset(data: Transitions):
-    """The transitions as a d3rlpy MDPDataset; episodes end at termination or truncation."""
-    d3rlpy = _import_quietly()
-
-    return d3rlpy.dataset.MDPDataset(
-        observations=data.obs.astype(np.float32),
-        actions=data.action.astype(np.float32),
-        rewards=data.reward.astype(np.float32).reshape(-1, 1),
-        terminals=data.terminated.astype(np.float32),
-        timeouts=(data.truncated & ~data.terminated).astype(np.float32),
-        action_space=d3rlpy.ActionSpace.CONTINUOUS,
-    )
 
 
 def make_algo(algo: str, hidden: int, batch_size: int, lr: float = TrainConfig.lr, beta: float = TrainConfig.beta,
               device: str = "cpu"):
     """d3rlpy's AWAC (twin critics, lam = the chapter's beta) or deterministic BC, with
     ``hidden x hidden`` ReLU encoders like ours."""
-    d3rlpy = _import_quietly()
+    d3rlpy = import_d3rlpy()
 
     enc = d3rlpy.models.VectorEncoderFactory(hidden_units=[hidden, hidden])
     if algo == "awac":
@@ -85,10 +53,10 @@ class D3rlpyTrainer:
     """A built d3rlpy learner and its dataset; ``run(steps)`` trains and returns seconds."""
 
     def __init__(self, algo: str, data: Transitions, hidden: int, batch_size: int, seed: int = 0, device: str = "cpu"):
-        d3rlpy = _import_quietly()
+        d3rlpy = import_d3rlpy()
 
         d3rlpy.seed(seed)
-        self.dataset = mdp_dataset(data)
+        self.dataset = d3rlpy_dataset(data)
         self.algo = make_algo(algo, hidden, batch_size, device=device)
         self.algo.build_with_dataset(self.dataset)
         self.batch_size = batch_size

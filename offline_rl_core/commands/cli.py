@@ -18,6 +18,8 @@ COMMAND_MODULES = (
     "bag_info",
     "bag",
     "dataset",
+    "export_dataset",
+    "import_dataset",
     "train",
     "eval",
     "experiment",

@@ -10,6 +10,7 @@ from ..common.output_paths import check_output_dir
 from ..common.seeds import seed_arg
 from .sweep import add_engine_arguments, engine_of
 from ..runs.experiment import ExperimentConfig, format_table, run_experiment, summary_rows, verdict
+from ..runs.loggers import DEFAULT_LOGGER, LOGGER_HELP, LOGGERS
 from ..task.envs import make_env
 from ..task.spec import BUILTIN_DIR, load_task
 
@@ -56,6 +57,7 @@ def register(subparsers) -> None:
                         "DIR/[seed_<s>/]resume_{bc,offline}.pt: same result, same bytes")
     p.add_argument("--resume-every", type=float, default=1.0, metavar="S",
                    help="seconds between each training job's resume points (default: %(default)s)")
+    p.add_argument("--logger", choices=LOGGERS, default=DEFAULT_LOGGER, help=LOGGER_HELP + "; in each seed's directory")
     p.set_defaults(func=run)
 
 
@@ -110,7 +112,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         with _engine(cfg, args.address):
             outcomes = run_experiment(cfg, args.out, log=lambda line: print(line, flush=True),
-                                      resume=args.resume, resume_every=args.resume_every)
+                                      resume=args.resume, resume_every=args.resume_every, logger=args.logger)
     except RunFailed as exc:
         raise RunFailed(f"{exc}; the same command with --resume continues from the last resume points") from None
     rows = summary_rows(cfg, outcomes)

@@ -9,6 +9,7 @@ from ..common.output_paths import check_output_dir
 from ..pipelines.hil import EVAL_SEED, HilConfig, default_bag, run_hil
 from ..pipelines.hil_online import OnlineHilConfig, run_hil_online
 from ..common.seeds import seed_arg
+from ..runs.loggers import DEFAULT_LOGGER, LOGGERS
 
 
 # Flags of one mode only: their defaults are filled in by mode, so that one given to the
@@ -46,7 +47,7 @@ def _run(args) -> int:
         eval_episodes=args.eval_episodes, eval_seed=args.eval_seed, patience=args.patience,
         hold_steps=args.hold_steps, grace_steps=args.grace_steps, beta=args.beta, noise=args.noise, reaction_delay=args.reaction_delay,
     )
-    summary = run_hil(cfg)
+    summary = run_hil(cfg, logger=args.logger)
     print(json.dumps({k: summary[k] for k in ("prior_success", "final_success", "diff_ci_lo", "diff_ci_hi",
                                               "intervention_rate_first", "intervention_rate_last", "wall_seconds")}))
     return 0
@@ -60,7 +61,7 @@ def _run_online(args) -> int:
         bags=args.bag, task=args.task, corrector=args.corrector, mode=args.mode, utd=args.utd,
         publish_every=args.publish_every, eval_every=args.eval_every, eval_episodes=args.eval_episodes,
         eval_seed=args.eval_seed, in_process=args.in_process, from_topics=args.from_topics)
-    summary = run_hil_online(cfg)
+    summary = run_hil_online(cfg, logger=args.logger)
     print(json.dumps({k: summary[k] for k in ("prior_success", "final_success", "final_ci", "to", "intervention_rate",
                                               "wall_seconds")}))
     return 0
@@ -92,6 +93,10 @@ def register(subparsers) -> None:
     p.add_argument("--eval-episodes", type=int, default=d.eval_episodes,
                    help="held-out rollouts per evaluation (default: %(default)s)")
     p.add_argument("--eval-seed", type=seed_arg, default=EVAL_SEED, help="first held-out reset seed (default: %(default)s)")
+    p.add_argument("--logger", choices=LOGGERS, default=DEFAULT_LOGGER,
+                   help="where the curves go besides the JSON files: tensorboard (event files: the trainers' in their "
+                        "directories; with --online the learning curve in DIR and the learner's losses in DIR/learner), "
+                        "wandb (offline unless WANDB_MODE says otherwise), or none (default: %(default)s)")
     r = p.add_argument_group("offline rounds (without --online)")
     r.add_argument("--rounds", type=int, help=f"correction rounds (default: {d.rounds})")
     r.add_argument("--episodes", type=int, help=f"corrected episodes per round (default: {d.episodes})")

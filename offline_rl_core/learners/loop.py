@@ -41,7 +41,8 @@ class Progress:
     step: int
     total: int
     elapsed_s: float
-    scalars: dict[str, float]
+    scalars: dict[str, float]  # each loss, the mean over the runs trained together
+    member_scalars: dict[str, list[float]] | None = None  # each loss of each run, in seed order
 
 
 @dataclass
@@ -185,7 +186,7 @@ def train_seeds(
                         hist.setdefault(k, []).append(v[m])
                 if progress is not None:
                     scalars = {k: float(np.mean(v)) for k, v in values.items()}
-                    progress(Progress(step, cfg.steps, time.perf_counter() - start, scalars))
+                    progress(Progress(step, cfg.steps, time.perf_counter() - start, scalars, values))
                 if snapshot is not None:
                     snapshot(step, time.perf_counter() - start, lambda m: to_raw(m, learner.policy.member_state(m)))
             if resume is not None and step < cfg.steps and resume.due():

@@ -16,7 +16,9 @@ bag. Files under ``out``:
   counters, the online buffer), written atomically every ``save_every`` seconds and at exit;
 - ``progress.jsonl``: one line per weights version (counts, losses, timings);
 - ``snapshots/policy_NNNNNN.pt``: the weights every ``snapshot_every`` transitions (the
-  learning curve is scored from them afterwards, off the critical path).
+  learning curve is scored from them afterwards, off the critical path);
+- the ``logger``'s files (``runs.loggers``; TensorBoard event files by default): each
+  weights version's losses, counts, age and rates against live transitions.
 
 Resuming (``resume``): the saved state is loaded, and with a ``session_bag`` (the
 passive recorder's bag of the same session) the transitions that arrived after the save
@@ -31,7 +33,7 @@ import json
 import math
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -45,6 +47,7 @@ from ..learners.online import OnlineLearner, OnlineSettings, PriorMismatch
 from .estop import EStopLatch
 from .joint_messages import VALUE_LIMIT
 from ..common.output_paths import check_output_dir
+from ..runs.loggers import DEFAULT_LOGGER, check_logger, online_scalars, open_logger
 from ..serving.checkpoint import checkpoint_task, load_checkpoint, save_checkpoint
 from ..serving.policy import policy_for_task
 from ..common.rejections import Rejection, RejectionCounter
@@ -69,6 +72,7 @@ class LearnerServiceConfig:
     task: str | None = None  # a built-in task or a task file; None: the prior's, else the bags'
     from_topics: bool = False  # build the live transitions from the task's raw topics
     live: LiveSettings = field(default_factory=LiveSettings)
+    logger: str = DEFAULT_LOGGER  # where each version's losses and rates go besides progress.jsonl
     settings: OnlineSettings = field(default_factory=OnlineSettings)
     train: TrainConfig = field(default_factory=lambda: TrainConfig(algo="sac"))
 
@@ -109,6 +113,7 @@ class LearnerService:
 
         self.cfg, self.log = cfg, log
         self.out = check_output_dir(cfg.out, "parameter out:")  # before the bags load: a bad path is refused at once
+        check_logger(cfg.logger, "parameter logger:")
         self.out.mkdir(parents=True, exist_ok=True)
         prior = load_checkpoint(cfg.prior) if cfg.prior else None  # validated as the policy node validates it
         given = cfg.task or (checkpoint_task(prior) if prior is not None and "task" in prior else None)
@@ -140,6 +145,8 @@ class LearnerService:
         if cfg.snapshot_every and cfg.snapshot_every % cfg.settings.publish_every:
             raise UserError(f"snapshot_every ({cfg.snapshot_every}) must be a multiple of publish_every "
                             f"({cfg.settings.publish_every})")
+        self.curves = open_logger(cfg.logger, self.out, name=self.out.name, resume=cfg.resume, config=self._settings())
+        self.curves.drop_previous()  # a fresh session starts anew, as its progress.jsonl does
         if cfg.resume:
             self._resume()
         else:
@@ -270,6 +277,9 @@ class LearnerService:
                 **{k: round(v, 6) for k, v in self.learner.losses.items() if math.isfinite(v)}}
         with open(self.out / "progress.jsonl", "a", encoding="utf-8") as f:
             f.write(json.dumps(line) + "\n")
+        arrived_per_s = self.received / max(time.monotonic() - self.started, 1e-9)  # since this process started
+        self.curves.scalars(n, {**online_scalars(self.learner, weights, arrived_per_s),
+                                "online/rejected": self.rejected.total})
 
     def _write_policy(self, weights: dict) -> None:
         save_checkpoint(self.out / "policy.pt", weights)
@@ -285,13 +295,21 @@ class LearnerService:
     def close(self) -> Path:
         """On the way out: the steps whose messages have all come (nothing is in flight any
         more; a learner busy training till the end never saw the stream fall quiet), then the
-        resume point."""
+        resume point, and the logger's last scalars and settings."""
         self.take_steps(quiet=True)
         path = self.save()
         if self.live is not None:
             self.log(f"learner: closed at {self.learner.n_steps} environment steps, {self.learner.n_online} "
                      f"transitions; live join {json.dumps(self.live.counts.as_dict())}")
+        self.curves.hparams(self._settings(), {f"train/{k}": v for k, v in self.learner.losses.items()
+                                               if math.isfinite(v)})
+        self.curves.close()
         return path
+
+    def _settings(self) -> dict:
+        cfg = self.cfg
+        return {"online": asdict(cfg.settings), "train": cfg.train.to_dict(), "seed": cfg.seed, "prior": cfg.prior,
+                "task": self.task.name}
 
     def save(self) -> Path:
         path = self.out / "learner_state.pt"

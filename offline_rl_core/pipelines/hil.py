@@ -43,6 +43,7 @@ from ..common.interrupts import sigterm_as_interrupt
 from ..common.output_paths import remove_if_empty
 from ..evaluation.rollouts import evaluate_policy
 from ..learners.config import TrainConfig
+from ..runs.loggers import DEFAULT_LOGGER, check_logger
 from ..serving.checkpoint import load_checkpoint
 from ..serving.policy import load_policy, policy_for_task
 from ..task.spec import BUILTIN_DIR, DEFAULT_TASK, TaskSpec, load_task
@@ -116,10 +117,11 @@ class HilConfig:
 class Loop:
     """The processes of one run; every one is stopped by pid, whatever happens."""
 
-    def __init__(self, cfg: HilConfig, log: Callable[[str], None]):
+    def __init__(self, cfg: HilConfig, log: Callable[[str], None], logger: str = DEFAULT_LOGGER):
         self.cfg = cfg
         self.out = Path(cfg.out)
         self.log = log
+        self.logger = logger  # the trainer nodes' --logger
         self.env = isolated_ros_env()
         self.procs: list[RosProcess] = []
         self.task_arg = DEFAULT_TASK  # how the nodes are told the task (task_argument)
@@ -181,7 +183,7 @@ class Loop:
               correction_ratio: float | None = None, algo: str | None = None) -> Path:
         """Train with the trainer node; ``steps`` None: as many as ``--algo auto`` plans."""
         args = ["--algo", algo or self.cfg.algo, "--task", self.task_arg, "--seed", seed, "--out", out_dir,
-                "--eval-episodes", 0]
+                "--eval-episodes", 0, "--logger", self.logger]
         if steps is not None:
             args += ["--steps", steps, "--log-every", max(100, steps // 8)]
         else:
@@ -399,11 +401,13 @@ def plot_rounds(rows: list[dict], final: dict, path: Path) -> None:
     _save_atomic(fig, path)
 
 
-def run_hil(cfg: HilConfig, log: Callable[[str], None] = lambda s: print(s, file=sys.stderr, flush=True)) -> dict:
+def run_hil(cfg: HilConfig, log: Callable[[str], None] = lambda s: print(s, file=sys.stderr, flush=True),
+            logger: str = DEFAULT_LOGGER) -> dict:
     cfg.validate()
     out = Path(cfg.out)
     t0 = time.monotonic()
-    loop = Loop(cfg, log)
+    check_logger(logger)
+    loop = Loop(cfg, log, logger)
     with hil_session(out, loop):
         log(f"hil: {cfg.rounds} rounds x {cfg.episodes} episodes -> {out} (ROS_DOMAIN_ID {loop.env['ROS_DOMAIN_ID']})")
         resolve_task(loop, cfg.task, cfg.bags, cfg.prior, out)

@@ -38,6 +38,7 @@ import numpy as np
 from ..common.atomic import write_json_atomic
 from ..common.errors import UserError
 from ..evaluation.rollouts import evaluate_policy
+from ..runs.loggers import DEFAULT_LOGGER, check_logger, curve_scalars, open_logger
 from ..runs.online_loop import EVAL_SEED, TRAIN_SEED_BASE, steps_to
 from ..serving.checkpoint import load_checkpoint
 from ..serving.policy import load_policy
@@ -126,17 +127,21 @@ class OnlineHilConfig:
             raise UserError(f"--in-process runs pusher_reach's env; task {task.name} runs over ROS (drop --in-process)")
 
 
-def run_hil_online(cfg: OnlineHilConfig, log: Callable[[str], None] = lambda s: print(s, file=sys.stderr,
-                                                                                           flush=True)) -> dict:
+def run_hil_online(cfg: OnlineHilConfig, log: Callable[[str], None] = lambda s: print(s, file=sys.stderr, flush=True),
+                   logger: str = DEFAULT_LOGGER) -> dict:
+    """Run the stage; ``logger`` (``runs.loggers``): where the curve goes besides summary.json
+    (DIR), and the learner's losses and rates as it trains (DIR/learner, over ROS)."""
     cfg.validate()
+    check_logger(logger)
     out = Path(cfg.out)
     from .hil import HilConfig, Loop, hil_session, resolve_prior, resolve_task
 
     from ..runs.training_run import task_of_run
 
     cfg.check_task(task_of_run(cfg.bags, cfg.task))  # before anything is started or written
-    loop = Loop(HilConfig(out=str(out), seed=cfg.seed, bags=cfg.bags), log)
+    loop = Loop(HilConfig(out=str(out), seed=cfg.seed, bags=cfg.bags), log, logger)
     t0 = time.monotonic()
+    curves = None  # in process: logged as the stage runs; over ROS: the curve scored after the session
     with hil_session(out, loop):
         task = resolve_task(loop, cfg.task, cfg.bags, cfg.prior, out, any_task=True)
         if task.digest != load_task(DEFAULT_TASK).digest:
@@ -144,10 +149,23 @@ def run_hil_online(cfg: OnlineHilConfig, log: Callable[[str], None] = lambda s: 
         prior_path, prior_from = (None, "none") if cfg.no_prior else resolve_prior(
             loop, cfg.prior, cfg.bags, cfg.seed, cfg.prior_steps, out, log, cfg.prior_algo)
         if cfg.in_process:
-            result = _in_process(cfg, prior_path, log)
+            curves = open_logger(logger, out, name=out.name, config=asdict(cfg))
+            try:
+                result = _in_process(cfg, prior_path, log, curves)
+            except BaseException:
+                curves.close()
+                raise
         else:
-            result = _over_ros(cfg, loop, prior_path, out, log)
+            result = _over_ros(cfg, loop, prior_path, out, log, logger)
     summary = _summary(cfg, result, prior_path, prior_from, time.monotonic() - t0)
+    with curves or open_logger(logger, out, name=out.name, config=asdict(cfg)) as curves:
+        if not cfg.in_process:
+            for point in summary["curve"]:
+                curves.scalars(point["env_steps"], curve_scalars(point))
+        curves.hparams({**asdict(cfg), "prior_from": prior_from},
+                       {**curve_scalars(summary["curve"][-1]),
+                        "online/intervention_rate_all": summary["intervention_rate"]})
+        curves.drop_previous()
     write_json_atomic(out / "summary.json", summary)
     plot_online(summary, out / "online.png")
     final = summary["curve"][-1]
@@ -160,7 +178,7 @@ def run_hil_online(cfg: OnlineHilConfig, log: Callable[[str], None] = lambda s: 
 
 
 # ------------------------------------------------------------------------ in one process
-def _in_process(cfg: OnlineHilConfig, prior_path: Path | None, log) -> dict:
+def _in_process(cfg: OnlineHilConfig, prior_path: Path | None, log, curves) -> dict:
     from ..learners.config import TrainConfig
     from ..learners.online import OnlineSettings
     from ..runs.online_loop import OnlineRunConfig, run_online
@@ -172,12 +190,12 @@ def _in_process(cfg: OnlineHilConfig, prior_path: Path | None, log) -> dict:
         env_steps=cfg.env_steps, seed=cfg.seed, corrections=cfg.corrector != "none", eval_every=cfg.eval_every,
         eval_episodes=cfg.eval_episodes, eval_seed=cfg.eval_seed,
         settings=OnlineSettings(utd=cfg.utd, publish_every=cfg.publish_every), train=TrainConfig(algo="sac")),
-        log=log)
+        log=log, logger=curves)
     return {"curve": run["curve"], "counts": run["counts"], "learner_seconds": run["wall_s"], "where": "in process"}
 
 
 # ------------------------------------------------------------------------ over ROS
-def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, log) -> dict:
+def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, log, logger: str) -> dict:
     learner_dir = out / "learner"
     for stale in (learner_dir / "snapshots").glob("policy_*.pt"):
         stale.unlink()
@@ -192,7 +210,7 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
         "utd": cfg.utd, "seed": cfg.seed, "learner_nice": 0 if lockstep else 10,
         # realtime: the nodes that answer the arm go first (where the user may use SCHED_FIFO)
         "thread_priority": 0 if lockstep else REALTIME_THREAD_PRIORITY, "reset_seed": TRAIN_SEED_BASE + 10000 * cfg.seed, "episodes": episodes,
-        "snapshot_every": cfg.eval_every, "corrector": cfg.corrector,
+        "snapshot_every": cfg.eval_every, "corrector": cfg.corrector, "logger": logger,
         "from_topics": "true" if cfg.raw_topics else "false",
         "record_topics": _record_topics(cfg) if cfg.raw_topics else "",
         # a person's corrector runs in the foreground, on this terminal (below)

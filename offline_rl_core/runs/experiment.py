@@ -17,8 +17,9 @@ They are removed once the experiment has written its results.
 
 from __future__ import annotations
 
+import contextlib
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
@@ -27,6 +28,7 @@ from ..common.seeds import eval_reset_seeds
 from ..common.atomic import write_json_atomic, write_text_atomic
 from ..evaluation.rollouts import RolloutResult, format_rate, round6, rollout_task
 from ..learners import Progress, TrainConfig
+from .loggers import DEFAULT_LOGGER, Logger, check_logger, history_reports, open_logger, progress_scalars
 from .parallel import TrainJob, run_jobs
 from ..learners.resume import ResumePoints
 from ..common.machine import available_cores
@@ -165,17 +167,34 @@ def _progress_printer(label: str, log: Callable[[str], None]) -> Callable[[Progr
 
 
 def run_experiment(cfg: ExperimentConfig, out_dir: str | Path, log: Callable[[str], None] = print,
-                   resume: bool = False, resume_every: float = 1.0) -> list[SeedOutcome]:
+                   resume: bool = False, resume_every: float = 1.0, logger: str = DEFAULT_LOGGER) -> list[SeedOutcome]:
     """Run the experiment for every seed of ``cfg``; writes metrics, checkpoints and plots.
-    ``resume``: continue the training jobs from the resume points a killed run left."""
-    from .plots import plot_training_curve
-
+    ``resume``: continue the training jobs from the resume points a killed run left.
+    ``logger``: where each seed's curves go besides its metrics.json (``loggers``), in the
+    seed's directory: ``bc/train/...`` and ``offline/train/...`` while the two arms train,
+    ``eval/...`` (both arms' success with Wilson bounds, the gap's interval) at the end."""
     out_dir = Path(out_dir)
     seeds = [int(s) for s in cfg.seeds]
     if len(set(seeds)) != len(seeds):
         raise ValueError(f"duplicate seeds in {seeds}")
+    check_logger(logger)
     multi = len(seeds) > 1
     seed_dirs = {s: (out_dir / f"seed_{s}" if multi else out_dir) for s in seeds}
+    with contextlib.ExitStack() as stack:
+        curves = {s: stack.enter_context(open_logger(logger, seed_dirs[s], name=seed_dirs[s].name, resume=resume,
+                                                     config=_hparams(cfg, s))) for s in seeds}
+        return _run(cfg, out_dir, seeds, seed_dirs, curves, log, resume, resume_every)
+
+
+def _hparams(cfg: ExperimentConfig, seed: int) -> dict:
+    """One seed's settings, for the logger."""
+    return {**{k: v for k, v in asdict(cfg).items() if k != "seeds"}, "seed": seed, "mode": cfg.mode}
+
+
+def _run(cfg: ExperimentConfig, out_dir: Path, seeds: list[int], seed_dirs: dict[int, Path],
+         curves: dict[int, Logger], log: Callable[[str], None], resume: bool,
+         resume_every: float) -> list[SeedOutcome]:
+    from .plots import plot_training_curve
 
     t0 = time.perf_counter()
     datasets = []
@@ -197,9 +216,13 @@ def run_experiment(cfg: ExperimentConfig, out_dir: str | Path, log: Callable[[st
                 f"no resume point at {points[-1].path}; starting")
         return points[-1]
 
+    def curve(role: str, job_seeds: list[int], p: Progress) -> None:
+        for m, s in enumerate(job_seeds):  # a job may train several seeds as one ensemble
+            curves[s].scalars(p.step, progress_scalars(p, f"{role}/train", member=m))
+
     plans = [cfg.offline_config(data, log) for data in datasets]
     # the task collected from, recorded in bc.pt and offline.pt
-    trained = train_all(cfg, seeds, datasets, log, [p[0] for p in plans], resume_points, task=task)
+    trained = train_all(cfg, seeds, datasets, log, [p[0] for p in plans], resume_points, task=task, curve=curve)
     outcomes = []
     for m, s in enumerate(seeds):
         reset_seeds = eval_reset_seeds(s, cfg.n_seeds, cfg.eval_episodes)
@@ -217,25 +240,44 @@ def run_experiment(cfg: ExperimentConfig, out_dir: str | Path, log: Callable[[st
         save_checkpoint(d / "offline.pt", off_res.checkpoint)
         plot_training_curve(off_res.history, d / "offline_training.png", title=f"{cfg.mode}, seed {s}")
         write_json_atomic(d / "metrics.json", metrics)
+        results = seed_scalars(metrics, bc_roll, off_roll)
+        curves[s].scalars(metrics["steps"], results)
+        curves[s].hparams(_hparams(cfg, s), results)
         outcomes.append(SeedOutcome(s, metrics, bc_roll, off_roll, d))
 
-    if multi:
+    if len(seeds) > 1:
         write_summary(cfg, outcomes, out_dir)
     for p in points:
         p.done()  # the results are written: the resume points are spent
+    for logger in curves.values():
+        logger.drop_previous()
     log(f"total {time.perf_counter() - t0:.1f}s")
     return outcomes
+
+
+def seed_scalars(metrics: dict, bc: RolloutResult, offline: RolloutResult) -> dict[str, float]:
+    """One seed's results as logger tags: metrics.json's numbers, and each arm's Wilson bounds."""
+    settings = ("seed", "episodes", "steps", "n_pooled", "beta", "expert_frac")  # the run's settings, not results
+    out = {f"eval/{k}": float(v) for k, v in metrics.items()
+           if isinstance(v, (int, float)) and not isinstance(v, bool) and k not in settings}
+    for arm, result in (("bc", bc), ("offline", offline)):
+        lo, hi = wilson_ci(result.successes, result.episodes)
+        out[f"eval/{arm}_wilson_ci_lo"], out[f"eval/{arm}_wilson_ci_hi"] = lo, hi
+    return out
 
 
 def train_all(cfg: ExperimentConfig, seeds: list[int], datasets: list, log: Callable[[str], None],
               offline_cfgs: list[TrainConfig] | None = None,
               resume_points: Callable[[str, list[int]], ResumePoints] | None = None,
-              task: TaskSpec | None = None) -> dict:
+              task: TaskSpec | None = None,
+              curve: Callable[[str, list[int], Progress], None] | None = None) -> dict:
     """{"bc": [TrainResult per seed], "offline": [...]}: BC and the offline learner for
     every seed, one process per core. ``offline_cfgs``: the offline learner's config per
     seed (default: ``cfg.train_config(cfg.algo)``). ``resume_points(role, seeds)``: the
     resume points of the job training ``role`` ("bc" or "offline") for those seeds.
-    ``task``: the data's task, recorded in the checkpoints."""
+    ``task``: the data's task, recorded in the checkpoints. ``curve(role, seeds, progress)``:
+    every progress report of each job, beside the log (on Ray, each run's logged history
+    once it is back, without timings)."""
     points = resume_points or (lambda role, job_seeds: None)
     offline_cfgs = offline_cfgs or [cfg.train_config(cfg.algo)] * len(seeds)
     per_seed = {"offline": offline_cfgs, "bc": [cfg.train_config("bc")] * len(seeds)}
@@ -245,22 +287,40 @@ def train_all(cfg: ExperimentConfig, seeds: list[int], datasets: list, log: Call
     if workers == 1 and not on_ray and all(c == offline_cfgs[0] for c in offline_cfgs):
         jobs = [TrainJob(per_seed[role][0].algo, datasets, per_seed[role][0], seeds, points(role, seeds), task)
                 for role in roles]
+        job_roles = list(roles)
     else:
         jobs = [TrainJob(f"{per_seed[role][m].algo} s{s}", [datasets[m]], per_seed[role][m], [s], points(role, [s]),
                          task)
                 for role in roles for m, s in enumerate(seeds)]
+        job_roles = [role for role in roles for _ in seeds]
+    role_of = {id(job): role for job, role in zip(jobs, job_roles)}
     workers = min(workers, len(jobs))
     where = "as Ray tasks" if on_ray else "together in this process" if workers == 1 else f"in {workers} worker processes"
     steps = sorted({c.steps for c in offline_cfgs})
     log(f"training {' / '.join(sorted({c.algo for c in offline_cfgs}))} ({' / '.join(map(str, steps))} steps) "
         f"and bc ({cfg.steps} steps), {len(seeds)} seed(s) {where}")
     t1 = time.perf_counter()
+
+    def reporter(job: TrainJob) -> Callable[[Progress], None]:
+        printer = _progress_printer(job.label, log)
+        if curve is None:
+            return printer
+
+        def report(p: Progress) -> None:
+            curve(role_of[id(job)], job.seeds, p)
+            printer(p)
+        return report
+
     if on_ray:
         from .ray_engine import run_train_jobs
 
         results = run_train_jobs(jobs, log)
+        if curve is not None:  # a Ray task reports no progress: its history, replayed
+            for job, job_results in zip(jobs, results):
+                for p in history_reports(job_results, job.cfg.steps):
+                    curve(role_of[id(job)], job.seeds, p)
     else:
-        results = run_jobs(jobs, workers, progress_for=lambda job: _progress_printer(job.label, log))
+        results = run_jobs(jobs, workers, progress_for=reporter)
     log(f"  training took {time.perf_counter() - t1:.1f}s")
     trained = {}
     per_role = len(jobs) // len(roles)

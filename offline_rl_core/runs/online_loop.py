@@ -31,6 +31,7 @@ from ..learners.online import OnlineLearner, OnlineSettings
 from ..serving.policy import LoadedPolicy
 from ..evaluation.stats import wilson_ci
 from ..data.transitions import SOURCE_HUMAN, SOURCE_POLICY, Transitions
+from .loggers import Logger, curve_scalars, online_scalars
 
 EVAL_SEED = seeds.HELD_OUT
 TRAIN_SEED_BASE = seeds.ONLINE
@@ -57,8 +58,11 @@ def transition_row(obs, action, reward, next_obs, info, episode: int, step: int,
 
 
 def run_online(offline: Transitions, prior: dict | None, cfg: OnlineRunConfig,
-               log: Callable[[str], None] = print) -> dict:
-    """Run the stage for ``cfg.env_steps`` environment steps; returns the summary with its curve."""
+               log: Callable[[str], None] = print, logger: Logger | None = None) -> dict:
+    """Run the stage for ``cfg.env_steps`` environment steps; returns the summary with its curve.
+    ``logger`` (``loggers``) gets, against environment steps, every weights version's
+    losses and rates (``online_scalars``) and every curve point (``curve_scalars``)."""
+    logger = logger or Logger()
     learner = OnlineLearner(offline, cfg.train, cfg.settings, cfg.seed, prior)
     actor = Actor(LoadedPolicy(learner.weights()), explore=cfg.explore, seed=cfg.seed,
                   paced_every=cfg.settings.publish_every)
@@ -78,6 +82,7 @@ def run_online(offline: Transitions, prior: dict | None, cfg: OnlineRunConfig,
                  "intervention_rate": round(window["human"] / max(window["steps"], 1), 4),
                  **{k: round(v, 5) for k, v in learner.losses.items()}}
         curve.append(point)
+        logger.scalars(n, curve_scalars(point))
         window.update(steps=0, human=0)
         log(f"  {n:>6} env steps  {point['wall_s']:>7.1f} s  success {ev['successes']}/{ev['episodes']} "
             f"[{lo:.2f}, {hi:.2f}]  final dist {ev['mean_final_dist']:.3f} m  "
@@ -107,7 +112,9 @@ def run_online(offline: Transitions, prior: dict | None, cfg: OnlineRunConfig,
             while learner.updates_owed > 0:
                 learner.train()
                 if learner.version_due():
-                    actor.offer(LoadedPolicy(learner.cut_version()))
+                    weights = learner.cut_version()
+                    actor.offer(LoadedPolicy(weights))
+                    logger.scalars(n, online_scalars(learner, weights, n / (time.perf_counter() - t0)))
             if n % cfg.eval_every == 0:
                 evaluate(n)
         counts["episodes"] += 1

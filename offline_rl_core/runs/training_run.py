@@ -33,6 +33,7 @@ from ..evaluation.rollouts import evaluate_policy
 from ..learners import ALGORITHMS, Progress, TrainConfig, train
 from ..learners.config import CHOICES
 from ..learners.resume import ResumePoints
+from .loggers import DEFAULT_LOGGER, LOGGER_HELP, LOGGERS, check_logger, eval_scalars, open_logger, progress_logger
 from .plots import plot_training_curve
 from .prior import plan_training
 from ..serving.checkpoint import load_checkpoint, save_checkpoint
@@ -78,6 +79,7 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
                         help="continue from DIR/resume.pt, the resume point a killed run left (same result, same bytes)")
     parser.add_argument("--resume-every", type=float, default=1.0, metavar="S",
                         help="seconds between resume points (default: %(default)s)")
+    parser.add_argument("--logger", choices=LOGGERS, default=DEFAULT_LOGGER, help=LOGGER_HELP)
     groups = {"run": parser, "hyper-parameters": parser.add_argument_group("hyper-parameters (defaults are the chapter's)")}
     for f in fields(TrainConfig):
         if f.name in ("algo", "steps"):
@@ -192,14 +194,18 @@ def run_training(
     task: str | os.PathLike | TaskSpec | None = None,
     dataset: tuple[Transitions, list[dict]] | None = None,
     decode_workers: int | None = None,
+    logger: str = DEFAULT_LOGGER,
 ) -> Path:
     """Train ``cfg`` on the bags and write the run's files to ``out_dir``. ``auto``: the
     learner is the one ``prior.plan_training`` picks for the bag; ``auto`` or ``budget_s``:
     as many steps as the budget allows, unless ``steps`` is given (then ``steps``).
     ``task``: the bags' task (default: the one they record, else pusher_reach).
     ``dataset``: the bags already read (``load_bags(bags)``'s result, e.g. handed to the run
-    by a sweep's engine); else they are read here, in ``decode_workers`` processes."""
+    by a sweep's engine); else they are read here, in ``decode_workers`` processes.
+    ``logger``: where the curves go besides metrics.json (``loggers``): the losses and
+    steps/s while training, the evaluation, the settings and results as hyper-parameters."""
     out = check_output_dir(out_dir, "--out")
+    check_logger(logger)
     if eval_episodes < 0:
         raise UserError(f"--eval-episodes must be >= 0, got {eval_episodes}")
     if isinstance(from_topics, (str, os.PathLike)):
@@ -226,10 +232,34 @@ def run_training(
     if estop_dropped is not None:
         log(f"left out {estop_dropped} transitions recorded while the e-stop was engaged")
     log(f"training {cfg.algo} on {len(data)} transitions from {len(bags)} bag(s), {cfg.steps} steps, seed {seed}")
-    # UserError: a bad resume point
-    result = train(data, cfg, seed, progress=progress, init=init_ckpt, resume=points, task=task)
-    _check_finite(result.checkpoint, cfg, points)
+    with open_logger(logger, out, name=out.name, resume=resume, config=cfg.to_dict()) as curves:
+        # UserError: a bad resume point
+        result = train(data, cfg, seed, progress=progress_logger(curves, then=progress), init=init_ckpt, resume=points,
+                       task=task)
+        _check_finite(result.checkpoint, cfg, points)
+        metrics = _metrics(cfg, seed, data, bags_read, result, init, plan, task)
+        if eval_episodes and not task.sim:
+            log(f"no held-out rollouts: no sim hosts task {task.name}")
+        elif eval_episodes:
+            log(f"evaluating on {eval_episodes} held-out rollouts "
+                f"(reset seeds {eval_seed}..{eval_seed + eval_episodes - 1})")
+            metrics["eval"] = evaluate_policy(result.policy, eval_episodes, eval_seed, task=task)
+            curves.scalars(cfg.steps, eval_scalars(metrics["eval"]))
+        curves.hparams({"algorithm": cfg.algo, "seed": seed, "task": task.name, "transitions": len(data),
+                        "init": metrics["init"], "config": cfg.to_dict()}, _hparam_metrics(metrics))
+    result.checkpoint["metrics"] = metrics
+    out.mkdir(parents=True, exist_ok=True)
+    save_checkpoint(out / "policy.pt", result.checkpoint)
+    write_json_atomic(out / "metrics.json", metrics)
+    plot_training_curve(result.history, out / "training_curve.png", title=f"{cfg.algo} seed {seed}")
+    points.done()  # the run is complete: its resume point is spent
+    curves.drop_previous()
+    return out
 
+
+def _metrics(cfg: TrainConfig, seed: int, data: Transitions, bags_read: list[dict], result, init: str | None,
+             plan: dict | None, task: TaskSpec) -> dict:
+    """metrics.json of a run, before its evaluation."""
     metrics: dict = {
         "algorithm": cfg.algo,
         "seed": seed,
@@ -242,23 +272,21 @@ def run_training(
         "final_losses": {k: round(float(v[-1]), 6) for k, v in result.history.items() if k != "step"},
         "mean_abs_q": None if result.mean_abs_q is None else round(result.mean_abs_q, 6),
     }
+    estop_dropped = estop_dropped_of(bags_read)
     if estop_dropped is not None:  # only bags that record the e-stop: the others' metrics keep their bytes
         metrics["estop_dropped"] = estop_dropped
     if plan is not None:
         metrics["plan"] = plan  # what --algo auto / --budget-s decided, and from what
     if task.digest != load_task(DEFAULT_TASK).digest:  # pusher_reach's metrics keep the chapter's bytes
         metrics["task"] = task.layout()
-    if eval_episodes and not task.sim:
-        log(f"no held-out rollouts: no sim hosts task {task.name}")
-    elif eval_episodes:
-        log(f"evaluating on {eval_episodes} held-out rollouts (reset seeds {eval_seed}..{eval_seed + eval_episodes - 1})")
-        metrics["eval"] = evaluate_policy(result.policy, eval_episodes, eval_seed, task=task)
-    result.checkpoint["metrics"] = metrics
-    out.mkdir(parents=True, exist_ok=True)
-    save_checkpoint(out / "policy.pt", result.checkpoint)
-    write_json_atomic(out / "metrics.json", metrics)
-    plot_training_curve(result.history, out / "training_curve.png", title=f"{cfg.algo} seed {seed}")
-    points.done()  # the run is complete: its resume point is spent
+    return metrics
+
+
+def _hparam_metrics(metrics: dict) -> dict[str, float]:
+    """The results a run is compared on in TensorBoard's HParams tab: its final losses and
+    its evaluation, under the tags they were logged as."""
+    out = {f"train/{k}": v for k, v in metrics["final_losses"].items()}
+    out.update(eval_scalars(metrics["eval"]) if "eval" in metrics else {})
     return out
 
 
@@ -269,7 +297,7 @@ def _check_finite(checkpoint: dict, cfg: TrainConfig, points: ResumePoints) -> N
     if bad:
         points.done()
         raise UserError(f"{cfg.algo} diverged: policy weight '{bad[0]}' is not finite after {cfg.steps} steps; "
-                        f"nothing written (try a smaller --lr or --beta)")
+                        f"nothing written but the event files of its curves (try a smaller --lr or --beta)")
 
 
 def default_out_dir(algo: str, seed: int) -> str:
@@ -282,7 +310,7 @@ def run_training_from_args(args: argparse.Namespace, progress: Callable[[Progres
     return run_training(args.bag, cfg, args.seed, out, args.eval_episodes, args.eval_seed, args.init,
                         progress=progress or console_progress(), resume=args.resume, resume_every=args.resume_every,
                         from_topics=args.from_topics, auto=args.algo == "auto", budget_s=args.budget_s,
-                        steps=args.steps, task=args.task)
+                        steps=args.steps, task=args.task, logger=getattr(args, "logger", DEFAULT_LOGGER))
 
 
 def summary_line(out: Path) -> str:

@@ -46,6 +46,7 @@ from offline_rl_core.data.raw_topics.live import LiveSettings
 from offline_rl_core.learners.config import TrainConfig
 from offline_rl_core.learners.online import OnlineSettings
 from offline_rl_core.nodes.learner_service import LearnerService, LearnerServiceConfig
+from offline_rl_core.runs.loggers import DEFAULT_LOGGER, LOGGERS
 from offline_rl_core.serving.signing import load_signer
 from offline_rl_core.serving.weights import WEIGHTS_LABEL, encode_weights
 from pusher_common.estop import EStopInput
@@ -109,6 +110,9 @@ PARAMS = [
     Param("quiet", _L.quiet, "raw topics: seconds with nothing new, while idle, after which everything published is "
           "taken to have arrived (a lockstep arm waiting for the learner)", low=0.001, high=10.0, read_only=True,
           flag="--quiet"),
+    Param("logger", DEFAULT_LOGGER, "where each weights version's losses and rates go besides progress.jsonl: "
+          "tensorboard (event files in OUT), wandb (OUT/wandb) or none", choices=LOGGERS, read_only=True,
+          flag="--logger"),
 ]
 
 
@@ -134,7 +138,8 @@ class Learner(Node):
             bags=list(s.bag), out=s.out, prior=s.prior or None, task=s.task or None, seed=s.seed,
             save_every=s.save_every, resume=s.resume, session_bag=s.session_bag or None,
             snapshot_every=s.snapshot_every, from_topics=s.from_topics,
-            live=LiveSettings(lateness=s.lateness, quiet=s.quiet), settings=settings, train=train),
+            live=LiveSettings(lateness=s.lateness, quiet=s.quiet), settings=settings, train=train,
+            logger=s.logger),
             log=self.get_logger().info)
         self.weights_pub = self.create_publisher(UInt8MultiArray, "~/weights", WEIGHTS_QOS)
         self.status = NodeStatus(self, fields=self.service.status, counter=self.service.rejected,

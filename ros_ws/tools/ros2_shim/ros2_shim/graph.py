@@ -25,42 +25,81 @@ def cli_node():
 
 
 def spin_for_discovery(node, spin_time: float, snapshot, complete=lambda current: True):
-    """Spin at least ``spin_time``, then until other nodes are known and ``snapshot()`` is quiet.
+    """Spin at least ``spin_time``, then until the graph is whole and quiet; returns the last ``snapshot()``.
 
-    Without a daemon every call starts discovery from scratch; on a busy machine the
-    first remote endpoints can take over a second to show, so a lone graph (only this
-    node) keeps waiting up to ``max(6 * spin_time, 3 s)``. Another node shows as a second
-    /rosout publisher (endpoint discovery; node names arrive later, so ``complete(snapshot)``
-    can ask to wait for them). The graph counts as settled when every node seen so far has
-    shown its /rosout publisher and nothing has changed for as long as it took to get there
-    (``quiet_enough``): a loaded machine that discovers slowly is waited for longer.
-    Returns the last snapshot.
+    Without a daemon every call starts discovery from scratch. What each participant has
+    is known from its announcements on ``ros_discovery_info`` (``discovery_info``): its
+    nodes and the gids of their readers and writers. The graph counts as settled when
+    - a node that is not hidden is there (another ``ros2`` call's node says nothing of the
+      user's), and every node with a /rosout publisher is known by name;
+    - every endpoint announced has been discovered: on a loaded machine a node's /rosout
+      can show a second before its /clock;
+    - no participant has announced a change for ``STABLE_S``, by its own clock: a node
+      that is still being built announces each endpoint it adds, with its slow set-up
+      between them, so a call made while it starts waits for the rest of it;
+    - ``snapshot()`` has not changed for ``QUIET_S``, and for as long as discovery took
+      until its last change (``quiet_enough``): a participant not discovered at all yet
+      cannot announce anything, and a loaded machine that discovers slowly is waited for;
+    - ``complete(snapshot)``, when the caller asks for more.
+    A lone graph (only this node) is waited on up to ``max(6 * spin_time, 3 s)``; while
+    announced endpoints are missing, up to ``max(20 * spin_time, 10 s)``. With another rmw,
+    where the announcements cannot be read, the quiet graph alone decides. A node whose
+    process has not reached ``rclpy.init`` yet is seen by no wait.
     """
     import rclpy
 
+    from .discovery_info import DiscoveryInfo, last_change_age_s, undiscovered_endpoints
+
     start = time.monotonic()
     limit = max(6 * spin_time, 3.0)
+    announced_limit = max(20 * spin_time, 10.0)
     last = None
     last_change = start
-    while True:
-        rclpy.spin_once(node, timeout_sec=0.05)
-        now = time.monotonic()
-        current = snapshot()
-        if current != last:
-            last, last_change = current, now
-        others = node.count_publishers("/rosout") > 1
-        settled = (others and quiet_enough(start, last_change, now) and complete(current)
-                   and endpoints_seen(node))
-        if now - start >= limit or (now - start >= spin_time and settled):
-            return current
+    announcements = DiscoveryInfo.open(node)  # None (another rmw): judged by the quiet graph alone
+    try:
+        while True:
+            rclpy.spin_once(node, timeout_sec=0.05)
+            now = time.monotonic()
+            current = snapshot()
+            if current != last:
+                last, last_change = current, now
+            if announcements is not None:
+                announcements.poll()
+            elapsed = now - start
+            if elapsed < spin_time:
+                continue
+            others = other_nodes_there(node)
+            settled = (others and quiet_enough(start, last_change, now) and complete(current)
+                       and all_node_names_known(node, node_names(node)) and endpoints_seen(node))
+            if not settled and elapsed < limit:
+                continue
+            missing = 0
+            if announcements is not None:
+                missing = undiscovered_endpoints(node, announcements, node.get_name())
+                settled = settled and last_change_age_s(node, announcements, node.get_name()) >= STABLE_S
+            if (settled and missing == 0) or elapsed >= (announced_limit if missing else limit):
+                return current
+    finally:
+        if announcements is not None:
+            announcements.close()
 
 
 QUIET_S = 0.5  # the least time without a change before a graph counts as settled
+# the least time since a participant last announced a change (by its own clock): a node
+# being built adds endpoints in bursts, with its slow set-up (loading a model, a checkpoint)
+# between them
+STABLE_S = 1.0
 
 
 def quiet_enough(start: float, last_change: float, now: float) -> bool:
     """No change for ``QUIET_S``, and for as long as discovery took until its last change."""
     return now - last_change >= max(QUIET_S, last_change - start)
+
+
+def other_nodes_there(node) -> bool:
+    """A /rosout publisher of a node that is not hidden: another shim's call (``_ros2cli_shim_*``)
+    says nothing about whether the user's nodes have been discovered."""
+    return any(not hidden(info.node_name) for info in node.get_publishers_info_by_topic("/rosout"))
 
 
 def endpoints_seen(node) -> bool:
