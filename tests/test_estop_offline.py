@@ -143,13 +143,11 @@ def test_the_learners_offline_half_leaves_out_the_engaged_rows(tmp_path):
 
 
 def test_transitions_joined_from_raw_topics_leave_out_the_engaged_states(tmp_path):
-    from pathlib import Path
-
     from raw_topic_bags import START_NS, TICK_NS, record_raw_bag
 
     from offline_rl_core.runs.training_run import load_bags
 
-    spec = str(Path(__file__).resolve().parents[1] / "bags" / "pusher_topics.yaml")
+    spec = "pusher_reach"  # the task file says how its raw topics join
     plain, stopped = tmp_path / "plain.db3", tmp_path / "stopped.db3"
     record_raw_bag(plain, episodes=1, expert_frac=1.0, seed=3, sim_like=False)
     # pressed just before the state of step 10, released just before step 30's
