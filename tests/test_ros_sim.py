@@ -72,7 +72,10 @@ def test_lockstep_validates_commands_tags_sources_and_resets(spawn, tmp_path):
         assert not transitions  # rejected: nothing stepped
         assert "effort is not finite" in sim.output() or "effort has 1 values" in sim.output()
 
-        command([3.0, -0.25], publisher=human_pub)  # clipped to [-1, 1]; who acted: the topic
+        command([3.0, -0.25], publisher=human_pub)  # beyond [-1, 1]: refused and counted, never clipped
+        assert node.spin_until(lambda: "beyond limits" in sim.output(), 10), sim.output()
+        assert not transitions
+        command([1.0, -0.25], publisher=human_pub)  # who acted: the topic
         assert node.spin_until(lambda: len(transitions) == 1 and any(stamp_ns(s) == t0 + TICK for s in states), 10)
         row = np.array(transitions[0].data, np.float32)
         assert [d.label for d in transitions[0].layout.dim][:3] == ["obs", "action", "reward"]
