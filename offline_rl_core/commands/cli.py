@@ -24,6 +24,7 @@ COMMAND_MODULES = (
     "export_onnx",
     "bench",
     "hil",
+    "classifier",
 )
 
 

@@ -16,7 +16,7 @@ from ..common.seeds import seed_arg
 OFFLINE_ONLY = ("rounds", "episodes", "steps", "correction_ratio", "beta", "patience", "hold_steps", "grace_steps",
                 "noise", "reaction_delay")
 ONLINE_ONLY = ("env_steps", "corrector", "mode", "prior_algo", "no_prior", "utd", "publish_every", "eval_every",
-               "in_process")
+               "in_process", "task", "success", "end_on_success")
 
 
 def _resolve_mode_flags(args) -> None:
@@ -59,7 +59,8 @@ def _run_online(args) -> int:
         prior_algo=args.prior_algo,
         bags=args.bag, corrector=args.corrector, mode=args.mode, utd=args.utd,
         publish_every=args.publish_every, eval_every=args.eval_every, eval_episodes=args.eval_episodes,
-        eval_seed=args.eval_seed, in_process=args.in_process)
+        eval_seed=args.eval_seed, in_process=args.in_process, task=args.task, success=args.success,
+        end_on_success=args.end_on_success)
     summary = run_hil_online(cfg)
     print(json.dumps({k: summary[k] for k in ("prior_success", "final_success", "final_ci", "to", "intervention_rate",
                                               "wall_seconds")}))
@@ -123,4 +124,11 @@ def register(subparsers) -> None:
                    help=f"environment steps between points of the learning curve (default: {od.eval_every})")
     o.add_argument("--in-process", action="store_true", default=None, help="the same stage in one process, without ROS "
                    "(the reference; ablations)")
+    o.add_argument("--task", metavar="NAME_OR_FILE", help="with --in-process: the task (a built-in such as pusher_push, "
+                   "or a task file; default: pusher_reach); --bag then holds that task's data")
+    o.add_argument("--success", metavar="CLASSIFIER", help="with --in-process: a success classifier (`offline-rl "
+                   "classifier train`) judges each state's success for the learner's reward and the episode's end, "
+                   "instead of the simulator (which is still counted beside it, never trained on)")
+    o.add_argument("--end-on-success", action="store_true", default=None,
+                   help="with --in-process: an episode ends where success is judged (the classifier's or the simulator's)")
     p.set_defaults(func=_run)

@@ -76,9 +76,9 @@ def seed_generators(seed: int) -> tuple[torch.Generator, torch.Generator]:
     return (torch.Generator().manual_seed(int(init_seed)), torch.Generator().manual_seed(int(sample_seed)))
 
 
-def _member_pools(data: Transitions, cfg: TrainConfig):
+def _member_pools(data: Transitions, cfg: TrainConfig, task=None):
     if cfg.algo == "filtered_bc":
-        rows = goal_episode_rows(data) if cfg.filter_by == "goal" else top_episode_rows(data, cfg.filter_top_frac)
+        rows = goal_episode_rows(data, task) if cfg.filter_by == "goal" else top_episode_rows(data, cfg.filter_top_frac)
         return (torch.from_numpy(rows), None)
     if cfg.correction_ratio is not None:
         prior, corrections = correction_pools(data)
@@ -99,6 +99,7 @@ def train_seeds(
     resume: ResumePoints | None = None,
     snapshot: Callable[[int, float, Callable[[int], dict]], None] | None = None,
     threads_now: Callable[[], int] | None = None,
+    task=None,
 ) -> list[TrainResult]:
     """Train ``cfg.algo`` once per seed; ``datasets`` is one Transitions for all seeds
     or one per seed. ``init`` (a checkpoint dict) warm-starts every run from it.
@@ -109,7 +110,9 @@ def train_seeds(
     a learning curve: ``policy_state(m)`` is member m's policy as a checkpoint holds it.
     ``threads_now()``: the threads the steps may use from now on (asked every
     ``THREADS_CHECK_EVERY`` steps unless ``cfg.threads`` fixes them), e.g. more once the
-    runs beside this one have finished; the result is the same bytes either way."""
+    runs beside this one have finished; the result is the same bytes either way.
+    ``task`` (a ``TaskSpec``; default pusher_reach): the task the data is of, which says where
+    an episode ends at the goal (filtered BC by goal)."""
     seeds = [int(s) for s in seeds]
     if not seeds:
         raise ValueError("no seeds to train")
@@ -124,7 +127,7 @@ def train_seeds(
 
     gens = [seed_generators(s) for s in seeds]
     learner = LEARNERS[cfg.algo](cfg, len(seeds), [g[0] for g in gens], obs_dim, act_dim)
-    pools = [_member_pools(d, cfg) for d in datasets]
+    pools = [_member_pools(d, cfg, task) for d in datasets]
     # --normalize-obs: train on z-scored observations (stats of the rows each member samples),
     # save networks with the stats folded in; identity otherwise
     norms = [obs_stats(d, None if p is None else p[0].numpy()) for d, p in zip(datasets, pools)] \
@@ -222,6 +225,6 @@ def train_seeds(
 
 
 def train(dataset: Transitions, cfg: TrainConfig, seed: int, progress=None, init=None,
-          resume: ResumePoints | None = None, snapshot=None) -> TrainResult:
+          resume: ResumePoints | None = None, snapshot=None, task=None) -> TrainResult:
     """One run: ``train_seeds`` with a single seed."""
-    return train_seeds(dataset, cfg, [seed], progress, init, resume, snapshot)[0]
+    return train_seeds(dataset, cfg, [seed], progress, init, resume, snapshot, task=task)[0]

@@ -64,9 +64,25 @@ class OnlineHilConfig:
     eval_seed: int = EVAL_SEED
     in_process: bool = False
     timeout: float = 4 * 3600.0
+    task: str | None = None  # in process: a built-in task or task file (None: pusher_reach)
+    success: str | None = None  # in process: a success classifier judges success, not the simulator
+    end_on_success: bool = False  # in process: an episode ends where success is judged
 
     def validate(self) -> None:
-        if self.env_steps < EPISODE_STEPS or self.env_steps % EPISODE_STEPS:
+        if not self.in_process:
+            given = [flag for flag, value in (("--task", self.task), ("--success", self.success),
+                                              ("--end-on-success", self.end_on_success)) if value]
+            if given:
+                raise UserError(f"{', '.join(given)}: only with --in-process (the ROS stage runs pusher_reach "
+                                "and the simulator's success)")
+        if self.success is not None and not Path(self.success).is_file():
+            raise UserError(f"--success {self.success}: no such classifier file (train one with "
+                            "`offline-rl classifier train`)")
+        if self.task or self.success or self.end_on_success:
+            # episodes may end early (--end-on-success) or be of another task's length
+            if self.env_steps < 1:
+                raise UserError(f"--env-steps must be >= 1, got {self.env_steps}")
+        elif self.env_steps < EPISODE_STEPS or self.env_steps % EPISODE_STEPS:
             raise UserError(f"--env-steps must be a positive multiple of {EPISODE_STEPS} (whole episodes), "
                             f"got {self.env_steps}")
         for name in ("utd", "publish_every", "eval_every", "eval_episodes"):
@@ -135,7 +151,8 @@ def _in_process(cfg: OnlineHilConfig, prior_path: Path | None, log) -> dict:
     run = run_online(offline, prior, OnlineRunConfig(
         env_steps=cfg.env_steps, seed=cfg.seed, corrections=cfg.corrector != "none", eval_every=cfg.eval_every,
         eval_episodes=cfg.eval_episodes, eval_seed=cfg.eval_seed,
-        settings=OnlineSettings(utd=cfg.utd, publish_every=cfg.publish_every), train=TrainConfig(algo="sac")),
+        settings=OnlineSettings(utd=cfg.utd, publish_every=cfg.publish_every), train=TrainConfig(algo="sac"),
+        **({} if cfg.task is None else {"task": cfg.task}), success=cfg.success, end_on_success=cfg.end_on_success),
         log=log)
     return {"curve": run["curve"], "counts": run["counts"], "learner_seconds": run["wall_s"], "where": "in process"}
 

@@ -103,7 +103,7 @@ class ExperimentConfig:
         # a budget sets the steps; without one, 'auto' takes the chapter's AWAC time, except in
         # the smoke run, which keeps its fixed small steps
         fixed = self.steps if self.budget_s is None and (not auto or self.smoke) else None
-        return plan_training(data, self.train_config(self.algo), auto, self.budget_s, fixed, log)
+        return plan_training(data, self.train_config(self.algo), auto, self.budget_s, fixed, log, load_task(self.task))
 
 
 def seed_metrics(cfg: ExperimentConfig, seed: int, bc: RolloutResult, offline: RolloutResult, mean_abs_q,
@@ -194,7 +194,7 @@ def run_experiment(cfg: ExperimentConfig, out_dir: str | Path, log: Callable[[st
         return points[-1]
 
     plans = [cfg.offline_config(data, log) for data in datasets]
-    trained = train_all(cfg, seeds, datasets, log, [p[0] for p in plans], resume_points)
+    trained = train_all(cfg, seeds, datasets, log, [p[0] for p in plans], resume_points, task)
     outcomes = []
     for m, s in enumerate(seeds):
         reset_seeds = eval_reset_seeds(s, cfg.n_seeds, cfg.eval_episodes)
@@ -224,22 +224,23 @@ def run_experiment(cfg: ExperimentConfig, out_dir: str | Path, log: Callable[[st
 
 def train_all(cfg: ExperimentConfig, seeds: list[int], datasets: list, log: Callable[[str], None],
               offline_cfgs: list[TrainConfig] | None = None,
-              resume_points: Callable[[str, list[int]], ResumePoints] | None = None) -> dict:
+              resume_points: Callable[[str, list[int]], ResumePoints] | None = None, task=None) -> dict:
     """{"bc": [TrainResult per seed], "offline": [...]}: BC and the offline learner for
     every seed, one process per core. ``offline_cfgs``: the offline learner's config per
     seed (default: ``cfg.train_config(cfg.algo)``). ``resume_points(role, seeds)``: the
-    resume points of the job training ``role`` ("bc" or "offline") for those seeds."""
+    resume points of the job training ``role`` ("bc" or "offline") for those seeds.
+    ``task``: the data's (default pusher_reach)."""
     points = resume_points or (lambda role, job_seeds: None)
     offline_cfgs = offline_cfgs or [cfg.train_config(cfg.algo)] * len(seeds)
     per_seed = {"offline": offline_cfgs, "bc": [cfg.train_config("bc")] * len(seeds)}
     roles = ("offline", "bc")  # the heavier learner first: it starts first
     workers = cfg.worker_count()
     if workers == 1 and all(c == offline_cfgs[0] for c in offline_cfgs):
-        jobs = [TrainJob(per_seed[role][0].algo, datasets, per_seed[role][0], seeds, points(role, seeds))
+        jobs = [TrainJob(per_seed[role][0].algo, datasets, per_seed[role][0], seeds, points(role, seeds), task)
                 for role in roles]
     else:
-        jobs = [TrainJob(f"{per_seed[role][m].algo} s{s}", [datasets[m]], per_seed[role][m], [s], points(role, [s]))
-                for role in roles for m, s in enumerate(seeds)]
+        jobs = [TrainJob(f"{per_seed[role][m].algo} s{s}", [datasets[m]], per_seed[role][m], [s], points(role, [s]),
+                         task) for role in roles for m, s in enumerate(seeds)]
     workers = min(workers, len(jobs))
     where = "together in this process" if workers == 1 else f"in {workers} worker processes"
     steps = sorted({c.steps for c in offline_cfgs})

@@ -29,6 +29,7 @@ from ..common.errors import RunFailed
 from ..data.transitions import Transitions
 from ..learners.config import TrainConfig
 from ..learners.loop import Progress, TrainResult, train_seeds
+from ..task.spec import TaskSpec
 from ..learners.resume import ResumePoints
 from ..common.interrupts import sigterm_as_interrupt
 from ..common.machine import available_cores
@@ -42,10 +43,11 @@ class TrainJob:
     cfg: TrainConfig
     seeds: list[int]
     resume: ResumePoints | None = None  # the job's resume points (None: it writes none)
+    task: TaskSpec | None = None  # the task of the data (None: pusher_reach)
 
     def train(self, progress: Callable[[Progress], None] | None = None, threads_now=None) -> list[TrainResult]:
         return train_seeds(self.datasets, self.cfg, self.seeds, progress=progress, resume=self.resume,
-                           threads_now=threads_now)
+                           threads_now=threads_now, task=self.task)
 
 
 class _Worker(NamedTuple):

@@ -152,7 +152,8 @@ def run_training(
     if eval_episodes < 0:
         raise UserError(f"--eval-episodes must be >= 0, got {eval_episodes}")
     data, bag_summary = load_bags(bags, from_topics)
-    cfg, plan = plan_training(data, cfg, auto, budget_s, steps, log)
+    data_task = task_of_bag(bags[0])  # where its episodes end at the goal (--algo auto, filtered BC by goal)
+    cfg, plan = plan_training(data, cfg, auto, budget_s, steps, log, data_task)
     init_ckpt = None
     if init:
         init_ckpt = load_checkpoint(init)
@@ -167,7 +168,8 @@ def run_training(
     if resume:
         log(f"resuming from {points.path}" if points.path.exists() else f"no resume point at {points.path}; starting")
     log(f"training {cfg.algo} on {len(data)} transitions from {len(bags)} bag(s), {cfg.steps} steps, seed {seed}")
-    result = train(data, cfg, seed, progress=progress, init=init_ckpt, resume=points)  # UserError: a bad resume point
+    result = train(data, cfg, seed, progress=progress, init=init_ckpt, resume=points,  # UserError: a bad resume point
+                   task=data_task)
     _check_finite(result.checkpoint, cfg, points)
 
     metrics: dict = {
@@ -184,7 +186,7 @@ def run_training(
     }
     if plan is not None:
         metrics["plan"] = plan  # what --algo auto / --budget-s decided, and from what
-    task = load_task(eval_task) if eval_task is not None else task_of_bag(bags[0]) if eval_episodes else None
+    task = load_task(eval_task) if eval_task is not None else data_task if eval_episodes else None
     if eval_episodes and not task.sim:
         log(f"no held-out rollouts: no sim hosts task {task.name}")
     elif eval_episodes:

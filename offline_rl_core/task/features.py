@@ -78,6 +78,32 @@ def observe(spec: TaskSpec, positions, velocities, vectors: dict[str, np.ndarray
     return np.concatenate(parts, axis=1).astype(np.float32)
 
 
+def feature_widths(spec: TaskSpec) -> list[int]:
+    """How many observation values each feature of ``spec.observation`` gives, in order."""
+    widths = []
+    for f in spec.observation:
+        if f.kind == "cos_sin":
+            widths.append(2 * len(f.args))
+        elif f.kind in ("positions", "velocities"):
+            widths.append(len(f.args))
+        elif f.kind == "vector":
+            widths.append(spec.vector_size(f.args[0]))
+        else:
+            widths.append(spec.vector_size(f.args[0], f.args[1]))
+    return widths
+
+
+def success_columns(spec: TaskSpec) -> slice | None:
+    """The observation's columns that hold the success distance's difference (``reward.distance``,
+    either way round), or None where the observation has no such feature."""
+    start = 0
+    for f, width in zip(spec.observation, feature_widths(spec)):
+        if f.kind == "difference" and set(f.args) == set(spec.reward.distance):
+            return slice(start, start + width)
+        start += width
+    return None
+
+
 def distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """|a - b| for N rows, float64 (N,). Elementwise rather than ``np.linalg.norm``: a norm
     goes through BLAS, whose kernel (fused multiply-add or not) depends on the machine."""
