@@ -14,7 +14,7 @@ help:
 	@echo "make test      set up .venv, then run the whole test suite (slow end-to-end cases included)"
 	@echo "make test-fast the suite without the slow end-to-end cases"
 	@echo "make bag       regenerate bags/mix.db3 (bit-reproducible)"
-	@echo "make bench     full benchmark against the reference implementations -> bench/results.json"
+	@echo "make bench     full benchmark against the reference implementations -> bench/results.json, then bench/RESULTS.md"
 	@echo "make hil-demo  the corrections loop: serve, correct, record, retrain, reload"
 	@echo "make hil-online the HIL-SERL stage: the online learner fine-tunes the prior while the policy node acts"
 
@@ -29,6 +29,12 @@ $(STAMP): pyproject.toml $(ROS_FILES) ros_ws/tools/ros_install.py
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PIP) install torch==2.13.0
 	$(PIP) install -e '.[ros,dev,onnx]'
+	@# Ray (the sweep's cluster engine) only where pip resolves it beside this torch; without it the
+	@# sweep runs on local worker processes and the Ray tests skip
+	@dry=$$($(PY) -m pip --disable-pip-version-check install --dry-run 'torch==2.13.0' -e '.[ray]' 2>&1) \
+	  && ! printf '%s\n' "$$dry" | grep -q '^Would install.* torch-[0-9]' \
+	  && $(PIP) install 'torch==2.13.0' -e '.[ray]' \
+	  || echo "setup: Ray not installed (pip could not install it beside torch 2.13.0); offline-rl sweep --engine ray is unavailable"
 	$(PY) ros_ws/tools/ros_install.py --venv $(VENV) $(ROS_PACKAGES)
 	@touch $(STAMP)
 
@@ -47,6 +53,7 @@ bag: setup
 bench: setup
 	$(PIP) install -e '.[bench]'
 	$(VENV)/bin/offline-rl bench --json bench/results.json
+	$(PY) bench/results_page.py
 
 hil-demo: setup
 	$(VENV)/bin/offline-rl hil --out runs/hil

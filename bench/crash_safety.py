@@ -14,14 +14,14 @@ The recorded rows are checked against the probe's (same transitions, in order).
 
   flock /tmp/pusher-cpu.lock .venv/bin/python bench/crash_safety.py --json bench/crash_safety.json
 
-Modes: `active` (lockstep sim driven by the recorder: ~400 transitions/s) and `passive`
-(realtime sim at 50 Hz, recorder --passive). About 6 s per trial.
+Modes: `active` (lockstep sim driven by the recorder) and `passive` (realtime sim at 50 Hz,
+recorder --passive). The JSON holds every trial with the command and the machine; the table
+it prints is bench/RESULTS.md's "Crash safety of recording" (`results_page.crash_table`).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shutil
 import signal
@@ -31,13 +31,14 @@ import threading
 import time
 from pathlib import Path
 
-import numpy as np
-
-from offline_rl_core.data.bag import read_transitions, repair_bag
+from offline_rl_core.benchmarks.harness import run_facts
+from offline_rl_core.common.atomic import write_json_atomic
 from offline_rl_core.common.errors import UserError
-from offline_rl_core.pipelines.processes import RosProcess, isolated_ros_env
-from ros2_shim.ament_index import ros2_run
+from offline_rl_core.data.bag import read_transitions, repair_bag
 from offline_rl_core.data.transitions import LAYOUT_SLICES
+from offline_rl_core.pipelines.processes import RosProcess, isolated_ros_env
+from results_page import crash_table
+from ros2_shim.ament_index import ros2_run
 
 FAULTS = {"SIGKILL": signal.SIGKILL, "SIGTERM": signal.SIGTERM, "SIGINT": signal.SIGINT}
 STORAGES = {"sqlite3": ".db3", "mcap": ".mcap"}
@@ -169,30 +170,6 @@ def trial(mode: str, fault: str, storage: str, delay: float, probe: Probe, env: 
     return result
 
 
-def summarize(results: list[dict]) -> str:
-    lines = [
-        "| mode | fault | storage | kills | received (mean) | opens as left, no repair | rosbags opens as left "
-        "| needed `bag repair` | recovered (mean) | lost: max (as time at the rate received) |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
-    ]
-    groups: dict[tuple, list[dict]] = {}
-    for r in results:
-        groups.setdefault((r["mode"], r["fault"], r["storage"]), []).append(r)
-    for (mode, fault, storage), rs in groups.items():
-        received = np.mean([r["received"] for r in rs])
-        recovered = np.mean([r["repaired"] or 0 for r in rs])
-        opened = sum(r["read"] is not None for r in rs)
-        opens = sum(r["rosbags_opens"] for r in rs)
-        repaired = sum(bool(r["repair_steps"]) for r in rs)
-        lost = max(r["lost"] for r in rs)
-        lost_s = max(r["lost"] / r["rate_per_s"] if r["rate_per_s"] else 0 for r in rs)
-        lines.append(
-            f"| {mode} | {fault} | {storage} | {len(rs)} | {received:.0f} | {opened}/{len(rs)} | {opens}/{len(rs)} "
-            f"| {repaired}/{len(rs)} | {recovered:.0f} | {lost} ({lost_s:.2f} s) |"
-        )
-    return "\n".join(lines)
-
-
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--modes", nargs="+", default=["active", "passive"], choices=["active", "passive"])
@@ -203,6 +180,7 @@ def main() -> int:
     parser.add_argument("--step", type=float, default=0.37, help="between kill moments, s (not a multiple of the flush interval)")
     parser.add_argument("--json", type=Path, help="write every trial here")
     args = parser.parse_args()
+    facts = run_facts()
     env = isolated_ros_env()
     os.environ.update({k: env[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")})
     probe = Probe()
@@ -222,10 +200,9 @@ def main() -> int:
                               + (f" [{r['problem']}]" if r["problem"] else ""), flush=True)
     finally:
         probe.close()
-    print(summarize(results))
+    print(crash_table(results))
     if args.json:
-        machine = {"cpu_flags": [f for f in ("avx2", "avx512_bf16", "amx_tile") if f in Path("/proc/cpuinfo").read_text()]}
-        args.json.write_text(json.dumps({"trials": results, "machine": machine}, indent=1) + "\n")
+        write_json_atomic(args.json, {"trials": results, **facts})
     return 0
 
 

@@ -11,8 +11,9 @@ For each seed, with the same environment-step budget:
   of corrected episodes), with rounds x episodes x 100 steps = the same budget.
 The ablations run in one process (``--in-process``), which gives the same bytes as the ROS
 stage (tests/test_ros_online.py); the offline rounds run over ROS. A run whose
-``summary.json`` exists is not run again, so the script can be resumed. Writes the JSON and
-prints the markdown table of bench/RESULTS.md.
+``summary.json`` exists is not run again, so the script can be resumed. Writes the JSON (the
+arms' summaries, the command and the machine) and prints the table of bench/RESULTS.md's
+"The HIL-SERL stage" (``results_page.hil_table``).
 """
 
 from __future__ import annotations
@@ -24,7 +25,9 @@ import sys
 import time
 from pathlib import Path
 
-THRESHOLDS = ("0.5", "0.8", "0.9", "0.95")
+from offline_rl_core.benchmarks.harness import run_facts
+from offline_rl_core.common.atomic import write_json_atomic
+from results_page import hil_table
 
 
 def run(cmd: list[str], summary: Path) -> dict:
@@ -44,6 +47,7 @@ def main() -> int:
     p.add_argument("--json", default="bench/hil_online.json")
     p.add_argument("--only", nargs="+", choices=("online", "no_prior", "no_corrections", "offline_rounds"))
     args = p.parse_args()
+    facts = run_facts()
     offline_rl = [sys.executable, "-m", "offline_rl_core"]
     results: dict = {}
     for seed in args.seeds:
@@ -68,8 +72,8 @@ def main() -> int:
                 continue
             summary = run(cmd, Path(cmd[cmd.index("--out") + 1]) / "summary.json")
             results.setdefault(arm, {})[str(seed)] = summary
-            Path(args.json).write_text(json.dumps(results, indent=1, sort_keys=True) + "\n")
-    print(table(results))
+            write_json_atomic(args.json, {"arms": results, **facts})
+    print(hil_table(results))
     plot(results, Path(args.json).with_suffix(".png"))
     return 0
 
@@ -110,24 +114,6 @@ def plot(results: dict, path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     print(f"wrote {path}", file=sys.stderr)
-
-
-def table(results: dict) -> str:
-    rows = ["| arm | seed | success at the end [95 % Wilson] | env steps to 0.5 / 0.8 / 0.9 / 0.95 | wall s to 0.95 "
-            "| intervention rate | where |", "| --- | --- | --- | --- | --- | --- | --- |"]
-    for arm, by_seed in results.items():
-        for seed, s in sorted(by_seed.items()):
-            if arm == "offline_rounds":
-                lo, hi = s["final_ci"]
-                rows.append(f"| {arm} | {seed} | {s['final_success']:.2f} [{lo:.2f}, {hi:.2f}] | (end only) | - | "
-                            f"{s['intervention_rate_last']:.3f} (last round) | ROS, {len(s['rounds'])} rounds |")
-                continue
-            lo, hi = s["final_ci"]
-            to = " / ".join(str(s["to"][t]["env_steps"]) if s["to"][t] else "-" for t in THRESHOLDS)
-            wall = s["to"]["0.95"]["wall_s"] if s["to"]["0.95"] else "-"
-            rows.append(f"| {arm} | {seed} | {s['final_success']:.2f} [{lo:.2f}, {hi:.2f}] | {to} | {wall} | "
-                        f"{s['intervention_rate']:.3f} | {s['where']} |")
-    return "\n".join(rows)
 
 
 if __name__ == "__main__":

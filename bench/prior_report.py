@@ -16,7 +16,9 @@ own measured step rate (``prior.step_rate``); each learner's policy is kept at 1
 1/8, 1/4, 1/2 and all of the budget (the learners' rates are constant, so the policy at a
 fraction of the run is the policy of a run given that fraction of the budget).
 
-``render``: bench/prior_curves.png and the markdown tables, from the JSON.
+``render``: bench/prior_curves.png and the markdown tables (bench/RESULTS.md's "The best
+prior", ``results_page``), from the JSON. The JSON also says the commands that filled it and
+the machine (one per file).
 
     flock /tmp/pusher-cpu.lock .venv/bin/python bench/prior_report.py musthold
     flock /tmp/pusher-cpu.lock .venv/bin/python bench/prior_report.py curves
@@ -46,15 +48,16 @@ from pathlib import Path
 
 import torch
 
+from offline_rl_core.benchmarks.harness import add_run_facts
 from offline_rl_core.common.atomic import write_json_atomic
 from offline_rl_core.data.bag import read_transitions
-from offline_rl_core.runs import chapter_loop as chapter
 from offline_rl_core.evaluation.rollouts import rollout_task
-from offline_rl_core.common.machine import cpu_model_and_flags, isa_flags
-from offline_rl_core.learners import TrainConfig, train
-from offline_rl_core.runs.prior import chapter_awac_seconds, plan_training, step_rate, steps_for_budget
 from offline_rl_core.evaluation.stats import newcombe_diff_ci, wilson_ci
+from offline_rl_core.learners import TrainConfig, train
+from offline_rl_core.runs import chapter_loop as chapter
+from offline_rl_core.runs.prior import chapter_awac_seconds, plan_training, step_rate, steps_for_budget
 from offline_rl_core.task.spec import DEFAULT_TASK, load_task
+from results_page import curves_table, musthold_table
 
 ROOT = Path(__file__).resolve().parents[1]
 SEEDS = (0, 1, 2)
@@ -102,8 +105,10 @@ class Store:
     def __init__(self, path: Path):
         self.path = path
         self.data = json.loads(path.read_text()) if path.exists() else {}
-        self.data.setdefault("machine", {"cpu": cpu_model_and_flags()[0], "isa": isa_flags(),
-                                         "torch": torch.__version__})
+
+    def measuring(self) -> None:
+        """Before this command adds figures: it joins the file's commands (same machine only)."""
+        add_run_facts(self.data)
 
     def has(self, group: str, key: str) -> bool:
         return key in self.data.get(group, {})
@@ -191,9 +196,6 @@ def curves(store: Store, expert_frac: float, learners: list[str], fractions=FRAC
                   flush=True)
 
 
-CHAPTER = {"BC": "0.03 / 0.07 / 0.05", "AWAC": "0.27 / 0.20 / 0.21"}  # its 8000 steps, pusher_reach.md
-
-
 def render(store: Store, out_png: Path, expert_frac: float) -> None:
     import matplotlib
 
@@ -205,7 +207,6 @@ def render(store: Store, out_png: Path, expert_frac: float) -> None:
         if rec["points"] and rec["expert_frac"] == expert_frac:
             by_label.setdefault(rec["label"], []).append(rec)
     fig, ax = plt.subplots(figsize=(7, 4.5))
-    rows = []
     for label, recs in by_label.items():
         fr = sorted({p["fraction"] for r in recs for p in r["points"]})
         xs, ys, lo, hi = [], [], [], []
@@ -218,8 +219,6 @@ def render(store: Store, out_png: Path, expert_frac: float) -> None:
             lo.append(s / n - a)
             hi.append(b - s / n)
         ax.errorbar(xs, ys, yerr=[lo, hi], marker="o", capsize=3, label=label)
-        last = [p for r in sorted(recs, key=lambda r: r["seed"]) for p in r["points"] if p["fraction"] == 1.0]
-        rows.append((label, last))
     budget = next(iter(by_label.values()))[0]["budget_s"]
     ax.axvline(budget, color="grey", ls=":", lw=1)
     ax.text(budget, 0.02, " chapter's AWAC loop", color="grey", fontsize=8)
@@ -234,6 +233,11 @@ def render(store: Store, out_png: Path, expert_frac: float) -> None:
     fig.tight_layout()
     fig.savefig(out_png, dpi=120)
     print(f"wrote {out_png}")
+    if TASK == DEFAULT_TASK:
+        print(curves_table(store.data.get("curves", {}), expert_frac))
+        print()
+        print(musthold_table(store.data.get("musthold", {})))
+        return
     pooled = {label: (sum(p["successes"] for p in pts), sum(p["episodes"] for p in pts)) for label, pts in rows}
     print("| learner | steps in the budget, seeds | success | pooled [95 % CI] | minus BC [95 % CI, Newcombe] "
           "| final distance m | chapter, 8000 steps |")
@@ -275,8 +279,10 @@ def main() -> int:
     if args.what == "musthold":
         if TASK != DEFAULT_TASK or VALIDATION:
             ap.error("musthold is the chapter's task's, on its report data")
+        store.measuring()
         musthold(store, args.expert_frac)
     elif args.what == "curves":
+        store.measuring()
         store.data.setdefault("command", "python bench/prior_report.py " + " ".join(sys.argv[1:]))
         curves(store, args.expert_frac, args.learners, tuple(args.fractions))
     else:

@@ -9,7 +9,8 @@ A constant-rate candidate is trained once and its policy kept at every checkpoin
 a candidate with a schedule depending on its length (cosine) is trained once per length.
 Every record is appended to the JSON file at once, so an interrupted run resumes where it
 stopped: ``flock /tmp/pusher-cpu.lock .venv/bin/python bench/prior_selection.py --json
-bench/prior_selection.json [--only NAME ...]``.
+bench/prior_selection.json [--only NAME ...]``. The file also says the commands that filled it
+and the machine (one per file); ``--table`` prints bench/RESULTS.md's table of it.
 """
 
 from __future__ import annotations
@@ -19,11 +20,13 @@ import json
 import time
 from pathlib import Path
 
+from offline_rl_core.benchmarks.harness import add_run_facts
 from offline_rl_core.common.atomic import write_json_atomic
 from offline_rl_core.data.collect import collect_transitions
 from offline_rl_core.evaluation.rollouts import rollout
 from offline_rl_core.learners import TrainConfig, train
 from offline_rl_core.serving.policy import LoadedPolicy
+from results_page import selection_table
 
 VALIDATION_RESETS = range(600000, 600200)
 DATA_SEEDS = (10, 11)
@@ -106,25 +109,6 @@ def run_candidate(name: str, overrides: dict, steps: int, checkpoints: list[int]
     return records
 
 
-def table(records: list[dict]) -> str:
-    """Markdown: one row per (candidate, expert share), success on the validation resets
-    (data seed 10 / 11) at each step count."""
-    rows: dict[tuple, dict[int, dict[int, float]]] = {}
-    for r in records:
-        rows.setdefault((r["candidate"], r.get("expert_frac", 0.3)), {}).setdefault(r["steps"], {})[r["data_seed"]] = \
-            r["success_rate"]
-    steps = sorted({s for cells in rows.values() for s in cells})
-    lines = ["| candidate | expert share | " + " | ".join(f"{s // 1000}k" if s >= 1000 else str(s) for s in steps) + " |",
-             "|---|---|" + "---|" * len(steps)]
-    for (name, frac), cells in rows.items():
-        out = []
-        for s in steps:
-            got = cells.get(s, {})
-            out.append(" / ".join(f"{got[d]:.2f}" for d in sorted(got)) if got else "")
-        lines.append(f"| {name} | {frac} | " + " | ".join(out) + " |")
-    return "\n".join(lines)
-
-
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", default="bench/prior_selection.json")
@@ -136,8 +120,9 @@ def main() -> int:
     path = Path(args.json)
     done = json.loads(path.read_text()) if path.exists() else {"records": []}
     if args.table:
-        print(table(done["records"]))
+        print(selection_table(done["records"]))
         return 0
+    add_run_facts(done)
     have = {r["key"] for r in done["records"]}
     datasets = {}
     for name in args.only or CANDIDATES:

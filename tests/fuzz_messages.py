@@ -173,7 +173,8 @@ def transition_case(rng: np.random.Generator, kind: str, rows: np.ndarray) -> Ca
 
 # ------------------------------------------------------------------ weights messages (the policy node)
 WEIGHTS_KINDS = ("random bytes", "empty", "truncated", "bit flip", "wrong label", "no layout", "wrong dims",
-                 "non-finite weights", "not a checkpoint")
+                 "non-finite weights", "unversioned", "another key", "pickle checkpoint", "stride-0 pickle",
+                 "version far ahead")
 
 
 def checkpoint_bytes(checkpoint: dict) -> bytes:
@@ -183,7 +184,7 @@ def checkpoint_bytes(checkpoint: dict) -> bytes:
 
 
 def broken_checkpoints(good: dict) -> dict[str, bytes]:
-    """Well-formed torch files that are no policy for this task (made once per test)."""
+    """Well-formed torch files that are no policy for this task (checkpoint files; made once per test)."""
     wrong_dims = {**good, "obs_dim": 5, "policy_state": {**good["policy_state"]}}
     wrong_dims["policy_state"]["0.weight"] = torch.zeros(int(good["hidden"]), 5)
     nan = {**good, "policy_state": {**good["policy_state"]}}
@@ -203,13 +204,47 @@ def flip_in_tensor_data(data: bytes) -> bytes:
     return bytes(flipped)
 
 
+def stride0_checkpoint(hidden: int = 8192) -> bytes:
+    """The review's 2 KB message: a torch file whose (hidden, hidden) layer is one float
+    broadcast (stride 0), hundreds of MiB once materialised."""
+    layer = torch.zeros(1).expand(hidden, hidden)
+    state = {"0.weight": torch.zeros(1).expand(hidden, 8), "0.bias": torch.zeros(1).expand(hidden),
+             "2.weight": layer, "2.bias": torch.zeros(1).expand(hidden),
+             "4.weight": torch.zeros(1).expand(2, hidden), "4.bias": torch.zeros(2)}
+    return checkpoint_bytes({"format": "pusher-rl/policy", "version": 1, "algorithm": "sac", "obs_dim": 8,
+                             "act_dim": 2, "hidden": hidden, "policy_state": state, "weights_version": 2**62})
+
+
+def broken_weights(good: dict, signer, version: int = 1) -> dict[str, bytes]:
+    """Messages that are no weights this node may act on (made once per test). ``good`` is a
+    checkpoint; ``signer`` the session's key: the signed ones get past the signature."""
+    from offline_rl_core.serving.signing import Signer
+    from offline_rl_core.serving.weights import encode_weights
+
+    good = {**good, "weights_version": version}
+    wrong_dims = {**good, "obs_dim": 5, "policy_state": {**good["policy_state"]}}
+    wrong_dims["policy_state"]["0.weight"] = torch.zeros(int(good["hidden"]), 5)
+    nan = {**good, "policy_state": {**good["policy_state"]}}
+    nan["policy_state"]["4.bias"] = torch.full_like(good["policy_state"]["4.bias"], float("nan"))
+    unversioned = {k: v for k, v in good.items() if k != "weights_version"}
+    # the project's own encoder, a key of its own: version 2**62 and a saturating bias
+    rogue = {**good, "weights_version": 2**62, "policy_state": {**good["policy_state"]}}
+    rogue["policy_state"]["4.bias"] = torch.full_like(good["policy_state"]["4.bias"], 1e6)
+    return {"wrong dims": encode_weights(wrong_dims, signer), "non-finite weights": encode_weights(nan, signer),
+            "unversioned": encode_weights(unversioned, signer), "another key": encode_weights(rogue, Signer.generate()),
+            "pickle checkpoint": checkpoint_bytes(good), "stride-0 pickle": stride0_checkpoint(),
+            "version far ahead": encode_weights({**good, "weights_version": 2**62}, signer)}
+
+
+WEIGHTS_EXPECT = {"wrong dims": "bad weights", "non-finite weights": "bad weights", "unversioned": "bad weights",
+                  "another key": "unsigned weights", "pickle checkpoint": "unsigned weights",
+                  "stride-0 pickle": "unsigned weights", "version far ahead": "bad weights"}
+
+
 def weights_case(rng: np.random.Generator, kind: str, good: bytes, broken: dict[str, bytes]) -> Case:
     """A learner/weights message: fields ``label`` (None: no layout dim) and ``data``.
-
-    A bit flip mostly breaks a CRC, but one in the zip's padding leaves the same weights:
-    its ``expect`` is "bad weights or nothing" (the caller allows both).
-    """
-    label, expect = "pusher-rl/weights", "bad weights"
+    ``good`` is a signed message; every change to it breaks its signature."""
+    label, expect = "pusher-rl/weights", "unsigned weights"
     if kind == "random bytes":
         data = rng.bytes(int(rng.integers(1, 3000)))
     elif kind == "empty":
@@ -220,11 +255,13 @@ def weights_case(rng: np.random.Generator, kind: str, good: bytes, broken: dict[
         flipped = bytearray(good)
         for _ in range(int(rng.integers(1, 4))):
             flipped[int(rng.integers(len(flipped)))] ^= 1 << int(rng.integers(8))
-        data, expect = bytes(flipped), "bad weights?"
+        data = bytes(flipped)
+        if bytes(flipped) == good:  # flips that undid each other
+            data, expect = good, None
     elif kind == "wrong label":
         data, label, expect = good, _pick(rng, ["", "weights", "pusher-rl/weights2"]), "bad layout"
     elif kind == "no layout":
         data, label, expect = good, None, "bad layout"
     else:
-        data = broken[kind]
+        data, expect = broken[kind], WEIGHTS_EXPECT[kind]
     return Case(kind, expect, {"label": label, "data": data})

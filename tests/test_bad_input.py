@@ -9,9 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fuzz_messages import (JOINT_KINDS, POINT_KINDS, TRANSITION_KINDS, WEIGHTS_KINDS, broken_checkpoints,
-                           checkpoint_bytes, command_case, flip_in_tensor_data, joint_case, point_case,
-                           transition_case, weights_case)
+from fuzz_messages import (JOINT_KINDS, POINT_KINDS, TRANSITION_KINDS, WEIGHTS_KINDS, broken_weights,
+                           command_case, joint_case, point_case, stride0_checkpoint, transition_case, weights_case)
 from offline_rl_core.nodes.joint_messages import action_from_effort, joints_from_state, point_xy
 from offline_rl_core.nodes.pairing import NS_PER_S, StampOrder, StatePairing, check_answer_stamp, check_stamp
 from offline_rl_core.common.rejections import REASONS, Rejection, RejectionCounter
@@ -87,30 +86,120 @@ def _cdr_float32_multiarray(data, layout) -> bytes:
     return bytes(ts.serialize_cdr(msg, "std_msgs/msg/Float32MultiArray"))
 
 
-def test_fuzzed_weights_messages_never_load(tmp_path):
-    from offline_rl_core.serving.weights import policy_from_weights_message
+def _weights_checkpoint(hidden: int = 32) -> dict:
     from offline_rl_core.serving.policy import policy_sequential
 
-    net = policy_sequential(8, 32, 2)
-    good_ckpt = {"format": "pusher-rl/policy", "version": 1, "algorithm": "sac", "obs_dim": 8, "act_dim": 2,
-                 "hidden": 32, "policy_state": dict(net.state_dict()), "weights_version": 1}
-    good, broken = checkpoint_bytes(good_ckpt), broken_checkpoints(good_ckpt)
-    assert policy_from_weights_message("pusher-rl/weights", good, "w")[0] is not None
-    # a flipped bit in a tensor: torch.load would read other weights; the zip's CRC refuses it
-    assert "CRC" in policy_from_weights_message("pusher-rl/weights", flip_in_tensor_data(good), "w")[1]
+    net = policy_sequential(8, hidden, 2)
+    return {"format": "pusher-rl/policy", "version": 1, "algorithm": "sac", "obs_dim": 8, "act_dim": 2,
+            "hidden": hidden, "policy_state": dict(net.state_dict()), "weights_version": 1}
+
+
+def test_fuzzed_weights_messages_never_load():
+    from offline_rl_core.serving.signing import Signer
+    from offline_rl_core.serving.weights import encode_weights, policy_from_weights_message
+
+    signer = Signer.generate()
+    verifier = signer.verifier()
+    good_ckpt = _weights_checkpoint()
+    good, broken = encode_weights(good_ckpt, signer), broken_weights(good_ckpt, signer)
+    policy, problem = policy_from_weights_message("pusher-rl/weights", good, verifier, "w")
+    assert problem is None and policy.weights_version == 1
     rng = np.random.default_rng(4)
-    same = 0
+    seen = set()
     for _ in range(600):
         case = weights_case(rng, WEIGHTS_KINDS[int(rng.integers(len(WEIGHTS_KINDS)))], good, broken)
-        policy, problem = policy_from_weights_message(case.fields["label"] or "", case.fields["data"], "w")
-        if case.expect == "bad weights?" and policy is not None:
-            # a flip the CRCs do not cover (the zip's padding): the very same weights
-            assert all(np.array_equal(a, b) for a, b in zip(policy._w, policy_from_weights_message(
-                "pusher-rl/weights", good, "w")[0]._w))
-            same += 1
-            continue
-        assert _reason(problem) == case.expect.rstrip("?"), case.kind
-    assert same < 60  # CRCs catch nearly every flip: torch.load alone takes most of them
+        policy, problem = policy_from_weights_message(case.fields["label"] or "", case.fields["data"], verifier, "w")
+        assert _reason(problem) == case.expect, (case.kind, problem)
+        assert (policy is None) == (case.expect is not None)
+        seen.add(case.kind)
+    assert seen == set(WEIGHTS_KINDS)
+
+
+def test_a_rogue_weights_message_is_refused_before_anything_is_allocated():
+    """The review's two messages: the project's own encoder with a key of its own (version
+    2**62, a saturating bias), and a 2 KB torch file whose layer is a stride-0 view of 8192².
+    Neither acts, neither grows the process by more than a few MiB, the policy acting goes on."""
+    import resource
+
+    import torch
+
+    from offline_rl_core.serving.actor import Actor
+    from offline_rl_core.serving.policy import LoadedPolicy
+    from offline_rl_core.serving.signing import Signer
+    from offline_rl_core.serving.weights import encode_weights, policy_from_weights_message
+
+    session = Signer.generate()
+    ckpt = _weights_checkpoint()
+    actor = Actor(LoadedPolicy(ckpt))
+    rogue = {**ckpt, "weights_version": 2**62, "policy_state": {**ckpt["policy_state"]}}
+    rogue["policy_state"]["4.bias"] = torch.full((2,), 1e6)
+    messages = {"rogue": encode_weights(rogue, Signer.generate()), "stride-0": stride0_checkpoint(8192)}
+    assert len(messages["stride-0"]) < 4096
+    peak_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB
+    for name, data in messages.items():
+        for _ in range(50):
+            policy, problem = policy_from_weights_message("pusher-rl/weights", data, session.verifier(),
+                                                          "learner/weights")
+            assert policy is None and problem.reason == "unsigned weights", (name, problem)
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - peak_before < 50 * 1024
+    obs = np.linspace(-1, 1, 8, dtype=np.float32)
+    assert actor.version == 1 and np.array_equal(actor.act(obs), LoadedPolicy(ckpt).act(obs))
+
+
+def test_weights_past_the_next_few_versions_or_unversioned_never_act():
+    """Even signed, weights only move the acting version forward by a few: a version far
+    ahead would make every later one of the real learner look old."""
+    from offline_rl_core.serving.actor import MAX_VERSION_STEP, Actor
+    from offline_rl_core.serving.policy import LoadedPolicy
+
+    ckpt = _weights_checkpoint()
+    unversioned = {k: v for k, v in ckpt.items() if k != "weights_version"}
+    actor = Actor(LoadedPolicy(unversioned))  # started from a trained checkpoint file
+    assert actor.offer_weights(LoadedPolicy(unversioned))[1].reason == "weights version"
+    assert actor.offer_weights(LoadedPolicy({**ckpt, "weights_version": 40})) == (True, None)  # a late start
+    assert actor.offer_weights(LoadedPolicy({**ckpt, "weights_version": 40})) == (False, None)  # seen
+    assert actor.offer_weights(LoadedPolicy({**ckpt, "weights_version": 39})) == (False, None)  # older
+    far = actor.offer_weights(LoadedPolicy({**ckpt, "weights_version": 41 + MAX_VERSION_STEP}))
+    assert far[0] is False and far[1].reason == "weights version" and actor.version == 40
+    assert actor.offer_weights(LoadedPolicy({**ckpt, "weights_version": 40 + MAX_VERSION_STEP})) == (True, None)
+    assert actor.version == 40 + MAX_VERSION_STEP
+
+
+def test_a_weights_message_is_checked_for_size_and_shape_before_its_tensors_are_read():
+    """Signed by the session's key and still wrong: a header that claims more than the
+    payload holds, a shape that is not its layer's, a tensor named twice, an absurd width."""
+    import json
+    import struct
+
+    from offline_rl_core.serving.signing import Signer
+    from offline_rl_core.serving.weights import MAGIC, decode_weights, encode_weights, WeightsRefused
+
+    signer = Signer.generate()
+    good = encode_weights(_weights_checkpoint(), signer)
+    (length,) = struct.unpack("<I", good[len(MAGIC):len(MAGIC) + 4])
+    start = len(MAGIC) + 4
+    header, payload = json.loads(good[start:start + length]), good[start + length:-64]
+
+    def resigned(change, cut=0) -> bytes:
+        h = json.loads(json.dumps(header))
+        change(h)
+        text = json.dumps(h).encode()
+        body = MAGIC + struct.pack("<I", len(text)) + text + payload[:len(payload) - cut]
+        return body + signer.sign(body)
+
+    cases = {
+        "the tensors need": resigned(lambda h: None, cut=4),  # a payload short of its shapes
+        "has shape [32, 9]": resigned(lambda h: h["tensors"][0].__setitem__(1, [32, 9])),
+        "unexpected or repeated tensor": resigned(lambda h: h["tensors"].append(h["tensors"][0])),
+        "hidden 100000 outside": resigned(lambda h: h["fields"].__setitem__("hidden", 100000)),
+        "unversioned weights are refused": resigned(lambda h: h["fields"].pop("weights_version")),
+        "signed for another session": resigned(lambda h: h.__setitem__("session", "0" * 32)),
+        "expected an integer": resigned(lambda h: h["fields"].__setitem__("weights_version", True)),
+    }
+    for expected, data in cases.items():
+        with pytest.raises(WeightsRefused) as refused:
+            decode_weights(data, signer.verifier(), "w")
+        assert expected in str(refused.value), (expected, str(refused.value))
 
 
 # ------------------------------------------------------------------ stamps
@@ -166,7 +255,7 @@ def test_pairing_keeps_targets_by_stamp_so_strays_displace_nothing():
     assert done.state == "s2" and done.target_xy.tolist() == [0.3, 0.4]
     for stamp in range(1000, 1100):  # many strays: only the last KEEP are remembered
         p.on_target(stamp, (0.0, 0.0))
-    assert len(p.targets) <= 32
+    assert len(p.goal.by_stamp) <= 32
 
 
 # ------------------------------------------------------------------ counting and warning

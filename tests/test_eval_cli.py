@@ -12,11 +12,13 @@ from offline_rl_core.serving.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VER
 from offline_rl_core.serving.policy import load_policy
 
 
-def make_checkpoint(path, hidden=32, obs_dim=8, act_dim=2):
+def make_checkpoint(path, hidden=32, obs_dim=8, act_dim=2, task=None):
     torch.manual_seed(0)
     net = policy_sequential(obs_dim, hidden, act_dim)
     ckpt = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "algorithm": "bc",
             "obs_dim": obs_dim, "act_dim": act_dim, "hidden": hidden, "policy_state": net.state_dict()}
+    if task is not None:
+        ckpt["task"] = {**task.layout(), "spec": task.describe()}
     return save_checkpoint(path, ckpt)
 
 
@@ -83,8 +85,10 @@ def test_eval_on_another_task_the_expert_and_a_checkpoint_of_its_size(tmp_path, 
     # a pusher-reach checkpoint is refused on it, naming both sizes; one of its own sizes rolls out
     assert main(["eval", "--task", "pusher7_reach", "--checkpoint", str(make_checkpoint(tmp_path / "p.pt")),
                  "--episodes", "1"]) == 2
-    assert "obs_dim=8, act_dim=2; task pusher7_reach needs obs_dim=17, act_dim=7" in one_error_line(capsys)
-    ckpt = make_checkpoint(tmp_path / "p7.pt", obs_dim=17, act_dim=7)
+    assert "obs_dim=8, act_dim=2); the task here is pusher7_reach (digest" in one_error_line(capsys)
+    from offline_rl_core.task.spec import load_task
+
+    ckpt = make_checkpoint(tmp_path / "p7.pt", obs_dim=17, act_dim=7, task=load_task("pusher7_reach"))
     assert main(["eval", "--task", "pusher7_reach", "--checkpoint", str(ckpt), "--episodes", "1", "--json",
                  str(out)]) == 0
     assert json.loads(out.read_text())["episodes"] == 1

@@ -30,9 +30,22 @@ def test_serve_launch_becomes_ros2_run_command_lines():
     ros_args = cmd[cmd.index("--ros-args") + 1:]
     assert ros_args == ["-r", "__node:=sim", "-r", "__ns:=/arm2", "-p", 'mode:="lockstep"', "-p", "seed:=7",
                         "-p", "episodes:=3", "-p", 'summary:="/tmp/s.json"', "-r", "pusher/command:=policy/action"]
-    assert nodes["policy"].params == {"checkpoint": "runs/x/policy.pt", "poll_period": 0.5}
+    assert nodes["policy"].params == {"checkpoint": "runs/x/policy.pt", "task": "", "poll_period": 0.5}
     served_only = load_launch(LAUNCH_DIR / "serve.launch.yaml", {"checkpoint": "c.pt", "closed_loop": "false"})
     assert [n.label for n in served_only] == ["policy"]  # if: $(var closed_loop)
+
+
+def test_the_task_argument_reaches_the_nodes_that_read_the_task():
+    """``task:=`` (a built-in task or a task file) goes to every node of ours that reads it."""
+    online = by_label(load_launch(LAUNCH_DIR / "online.launch.yaml", {"task": "/tmp/arm.yaml"}))
+    assert {n: online[n].params["task"] for n in ("learner", "policy", "mux", "corrector")} == \
+        dict.fromkeys(("learner", "policy", "mux", "corrector"), "/tmp/arm.yaml")
+    assert by_label(load_launch(LAUNCH_DIR / "online.launch.yaml", {}))["mux"].params["task"] == "pusher_reach"
+    corrections = by_label(load_launch(LAUNCH_DIR / "corrections.launch.yaml", {"out": "b.db3", "task": "arm"}))
+    assert {n: corrections[n].params["task"] for n in ("policy", "mux", "corrector")} == \
+        dict.fromkeys(("policy", "mux", "corrector"), "arm")
+    served = by_label(load_launch(LAUNCH_DIR / "serve.launch.yaml", {"checkpoint": "c.pt", "task": "arm"}))
+    assert served["policy"].params["task"] == "arm"
 
 
 def test_every_shipped_launch_file_reads_with_its_required_arguments():
@@ -51,6 +64,9 @@ def test_every_shipped_launch_file_reads_with_its_required_arguments():
     online = by_label(load_launch(LAUNCH_DIR / "online.launch.yaml", {"corrector": "none"}))
     assert list(online) == ["learner", "policy", "mux", "recorder", "sim"]  # the learner serves first
     assert online["policy"].params["weights_topic"] == "learner/weights"
+    # the session's key pair: the learner signs with the private key, the policy node checks the public one
+    assert online["learner"].params["signing_key"] == "runs/hil-online/keys/weights.key"
+    assert online["policy"].params["weights_key"] == "runs/hil-online/keys/weights.pub"
     assert online["mux"].params["require_teleop"] is False  # no corrector: the mux waits for no teleop
     assert online["policy"].params["paced_every"] == 50  # lockstep: paced by publish_every
     # a new out directory is made by the nodes that write into it

@@ -165,3 +165,16 @@ def test_importing_the_package_loads_no_layer():
             "print(sorted(m for m in sys.modules if m.startswith('offline_rl_core.') or m in ('torch', 'gymnasium')))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
+
+
+def test_ray_is_imported_by_the_ray_engine_alone_and_lazily():
+    """Ray is optional: one module imports it, inside its functions, so the command line, the
+    sweep and the local engine load without it."""
+    importers = sorted(name for name, path in all_modules().items()
+                       if any(t == "ray" or t.startswith("ray.") for _, t in imports_of(path)))
+    assert importers == ["offline_rl_core.runs.ray_engine"]
+    code = ("import sys; import offline_rl_core.commands.cli as c; c.build_parser(); "
+            "import offline_rl_core.runs.ray_engine, offline_rl_core.runs.local_engine, offline_rl_core.data.fleet; "
+            "print('ray' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "False"

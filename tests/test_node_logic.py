@@ -110,9 +110,12 @@ def test_a_checkpoint_whose_biases_or_normalisation_do_not_fit_is_refused_at_loa
     import torch
 
     from offline_rl_core.common.errors import UserError
-    from offline_rl_core.serving.weights import policy_from_weights_message
-    from offline_rl_core.serving.checkpoint import checkpoint_to_bytes, save_checkpoint
+    from offline_rl_core.serving.weights import encode_weights, policy_from_weights_message
+    from offline_rl_core.serving.checkpoint import save_checkpoint
     from offline_rl_core.serving.policy import load_policy
+    from offline_rl_core.serving.signing import Signer
+
+    signer = Signer.generate()
 
     good = _checkpoint()
     state = good["policy_state"]
@@ -133,8 +136,13 @@ def test_a_checkpoint_whose_biases_or_normalisation_do_not_fit_is_refused_at_loa
             load_policy(path)
         assert str(refused.value).startswith(f"{path}: ") and expected in str(refused.value), str(refused.value)
         assert "\n" not in str(refused.value)
-        policy, problem = policy_from_weights_message("pusher-rl/weights", checkpoint_to_bytes(ckpt), "learner/weights")
-        assert policy is None and problem.reason == "bad weights" and expected in problem, problem
+        signed = encode_weights({**ckpt, "weights_version": 1}, signer)  # the learner's own key: checked past it
+        policy, problem = policy_from_weights_message("pusher-rl/weights", signed, signer.verifier(), "learner/weights")
+        # the message's own shape check names the tensor first; the rest as a file's
+        said = {"'4.bias' has shape (7,)": "'policy_state.4.bias' has shape [7]",
+                "'0.bias' is missing": "missing tensor(s) policy_state.0.bias",
+                "obs_mean must be obs_dim=8": "'obs_mean' has shape [3]"}.get(expected, expected)
+        assert policy is None and problem.reason == "bad weights" and said in problem, problem
 
 
 def test_a_state_the_policy_fails_on_is_refused_and_the_next_one_answered():

@@ -117,8 +117,9 @@ def test_in_process_stage_is_reproducible_and_learns_from_corrections(offline, p
 def _service(tmp_path, bag, prior_path, name, **kw):
     from offline_rl_core.nodes.learner_service import LearnerService, LearnerServiceConfig
 
+    settings = kw.pop("settings", OnlineSettings(publish_every=10))
     cfg = LearnerServiceConfig(bags=[str(bag)], out=str(tmp_path / name), prior=str(prior_path), seed=5,
-                               settings=OnlineSettings(publish_every=10), train=TrainConfig(algo="sac", **SMALL), **kw)
+                               settings=settings, train=TrainConfig(algo="sac", **SMALL), **kw)
     return LearnerService(cfg, log=lambda s: None)
 
 
@@ -181,6 +182,7 @@ def test_a_prior_that_does_not_fit_the_learner_is_one_clear_line(tmp_path, files
 
 def test_weights_messages_round_trip_and_snapshots_are_kept(tmp_path, files):
     from offline_rl_core.data.bag.cdr import encode_transition_rows
+    from offline_rl_core.serving.signing import Signer
     from offline_rl_core.serving.weights import decode_weights, encode_weights
 
     d, stream = files
@@ -189,7 +191,8 @@ def test_weights_messages_round_trip_and_snapshots_are_kept(tmp_path, files):
         service.receive(payload)
     versions = _drain(service)
     assert [v["weights_version"] for v in versions] == [1, 2, 3, 4]
-    back = decode_weights(encode_weights(versions[-1]))
+    signer = Signer.generate()
+    back = decode_weights(encode_weights(versions[-1], signer), signer.verifier())
     assert back["weights_version"] == 4 and back["trained_through"] == 40
     assert torch.equal(_flat(back), _flat(versions[-1]))
     assert sorted(p.name for p in (tmp_path / "w" / "snapshots").iterdir()) == [
@@ -237,3 +240,77 @@ def test_a_paced_actor_waits_for_the_learners_own_weights(offline, prior):
     assert not actor.offer(LoadedPolicy(learner.weights()))  # version 0 again: not newer
     a = actor.act(np.zeros(8, np.float32), stamp=1010)
     assert np.array_equal(actor.act(np.zeros(8, np.float32), stamp=1010), a)  # one draw per state
+
+
+def test_a_full_buffer_evicts_the_oldest_live_rows_and_keeps_the_offline_ones(offline, prior):
+    """The online buffer is a ring over ``capacity`` (plus room for a lagging learner): it
+    never raises, the offline rows stay, each update samples among the newest ``capacity``
+    transitions it may see, and a learner that lags by less than the room gives the same
+    weights as one that keeps up."""
+    from offline_rl_core.learners.online import LAG_VERSIONS
+
+    rows = _stream(400)
+    a = _learner(offline, prior, utd=1, capacity=30)
+    offline_obs = a.data.obs[0, :len(offline)].clone()
+    va = _feed(a, rows)
+    ring = 30 + LAG_VERSIONS * 10
+    assert a.n_online == 400 and a.n_evicted == 400 - ring and a.data.sizes == [len(offline) + ring]
+    assert torch.equal(a.data.obs[0, :len(offline)], offline_obs)
+    held = {a.data.ring_slot(k): k for k in a.held_online()}
+    for slot, k in held.items():
+        assert torch.equal(a.data.obs[0, slot], torch.from_numpy(rows.obs[k]))
+    assert a.n_human == int((rows.source == SOURCE_HUMAN).sum())  # evicted ones counted too
+    # update j samples transitions [j + 1 - capacity, j + 1): all still held
+    for bound in (a.n_evicted + 30, 300, 400):
+        idx = a.sampler.next(bound)[0]
+        online = [held[int(s)] for s in idx if int(s) >= len(offline)]
+        assert online and all(max(0, bound - 30) <= k < bound for k in online), (bound, online)
+    b = _learner(offline, prior, utd=1, capacity=30)
+    vb = []
+    burst = LAG_VERSIONS * 10 - 10  # arrives before the learner takes any of its updates
+    for start in range(0, len(rows), burst):
+        for i in range(start, min(start + burst, len(rows))):
+            b.add(rows.select(np.array([i])))
+        while b.updates_owed > 0:
+            b.train(max_updates=7)
+            if b.version_due():
+                vb.append(b.cut_version())
+    assert len(va) == len(vb) == 40
+    assert all(torch.equal(_flat(x), _flat(y)) for x, y in zip(va, vb))
+
+
+@pytest.mark.slow
+def test_a_two_hour_realtime_session_runs_on_a_small_buffer(tmp_path, files):
+    """50 Hz for two hours (360,000 live transitions) into a learner holding 1,000, with a
+    learner far slower than the stream: nothing raises, the newest transitions are held, the
+    resume point stays small and resumes. The stream arrives in bursts (the node's own path,
+    raw messages into the service, for the last of each burst: decoding 360,000 one by one
+    would be most of the test's time)."""
+    from offline_rl_core.data.bag.cdr import encode_transition_rows
+    from offline_rl_core.data.transitions import LAYOUT_SLICES, Transitions
+
+    d, _ = files
+    live = _stream(4000, seed=7).to_rows()
+    n = 2 * 3600 * 50
+    rows = np.tile(live, (n // len(live), 1))
+    rows[:, LAYOUT_SLICES["episode"]] = (np.arange(n) // 100)[:, None]
+    rows[:, LAYOUT_SLICES["step"]] = (np.arange(n) % 100)[:, None]
+    cfg = dict(settings=OnlineSettings(publish_every=50, capacity=1000))
+    service = _service(tmp_path, d / "offline.db3", d / "prior.pt", "long", **cfg)
+    versions = 0
+    for start in range(0, n, 5000):
+        service.learner.add(Transitions.from_rows(rows[start:start + 4990]))
+        for payload in encode_transition_rows(rows[start + 4990:start + 5000]):
+            assert service.receive(payload) is None
+        versions += len(service.work(budget_s=0.05))
+    status = service.status()
+    learner = service.learner
+    assert status["received"] == n and status["evicted"] == n - learner.data.ring_rows
+    newest = learner.data.ring_slot(n - 1)
+    assert torch.equal(learner.data.obs[0, newest], torch.from_numpy(rows[n - 1, :8].copy()))
+    assert learner.updates > 0 and versions >= 1 and status["weights_version"] == versions
+    path = service.save()
+    assert path.stat().st_size < 8 << 20  # the ring's rows, not the session's
+    again = _service(tmp_path, d / "offline.db3", d / "prior.pt", "long", resume=True, **cfg)
+    assert again.learner.n_online == n and again.learner.updates == learner.updates
+    assert torch.equal(again.learner.data.obs, learner.data.obs)

@@ -26,8 +26,8 @@ import numpy as np
 import pytest
 
 from fuzz_messages import (JOINT_KINDS, NS, POINT_KINDS, TRANSITION_KINDS, WEIGHTS_KINDS, bad_stamp,
-                           broken_checkpoints, command_case, flip_in_tensor_data, joint_case, point_case,
-                           transition_case, weights_case)
+                           broken_checkpoints, broken_weights, command_case, flip_in_tensor_data, joint_case,
+                           point_case, transition_case, weights_case)
 from ros_helpers import probe_node, require_ros, ros_env, spawn  # noqa: F401 - fixtures
 
 pytestmark = pytest.mark.ros
@@ -179,16 +179,18 @@ def test_policy_node_survives_fuzzed_states_targets_fingertips_and_weights(spawn
     from offline_rl_core.serving.weights import encode_weights
     from offline_rl_core.serving.checkpoint import load_checkpoint
     from offline_rl_core.serving.policy import load_policy
+    from offline_rl_core.serving.signing import load_signer, make_session_keys
 
     served = tmp_path / "policy.pt"
     shutil.copy(checkpoints["a"], served)
     policy = {"a": load_policy(checkpoints["a"]), "b": load_policy(checkpoints["b"])}
     good = load_checkpoint(checkpoints["a"])
-    final_version = 10**6
-    weights = {"v1": encode_weights({**good, "weights_version": 1})}
-    broken = broken_checkpoints(good)
+    keys = make_session_keys(tmp_path / "keys")
+    signer = load_signer(keys.signing_key)
+    weights = {"v1": encode_weights({**good, "weights_version": 1}, signer)}
+    broken = broken_weights(good, signer)
     proc = spawn([sys.executable, "-m", "pusher_policy.node", "--ros-args", "-p", f"checkpoint:={served}",
-                  "-p", "weights_topic:=learner/weights"], "policy")
+                  "-p", "weights_topic:=learner/weights", "-p", f"weights_key:={keys.public_key}"], "policy")
     rng = np.random.default_rng(13)
     actions, torques, provenance = [], [], {}
     expected = Counter()
@@ -310,7 +312,7 @@ def test_policy_node_survives_fuzzed_states_targets_fingertips_and_weights(spawn
                             expected[expect] += 1
             version += 1
             out.send("learner/weights", weights_msg("pusher-rl/weights",
-                                                    encode_weights({**good, "weights_version": version})))
+                                                    encode_weights({**good, "weights_version": version}, signer)))
             close_round(version)
             assert proc.running(), proc.output()[-3000:]
 
@@ -324,8 +326,9 @@ def test_policy_node_survives_fuzzed_states_targets_fingertips_and_weights(spawn
             trio(stamps.next())
         for _ in range(MESSAGES - 1 - out.sent["learner/weights"]):
             out.send("learner/weights", weights_msg("pusher-rl/weights", rng.bytes(64)))
+        final_version = version + 1  # the next version: weights only move forward a few at a time
         out.send("learner/weights", weights_msg("pusher-rl/weights", encode_weights(
-            {**load_checkpoint(checkpoints["b"]), "weights_version": final_version})))
+            {**load_checkpoint(checkpoints["b"]), "weights_version": final_version}, signer)))
         close_round(final_version)
         rss_end = rss_kib(proc.pid)
         st = status.wait(lambda s: True)
@@ -334,7 +337,7 @@ def test_policy_node_survives_fuzzed_states_targets_fingertips_and_weights(spawn
     assert proc.running(), proc.output()[-3000:]
     assert min(out.sent.values()) >= MESSAGES
     assert Counter(st["messages"]) - sent_before <= out.sent
-    assert set(st["rejected"]) - {"bad weights"} == set(expected) - {"bad weights"}  # the burst's were bad weights
+    assert set(st["rejected"]) == set(expected)  # the burst's were unsigned weights
     # what it published: finite, in range, for states it took, the right policy's action
     assert actions and len(torques) == len(actions)
     for msg in actions:
@@ -620,9 +623,13 @@ def test_learner_survives_fuzzed_transitions(spawn, checkpoints, tmp_path):
     from offline_rl_core.data.collect import collect_transitions
     from offline_rl_core.serving.policy import load_policy
 
+    from offline_rl_core.serving.signing import make_session_keys
+
     rows = collect_transitions(3, 0.5, 1).to_rows()
+    keys = make_session_keys(tmp_path / "keys")
     proc = spawn([sys.executable, "-m", "pusher_learner.node", "--bag", str(checkpoints["bag"]), "--out",
-                  str(tmp_path / "learner"), "--publish-every", "50", "--batch-size", "32"], "learner")
+                  str(tmp_path / "learner"), "--publish-every", "50", "--batch-size", "32",
+                  "--signing-key", str(keys.signing_key)], "learner")
     assert proc.wait_for_output("learning from", 60), proc.output()
     rng = np.random.default_rng(29)
     expected, good = Counter(), 0

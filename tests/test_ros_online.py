@@ -101,7 +101,13 @@ def test_a_killed_learner_restarts_and_the_session_ends_as_if_it_never_died(ros_
 
 
 def test_the_learner_node_drops_bad_transitions_and_counts_them(spawn, tmp_path, prior):
-    from std_msgs.msg import Float32MultiArray, String
+    """Also under use_sim_time with no /clock (its work runs on the wall clock), and every
+    weights version it publishes is signed with the session's key."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import Float32MultiArray, String, UInt8MultiArray
+
+    from offline_rl_core.serving.signing import load_verifier, make_session_keys
+    from offline_rl_core.serving.weights import decode_weights
 
     from offline_rl_core.data.bag import write_transitions
     from offline_rl_core.data.collect import collect_transitions
@@ -109,12 +115,17 @@ def test_the_learner_node_drops_bad_transitions_and_counts_them(spawn, tmp_path,
 
     data = collect_transitions(2, 0.5, 0)
     write_transitions(tmp_path / "offline.db3", data)
+    keys = make_session_keys(tmp_path / "keys")
     learner = spawn([sys.executable, "-m", "pusher_learner.node", "--bag", str(tmp_path / "offline.db3"),
-                     "--prior", str(prior), "--out", str(tmp_path / "learner"), "--publish-every", "2"], "learner")
+                     "--prior", str(prior), "--out", str(tmp_path / "learner"), "--publish-every", "2",
+                     "--signing-key", str(keys.signing_key), "--ros-args", "-p", "use_sim_time:=true"], "learner")
     assert learner.wait_for_output("learning from", 60), learner.output()
-    statuses = []
+    statuses, weights = [], []
     with probe_node() as node:
         node.create_subscription(String, "/learner/status", lambda m: statuses.append(json.loads(m.data)), 10)
+        node.create_subscription(UInt8MultiArray, "/learner/weights", lambda m: weights.append(bytes(m.data)),
+                                 QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                                            durability=DurabilityPolicy.TRANSIENT_LOCAL))
         pub = node.create_publisher(Float32MultiArray, "/pusher/transition", 10)
         assert node.spin_until(lambda: pub.get_subscription_count() > 0, 30), learner.output()
         from std_msgs.msg import MultiArrayDimension
@@ -135,6 +146,9 @@ def test_the_learner_node_drops_bad_transitions_and_counts_them(spawn, tmp_path,
         assert node.spin_until(lambda: statuses and statuses[-1]["received"] == 2
                                and sum(statuses[-1]["rejected"].values()) == 2
                                and statuses[-1]["weights_version"] == 1, 30), (statuses[-3:], learner.output())
+        assert node.spin_until(lambda: len(weights) == 2, 30), len(weights)  # versions 0 and 1
+    verifier = load_verifier(keys.public_key)
+    assert [decode_weights(w, verifier)["weights_version"] for w in weights] == [0, 1]
     assert set(statuses[-1]["rejected"]) == {"non-finite", "bad layout"}
     assert "ignoring pusher/transition" in learner.output()
 

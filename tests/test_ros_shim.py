@@ -117,6 +117,9 @@ def test_node_list_and_param_list_get_set_describe(spawn, ros_env):
     refused = run("param", "set", "/sim", "seed", "5", env=ros_env)
     assert refused.stderr.strip() == "Setting parameter failed: Trying to set a read-only parameter: seed."
     assert run("param", "get", "/sim", "seed", env=ros_env).stdout == "Integer value is: 3\n"
+    # nobody on the domain can point the summary at another file
+    overwrite = run("param", "set", "/sim", "summary", "/tmp/elsewhere.json", env=ros_env)
+    assert overwrite.stderr.strip() == "Setting parameter failed: Trying to set a read-only parameter: summary."
     out_of_range = run("param", "set", "/sim", "episodes", "-1", env=ros_env)
     assert out_of_range.stderr.startswith("Setting parameter failed") and "episodes" in out_of_range.stderr
     accepted = run("param", "set", "/sim", "republish_period", "0.5", env=ros_env)

@@ -106,7 +106,9 @@ def test_lockstep_validates_commands_tags_sources_and_resets(spawn, tmp_path):
 
     assert sim.stop() == 0
     data = json.loads(summary.read_text())
-    assert data == {"episodes": 0, "success_rate": 0.0, "mean_final_dist": None, "mean_return": None}
+    # the episode the reset cut short is counted: no reset can hide a failing episode
+    assert data == {"episodes": 0, "success_rate": 0.0, "mean_final_dist": None, "mean_return": None,
+                    "abandoned": 1}
 
 
 @pytest.mark.parametrize("ros_args, error", [

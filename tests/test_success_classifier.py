@@ -171,9 +171,9 @@ def test_the_online_stage_takes_its_reward_and_episode_end_from_the_classifier(l
         run_online(read_transitions(path), None, replace(cfg, task="pusher_reach"), log=lambda s: None)
 
 
-def test_hil_takes_the_task_and_classifier_in_process_only(tmp_path):
-    over_ros = offline_rl("hil", "--online", "--task", "pusher_push", "--out", str(tmp_path / "a"))
-    assert over_ros.returncode == 2 and "--task: only with --in-process" in over_ros.stderr
+def test_hil_takes_the_classifier_in_process_only(tmp_path):
+    over_ros = offline_rl("hil", "--online", "--success", "c.pt", "--out", str(tmp_path / "a"))
+    assert over_ros.returncode == 2 and "--success: only with --in-process" in over_ros.stderr
     offline_rounds = offline_rl("hil", "--success", "c.pt", "--out", str(tmp_path / "b"))
     assert offline_rounds.returncode == 2 and "--success: only with --online" in offline_rounds.stderr
     missing = offline_rl("hil", "--online", "--in-process", "--success", str(tmp_path / "none.pt"),

@@ -11,7 +11,9 @@ from __future__ import annotations
 import json
 import os
 import platform
+import shlex
 import statistics
+import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -19,7 +21,7 @@ from typing import Callable
 
 from ..learners.config import TrainConfig
 
-GROUPS = ("train", "decode", "eval", "serve", "record", "online")
+GROUPS = ("train", "decode", "eval", "serve", "record", "online", "sweep", "fleet")
 
 
 @dataclass
@@ -51,6 +53,14 @@ class BenchSettings:
     # recording
     record_episodes: int = 200
     realtime_seconds: float = 60.0
+    # `offline-rl sweep` on Ray against local worker processes: a 12-run sweep, alternating rounds
+    sweep_runs: int = 12
+    sweep_steps: int = 3000
+    sweep_eval_episodes: int = 20
+    sweep_repeats: int = 2
+    # fleets of bags: bags of 20,000 transitions (bags/mix.db3), decoded in fresh processes
+    fleet_bag_counts: tuple[int, ...] = (1, 10, 100)
+    fleet_repeats: int = 3
     threads: int | None = None  # torch intra-op threads; None = auto (see ``choose_threads``)
     device: str = "cpu"  # where the training figures train: cpu, or cuda / cuda:N
     tiny: bool = False  # test settings: seconds, not minutes; figures meaningless
@@ -59,7 +69,8 @@ class BenchSettings:
     def quick_settings(cls) -> "BenchSettings":
         return cls(quick=True, train_steps=150, train_repeats=2, experiment_steps=300, decode_repeats=3,
                    large_bag_rows=400_000, large_bag_train_steps=50, eval_repeats=2, inference_calls=5000,
-                   dds_messages=1500, record_episodes=20, realtime_seconds=10.0)
+                   dds_messages=1500, record_episodes=20, realtime_seconds=10.0, sweep_steps=500, sweep_repeats=1,
+                   sweep_eval_episodes=10, fleet_repeats=2)
 
     @classmethod
     def tiny_settings(cls) -> "BenchSettings":
@@ -67,7 +78,8 @@ class BenchSettings:
         return cls(quick=True, tiny=True, train_steps=3, train_repeats=1, hidden=16, batch_size=16, episodes=4,
                    experiment_seeds=(0, 1), experiment_steps=3, experiment_eval=(1, 2), decode_repeats=1, large_bag_rows=2000,
                    large_bag_train_steps=2, eval_episodes=4, eval_repeats=1, inference_calls=50, dds_messages=20,
-                   dds_rate_hz=200.0, record_episodes=1, realtime_seconds=1.0)
+                   dds_rate_hz=200.0, record_episodes=1, realtime_seconds=1.0, sweep_runs=3, sweep_steps=3,
+                   sweep_eval_episodes=1, sweep_repeats=1, fleet_bag_counts=(1, 3), fleet_repeats=1)
 
 
 @dataclass
@@ -193,6 +205,51 @@ def machine_info() -> dict:
     }
 
 
+def invoked_command() -> str:
+    """The command line this process runs, as a user types it: ``offline-rl ...`` for the
+    CLI (also when re-run under ``python -m``), ``python SCRIPT ...`` for a bench script."""
+    argv = sys.argv or [""]
+    script = Path(argv[0])
+    if script.name == "offline-rl" or script.parts[-2:] in (("offline_rl_core", "__main__.py"), ("commands", "cli.py")):
+        return shlex.join(["offline-rl", *argv[1:]])
+    try:  # a script path relative to the directory it was run from, as it was typed
+        script = script.resolve().relative_to(Path.cwd())
+    except ValueError:
+        pass
+    return shlex.join(["python", str(script), *argv[1:]])
+
+
+def utc_now() -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+
+
+def run_facts() -> dict:
+    """What every JSON file under bench/ says about its figures: the command that measured
+    them, the machine and when (bench/results_page.py prints them beside the figures)."""
+    return {"command": invoked_command(), "machine": machine_info(), "measured_at": utc_now()}
+
+
+def add_run_facts(store: dict) -> None:
+    """``run_facts`` for a JSON file that several commands fill in turn (a resumable bench
+    script): this command joins its ``commands``, ``measured_at`` becomes now, and the file
+    keeps one machine (figures from another CPU belong in another file)."""
+    facts = run_facts()
+    stored = store.setdefault("machine", facts["machine"])
+    if _cpu(stored) != _cpu(facts["machine"]):
+        raise SystemExit(f"this file holds figures measured on {_cpu(stored)}, not on this CPU "
+                         f"({_cpu(facts['machine'])}): write them to another --json")
+    commands = store.setdefault("commands", [])
+    if facts["command"] not in commands:
+        commands.append(facts["command"])
+    store["measured_at"] = facts["measured_at"]
+
+
+def _cpu(m: dict) -> str:
+    """A machine record's CPU model and flags, under the keys the writers of the time used."""
+    flags = m.get("cpu_isa_flags") or m.get("isa_flags") or m.get("isa") or []
+    return " ".join([m.get("cpu_model") or m.get("cpu") or "an unrecorded CPU", *flags])
+
+
 def choose_threads(requested: int | None) -> tuple[int, str]:
     """torch's default threads for the run's references, and why: torch's own default
     (as a user runs the chapter's script or d3rlpy), unless ``--threads`` says otherwise.
@@ -261,6 +318,7 @@ def run_bench(settings: BenchSettings, only: list[str] | None = None, log: Calla
     unknown = [g for g in groups if g not in GROUPS]
     if unknown:
         raise ValueError(f"unknown bench group(s) {', '.join(unknown)}; expected some of {', '.join(GROUPS)}")
+    started = utc_now()
     machine = machine_info()
     machine["threads_choice"] = why
     log(f"bench on {machine['cpu_model']} ({machine['cpu_count']} cpus, torch threads {why}, "
@@ -269,7 +327,7 @@ def run_bench(settings: BenchSettings, only: list[str] | None = None, log: Calla
            f" on a CPU with {' '.join(machine['cpu_isa_flags'])})" if machine["kernel_isa_limits"] else "")
         + f", load {machine['loadavg_start']})")
     modules = {"train": "train", "decode": "decode", "eval": "eval_rollouts", "serve": "serve", "record": "record",
-               "online": "online"}
+               "online": "online", "sweep": "sweep", "fleet": "fleet"}
     t0 = time.perf_counter()
     figures: list[Figure] = []
     for g in groups:
@@ -283,6 +341,7 @@ def run_bench(settings: BenchSettings, only: list[str] | None = None, log: Calla
         figures.extend(got)
         log(f"[{g}] {time.perf_counter() - t1:.1f}s")
     payload = results_json(figures, settings, machine, time.perf_counter() - t0)
+    payload["command"], payload["measured_at"] = invoked_command(), started
     return figures, payload
 
 
@@ -298,7 +357,5 @@ def figures_from_json(payload: dict) -> list[Figure]:
 
 
 if __name__ == "__main__":
-    import sys
-
     for arg in sys.argv[1:]:
         print(format_table(figures_from_json(json.loads(Path(arg).read_text())), markdown=True))

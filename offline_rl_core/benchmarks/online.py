@@ -35,6 +35,7 @@ def realtime_figures(s: BenchSettings, tmp: Path, log=print) -> list:
     from ..serving.checkpoint import save_checkpoint
     from ..pipelines.hil_online import REALTIME_THREAD_PRIORITY
     from ..pipelines.processes import isolated_ros_env
+    from ..serving.signing import make_session_keys
 
     bag = Path("bags/mix.db3")
     prior = tmp / "prior.pt"
@@ -44,7 +45,8 @@ def realtime_figures(s: BenchSettings, tmp: Path, log=print) -> list:
     episodes = int(seconds * CONTROL_HZ / 100) + 20  # the sim outlasts the probe
     arguments = {"bag": bag, "prior": prior, "checkpoint": prior, "out": tmp / "online", "mode": "realtime",
                  "paced_every": 0, "publish_every": REALTIME_PUBLISH_EVERY, "episodes": episodes,
-                 "snapshot_every": 0, "learner_nice": 10, "thread_priority": REALTIME_THREAD_PRIORITY}
+                 "snapshot_every": 0, "learner_nice": 10, "thread_priority": REALTIME_THREAD_PRIORITY,
+                 "keys": make_session_keys(tmp / "online" / "keys").signing_key.parent}
     env = isolated_ros_env(domain_id=int(os.environ["ROS_DOMAIN_ID"]))  # the probe's domain (isolate() chose it)
     with LaunchedProcesses.of("pusher_bringup", "online.launch.yaml", arguments, env, tmp / "logs") as launched:
         launched.start(ready={"learner": "learning from", "policy": "serving", "recorder": "recording"}, timeout=120)

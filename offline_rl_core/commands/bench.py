@@ -21,7 +21,7 @@ def register(subparsers) -> None:
     )
     p.add_argument("--quick", action="store_true", help="short runs (under 3 minutes on 2 cores)")
     p.add_argument("--json", metavar="PATH", help="write the results as JSON")
-    p.add_argument("--only", metavar="GROUPS", help="comma-separated subset of train,decode,eval,serve,record,online")
+    p.add_argument("--only", metavar="GROUPS", help="comma-separated subset of train,decode,eval,serve,record,online,sweep,fleet")
     p.add_argument("--threads", type=int, default=None,
                    help="threads for every contender: torch's for the references, the step's for ours (default: each one's own default)")
     p.add_argument("--device", default="cpu",

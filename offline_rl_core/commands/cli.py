@@ -21,10 +21,13 @@ COMMAND_MODULES = (
     "train",
     "eval",
     "experiment",
+    "sweep",
     "export_onnx",
     "bench",
     "hil",
     "classifier",
+    "weights_key",
+    "sros2",
 )
 
 

@@ -9,11 +9,10 @@ from ..common.errors import UserError
 from ..common.atomic import write_json_atomic
 from ..evaluation.rollouts import evaluate_policy, format_rate
 from ..common.output_paths import check_output_file
-from ..serving.checkpoint import load_checkpoint
-from ..serving.policy import LoadedPolicy
+from ..serving.policy import load_policy
 from ..common.seeds import HELD_OUT, seed_arg
 from ..task.envs import make_env
-from ..task.spec import DEFAULT_TASK, TaskSpec, load_task
+from ..task.spec import DEFAULT_TASK, load_task
 
 
 def register(subparsers) -> None:
@@ -38,15 +37,6 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-def policy_of_task(path, task: TaskSpec) -> LoadedPolicy:
-    """A checkpoint's policy, refused in one line where its sizes are not the task's."""
-    ckpt = load_checkpoint(path)
-    if int(ckpt["obs_dim"]) != task.obs_dim or int(ckpt["act_dim"]) != task.act_dim:
-        raise UserError(f"{path}: checkpoint has obs_dim={ckpt['obs_dim']}, act_dim={ckpt['act_dim']}; "
-                        f"task {task.name} needs obs_dim={task.obs_dim}, act_dim={task.act_dim}")
-    return LoadedPolicy(ckpt, source=str(path))
-
-
 def run(args: argparse.Namespace) -> int:
     if args.episodes < 1:
         raise UserError(f"--episodes must be >= 1, got {args.episodes}")
@@ -54,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
         check_output_file(args.json, "--json")
     task = load_task(args.task)
     make_env(task)  # a task no sim hosts: said before the checkpoint is read
-    policy = None if args.expert else policy_of_task(args.checkpoint, task)
+    policy = None if args.expert else load_policy(args.checkpoint, task)
     result = evaluate_policy(policy, args.episodes, args.seed, batched=not args.sequential,
                              checkpoint=None if args.expert else str(args.checkpoint), task=task)
     if task.name != DEFAULT_TASK:

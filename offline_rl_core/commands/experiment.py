@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 
 from ..common.errors import RunFailed, UserError
 from ..common.output_paths import check_output_dir
 from ..common.seeds import seed_arg
+from .sweep import add_engine_arguments, engine_of
 from ..runs.experiment import ExperimentConfig, format_table, run_experiment, summary_rows, verdict
 from ..task.envs import make_env
 from ..task.spec import BUILTIN_DIR, load_task
@@ -47,6 +49,7 @@ def register(subparsers) -> None:
     p.add_argument("--task", default=None, metavar="NAME_OR_FILE",
                    help="the task whose dataset is collected and on which both learners are evaluated: a built-in "
                         "task or a task file with a sim section (default: pusher_reach, the chapter's)")
+    add_engine_arguments(p)
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
     p.add_argument("--resume", action="store_true",
                    help="continue a killed experiment (same flags) from the resume points its training jobs left, "
@@ -74,9 +77,12 @@ def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
         overrides["task"] = str(task.path.resolve()) if task.path and task.path.parent != BUILTIN_DIR else task.name
     if args.budget_s is not None and not args.budget_s > 0:
         raise UserError(f"--budget-s must be > 0 seconds, got {args.budget_s}")
+    overrides["engine"] = engine_of(args)
     if args.workers is not None:
         if args.workers < 1:
             raise UserError(f"--workers must be >= 1, got {args.workers}")
+        if overrides["engine"] == "ray":
+            raise UserError("--workers is for --engine local; on Ray each (learner, seed) run takes one of the cluster's CPUs")
         overrides["workers"] = args.workers
     for name in ("episodes", "steps"):
         value = getattr(args, name)
@@ -87,14 +93,24 @@ def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
     return ExperimentConfig.smoke_settings(**overrides) if args.smoke else ExperimentConfig(**overrides)
 
 
+def _engine(cfg: ExperimentConfig, address: str | None):
+    """Ray connected for the block (``--engine ray``), or nothing to connect."""
+    if cfg.engine != "ray":
+        return contextlib.nullcontext()
+    from ..runs.ray_engine import connected
+
+    return connected(address)
+
+
 def run(args: argparse.Namespace) -> int:
     check_output_dir(args.out, "--out")
     cfg = config_from_args(args)
     if args.resume_every <= 0:
         raise UserError(f"--resume-every must be > 0, got {args.resume_every}")
     try:
-        outcomes = run_experiment(cfg, args.out, log=lambda line: print(line, flush=True),
-                                  resume=args.resume, resume_every=args.resume_every)
+        with _engine(cfg, args.address):
+            outcomes = run_experiment(cfg, args.out, log=lambda line: print(line, flush=True),
+                                      resume=args.resume, resume_every=args.resume_every)
     except RunFailed as exc:
         raise RunFailed(f"{exc}; the same command with --resume continues from the last resume points") from None
     rows = summary_rows(cfg, outcomes)

@@ -16,7 +16,7 @@ from ..common.seeds import seed_arg
 OFFLINE_ONLY = ("rounds", "episodes", "steps", "correction_ratio", "beta", "patience", "hold_steps", "grace_steps",
                 "noise", "reaction_delay")
 ONLINE_ONLY = ("env_steps", "corrector", "mode", "prior_algo", "no_prior", "utd", "publish_every", "eval_every",
-               "in_process", "task", "success", "end_on_success")
+               "in_process", "success", "end_on_success")
 
 
 def _resolve_mode_flags(args) -> None:
@@ -41,7 +41,7 @@ def _run(args) -> int:
     if args.online:
         return _run_online(args)
     cfg = HilConfig(
-        out=args.out, rounds=args.rounds, episodes=args.episodes, prior=args.prior, bags=args.bag,
+        out=args.out, rounds=args.rounds, episodes=args.episodes, prior=args.prior, bags=args.bag, task=args.task,
         seed=args.seed, prior_steps=args.prior_steps, steps=args.steps, correction_ratio=args.correction_ratio,
         eval_episodes=args.eval_episodes, eval_seed=args.eval_seed, patience=args.patience,
         hold_steps=args.hold_steps, grace_steps=args.grace_steps, beta=args.beta, noise=args.noise, reaction_delay=args.reaction_delay,
@@ -57,9 +57,9 @@ def _run_online(args) -> int:
         out=args.out, env_steps=args.env_steps,
         seed=args.seed, prior=args.prior, no_prior=args.no_prior, prior_steps=args.prior_steps,
         prior_algo=args.prior_algo,
-        bags=args.bag, corrector=args.corrector, mode=args.mode, utd=args.utd,
+        bags=args.bag, task=args.task, corrector=args.corrector, mode=args.mode, utd=args.utd,
         publish_every=args.publish_every, eval_every=args.eval_every, eval_episodes=args.eval_episodes,
-        eval_seed=args.eval_seed, in_process=args.in_process, task=args.task, success=args.success,
+        eval_seed=args.eval_seed, in_process=args.in_process, success=args.success,
         end_on_success=args.end_on_success)
     summary = run_hil_online(cfg)
     print(json.dumps({k: summary[k] for k in ("prior_success", "final_success", "final_ci", "to", "intervention_rate",
@@ -84,6 +84,9 @@ def register(subparsers) -> None:
                    "runs/demo/awac/policy.pt when it was trained so)")
     p.add_argument("--bag", action="append", metavar="PATH",
                    help="offline bag(s) of the prior (default: bags/mix.db3 here, else the project's)")
+    p.add_argument("--task", metavar="NAME_OR_FILE",
+                   help="the task: a built-in task or a task file, given to the sim, policy, corrector, learner and "
+                        "trainer (default: the one the bag records, else pusher_reach)")
     p.add_argument("--seed", type=seed_arg, default=d.seed, help="seed of training and of the corrector (default: %(default)s)")
     p.add_argument("--prior-steps", type=int, default=d.prior_steps, help="steps of the prior's training (default: %(default)s)")
     p.add_argument("--eval-episodes", type=int, default=d.eval_episodes,
@@ -124,8 +127,6 @@ def register(subparsers) -> None:
                    help=f"environment steps between points of the learning curve (default: {od.eval_every})")
     o.add_argument("--in-process", action="store_true", default=None, help="the same stage in one process, without ROS "
                    "(the reference; ablations)")
-    o.add_argument("--task", metavar="NAME_OR_FILE", help="with --in-process: the task (a built-in such as pusher_push, "
-                   "or a task file; default: pusher_reach); --bag then holds that task's data")
     o.add_argument("--success", metavar="CLASSIFIER", help="with --in-process: a success classifier (`offline-rl "
                    "classifier train`) judges each state's success for the learner's reward and the episode's end, "
                    "instead of the simulator (which is still counted beside it, never trained on)")

@@ -26,3 +26,23 @@ def sigterm_as_interrupt() -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+@contextmanager
+def signals_deferred(signals=(signal.SIGINT, signal.SIGTERM)) -> Iterator[None]:
+    """Within the block, SIGINT/SIGTERM wait: each one that came is raised again after it,
+    with the handlers it had before, so work that must finish (a bag's last transaction) is
+    never cut in the middle. Only the main thread can set handlers: elsewhere nothing changes
+    (signals are handled on the main thread anyway)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    came: list[int] = []
+    previous = {sig: signal.signal(sig, lambda signum, frame: came.append(signum)) for sig in signals}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        for sig in dict.fromkeys(came):
+            signal.raise_signal(sig)

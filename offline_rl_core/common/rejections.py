@@ -28,6 +28,8 @@ REASONS = (
     "bad layout",       # a multi-array whose layout is not the one expected
     "unknown source",   # a transition's source code is none of the known ones
     "bad weights",      # a weights message that is not a loadable policy for this task
+    "unsigned weights",  # a weights message not signed by this session's learner
+    "weights version",  # signed weights that are unversioned or too far past the acting version
     "bad checkpoint",   # a checkpoint file replaced by one that does not load
     "non-finite action",  # the policy's output for a state was not finite: no answer sent
     "policy error",     # the policy raised on a state (a bug or a checkpoint no check caught): no answer sent

@@ -65,3 +65,10 @@ def task_of_bag(path: str | os.PathLike, given: str | os.PathLike | TaskSpec | N
         raise UserError(f"{path}: the bag records task {recorded.name} (digest {recorded.digest}); "
                         f"--task gives {task.name} (digest {task.digest})")
     return task
+
+
+def check_layout_fits(path: str | os.PathLike, obs_dim: int, act_dim: int, task: TaskSpec) -> None:
+    """Refuse (one line naming the bag and both layouts) transitions whose sizes are not the task's."""
+    if (obs_dim, act_dim) != (task.obs_dim, task.act_dim):
+        raise UserError(f"{path}: its transitions have obs {obs_dim}, action {act_dim}; task {task.name} "
+                        f"({task.source_file()}, digest {task.digest}) has obs {task.obs_dim}, action {task.act_dim}")

@@ -49,9 +49,13 @@ class MemberData:
 
     FIELDS = ("obs", "action", "reward", "next_obs", "not_done", "actor_mask", "human")
 
-    def __init__(self, datasets: list[Transitions], device: str = "cpu", capacity: int | None = None):
+    def __init__(self, datasets: list[Transitions], device: str = "cpu", capacity: int | None = None,
+                 fifo_from: int | None = None):
         """``capacity``: rows to allocate (one shared dataset only), so ``append`` can add
-        transitions in place (the online learner's buffer) without new tensors."""
+        transitions in place (the online learner's buffer) without new tensors.
+        ``fifo_from``: the rows from this index on are a ring: once the buffer is full, each
+        appended row replaces the oldest appended one (rows before it, the offline data,
+        stay); without it, appending past ``capacity`` raises."""
         self.members = len(datasets)
         self.shared = all(d is datasets[0] for d in datasets)
         sources = [datasets[0]] if self.shared else datasets
@@ -62,6 +66,10 @@ class MemberData:
                 raise ValueError("capacity needs one shared dataset and at least its rows")
             n_max = capacity
         self.capacity = n_max
+        if fifo_from is not None and not 0 <= fifo_from < n_max:
+            raise ValueError("fifo_from must leave at least one row of the capacity for the ring")
+        self.fifo_from = fifo_from
+        self.appended = 0  # rows appended so far (ring: also those since replaced)
         columns = [self.columns(d) for d in sources]
         for name in self.FIELDS:
             column = columns[0][name]
@@ -94,16 +102,37 @@ class MemberData:
             "human": f32(d.source == SOURCE_HUMAN, 1),
         }
 
+    @property
+    def ring_rows(self) -> int:
+        """Rows of the ring (0 without one)."""
+        return 0 if self.fifo_from is None else self.capacity - self.fifo_from
+
+    def ring_slot(self, k: int) -> int:
+        """The row that appended row ``k`` (counted from 0) is, or was, written to."""
+        return self.fifo_from + k % self.ring_rows
+
     def append(self, rows: Transitions) -> None:
-        """Write ``rows`` after the current rows, in place (one shared dataset)."""
+        """Write ``rows`` after the current rows, in place (one shared dataset); with a ring,
+        over the oldest appended rows once it is full."""
         start, n = self.sizes[0], len(rows)
-        if start + n > self.capacity:
+        if self.fifo_from is None and start + n > self.capacity:
             raise ValueError(f"buffer full: {start} + {n} rows > capacity {self.capacity}")
         cols = self.columns(rows)
         cols["actor_mask"][:] = 1.0  # takeovers are judged offline, over whole episodes
-        for name in self.FIELDS:
-            getattr(self, name)[0, start: start + n] = torch.from_numpy(cols[name]).to(self.obs.device)
-        self.sizes = [start + n] * self.members
+        first, skip = self.appended, 0
+        if self.fifo_from is not None and n > self.ring_rows:  # only the newest fit
+            skip = n - self.ring_rows
+        k = first + skip
+        while k < first + n:
+            slot = self.ring_slot(k) if self.fifo_from is not None else start + (k - first)
+            run = first + n - k if self.fifo_from is None else min(first + n - k, self.capacity - slot)
+            for name in self.FIELDS:
+                chunk = torch.from_numpy(cols[name][k - first: k - first + run])
+                getattr(self, name)[0, slot: slot + run] = chunk.to(self.obs.device)
+            k += run
+        self.appended += n
+        held = start + n if self.fifo_from is None else self.fifo_from + min(self.appended, self.ring_rows)
+        self.sizes = [held] * self.members
 
     def gather(self, idx: torch.Tensor) -> Batch:
         """idx: (M, B) row indices, one row of indices per member."""

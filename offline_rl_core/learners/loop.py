@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from ..common.errors import UserError
-from ..serving.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION
+from ..serving.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, task_field
 from ..serving.policy import LoadedPolicy
 from ..data.transitions import Transitions
 from .awac import AWAC
@@ -111,8 +111,9 @@ def train_seeds(
     ``threads_now()``: the threads the steps may use from now on (asked every
     ``THREADS_CHECK_EVERY`` steps unless ``cfg.threads`` fixes them), e.g. more once the
     runs beside this one have finished; the result is the same bytes either way.
-    ``task`` (a ``TaskSpec``; default pusher_reach): the task the data is of, which says where
-    an episode ends at the goal (filtered BC by goal)."""
+    ``task`` (a ``TaskSpec``): the task the data is of, recorded in every checkpoint
+    (``checkpoint["task"]``), which also says where an episode ends at the goal (filtered BC by
+    goal; default pusher_reach's columns); the data's sizes must be its observation and action sizes."""
     seeds = [int(s) for s in seeds]
     if not seeds:
         raise ValueError("no seeds to train")
@@ -124,6 +125,9 @@ def train_seeds(
         if len(d) == 0:
             raise ValueError("cannot train on an empty dataset")
     obs_dim, act_dim = datasets[0].obs.shape[1], datasets[0].action.shape[1]
+    if task is not None and (obs_dim, act_dim) != (task.obs_dim, task.act_dim):
+        raise ValueError(f"the data has obs {obs_dim}, action {act_dim}; task {task.name} has obs {task.obs_dim}, "
+                         f"action {task.act_dim}")
 
     gens = [seed_generators(s) for s in seeds]
     learner = LEARNERS[cfg.algo](cfg, len(seeds), [g[0] for g in gens], obs_dim, act_dim)
@@ -219,6 +223,8 @@ def train_seeds(
             "train_threads": getattr(step_once, "threads", None),
             "kernels": learner.policy.kernels if cfg.device == "cpu" else cfg.device,
         }
+        if task is not None:
+            checkpoint["task"] = task_field(task)
         results.append(TrainResult(seed, LoadedPolicy(checkpoint), checkpoint, histories[m],
                                    None if mean_abs_q is None else float(mean_abs_q[m]), step_kind))
     return results

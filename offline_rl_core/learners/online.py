@@ -12,6 +12,15 @@ first ``j // utd + 1`` online transitions, and weights version v is cut after ex
 the same weights however fast or slow the learner was, and an actor that waits for
 version v (lockstep over ROS) makes the whole procedure reproducible.
 
+The online buffer never fills up: it keeps the newest ``capacity`` live transitions,
+the oldest evicted first (FIFO), while the offline rows stay whole, so a session of any
+length runs (at 50 Hz the default ``capacity`` is a little over an hour of the arm's own
+steps). Update j samples among the newest ``capacity`` of the first ``j // utd + 1``
+online transitions. Those are still held while the learner lags the stream by at most
+``LAG_VERSIONS * publish_every`` transitions (the ring has that much room beyond
+``capacity``); a learner further behind samples some newer transitions in place of
+evicted ones, which changes its weights but never stops it.
+
 ``state()`` / ``OnlineLearner.restore`` hold everything (networks, optimisers, random
 generators, counters and the online buffer), so a learner killed mid-run resumes where
 it last saved.
@@ -24,13 +33,15 @@ from dataclasses import asdict, dataclass
 
 import torch
 
-from ..serving.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION
-from ..data.transitions import Transitions
+from ..serving.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, task_field
+from ..data.transitions import SOURCE_HUMAN, Transitions
 from .config import TrainConfig
 from .data import MemberData
 from .loop import LEARNERS, seed_generators, torch_threads
 from .resume import learner_training_state, load_learner_training_state
 from .stepper import intra_op_threads, make_step
+
+LAG_VERSIONS = 16  # weights versions the learner may lag the stream with its samples intact
 
 
 @dataclass
@@ -38,7 +49,7 @@ class OnlineSettings:
     utd: int = 2  # gradient steps per environment step
     offline_ratio: float = 0.5  # share of each batch drawn from the offline data
     publish_every: int = 50  # environment steps between weights versions (1 s at 50 Hz)
-    capacity: int = 200_000  # online transitions kept
+    capacity: int = 200_000  # online transitions sampled from: the newest, older ones evicted
 
     def __post_init__(self) -> None:
         if self.utd < 1 or self.publish_every < 1 or self.capacity < 1:
@@ -49,10 +60,13 @@ class OnlineSettings:
 
 class OnlineSampler:
     """(1, B) row indices: ``offline_ratio`` of them uniform over the offline rows, the
-    rest uniform over the first ``bound`` online rows (all offline while there are none)."""
+    rest uniform over the newest ``window`` of the first ``bound`` online transitions
+    (all offline while there are none), each online transition in its ring slot."""
 
-    def __init__(self, n_offline: int, batch_size: int, offline_ratio: float, generator: torch.Generator):
+    def __init__(self, n_offline: int, batch_size: int, offline_ratio: float, generator: torch.Generator,
+                 window: int, ring: int):
         self.n_offline, self.batch_size, self.gen = n_offline, batch_size, generator
+        self.window, self.ring = window, ring
         self.n_online_rows = batch_size - int(round(offline_ratio * batch_size))
         if n_offline == 0:
             self.n_online_rows = batch_size
@@ -63,7 +77,8 @@ class OnlineSampler:
         if n_on < self.batch_size:
             parts.append(torch.randint(0, self.n_offline, (self.batch_size - n_on,), generator=self.gen))
         if n_on:
-            parts.append(torch.randint(0, bound, (n_on,), generator=self.gen) + self.n_offline)
+            k = torch.randint(max(0, bound - self.window), bound, (n_on,), generator=self.gen)
+            parts.append(k % self.ring + self.n_offline)
         return torch.cat(parts).unsqueeze(0)
 
 
@@ -75,11 +90,16 @@ class OnlineLearner:
     """One learner (``cfg.algo``, SAC by default) trained on offline + live transitions."""
 
     def __init__(self, offline: Transitions, cfg: TrainConfig, settings: OnlineSettings, seed: int,
-                 prior: dict | None = None):
+                 prior: dict | None = None, task=None):
+        """``task`` (a ``TaskSpec``): the task of the data, recorded in every weights version."""
         if len(offline) == 0 and settings.offline_ratio > 0:
             raise ValueError("no offline transitions to sample from (set offline_ratio 0 to learn from scratch)")
         self.cfg, self.settings, self.seed = cfg, settings, int(seed)
         obs_dim, act_dim = offline.obs.shape[1], offline.action.shape[1]
+        if task is not None and (obs_dim, act_dim) != (task.obs_dim, task.act_dim):
+            raise ValueError(f"the offline data has obs {obs_dim}, action {act_dim}; task {task.name} has obs "
+                             f"{task.obs_dim}, action {task.act_dim}")
+        self.task = None if task is None else task_field(task)
         init_gen, sample_gen = seed_generators(seed)
         with torch_threads(intra_op_threads(cfg.threads)):
             self.learner = LEARNERS[cfg.algo](cfg, 1, [init_gen], obs_dim, act_dim)
@@ -92,13 +112,16 @@ class OnlineLearner:
                     raise PriorMismatch(f"the prior's learner_state does not fit a {cfg.algo} learner "
                                         f"of hidden width {cfg.hidden} ({reason})") from None
         self.prior_algorithm = None if prior is None else prior.get("algorithm")
-        self.data = MemberData([offline], capacity=len(offline) + settings.capacity)
+        ring = settings.capacity + LAG_VERSIONS * settings.publish_every
+        self.data = MemberData([offline], capacity=len(offline) + ring, fifo_from=len(offline))
         self.n_offline = len(offline)
         self.sample_gen = sample_gen
-        self.sampler = OnlineSampler(self.n_offline, cfg.batch_size, settings.offline_ratio, sample_gen)
+        self.sampler = OnlineSampler(self.n_offline, cfg.batch_size, settings.offline_ratio, sample_gen,
+                                     settings.capacity, ring)
         self.step_once = make_step(self.learner.update, self.data, (1, cfg.batch_size), cfg.device, cfg.cuda_graph,
                                    cfg.threads)
         self.n_online = 0
+        self.n_human_seen = 0  # live transitions a person chose, evicted ones included
         self.updates = 0
         self.version = 0
         self.losses: dict[str, float] = {}
@@ -110,11 +133,21 @@ class OnlineLearner:
         if len(rows):
             self.data.append(rows)
             self.n_online += len(rows)
+            self.n_human_seen += int((rows.source == SOURCE_HUMAN).sum())
 
     @property
     def n_human(self) -> int:
         """Live transitions a person chose (source human): their takeovers' steps."""
-        return int(self.data.human[0, self.n_offline: self.n_offline + self.n_online].sum())
+        return self.n_human_seen
+
+    @property
+    def n_evicted(self) -> int:
+        """Live transitions no longer held (the oldest, replaced by newer ones)."""
+        return max(0, self.n_online - self.data.ring_rows)
+
+    def held_online(self) -> range:
+        """The online transitions still held, by index (oldest first)."""
+        return range(self.n_evicted, self.n_online)
 
     @property
     def updates_owed(self) -> int:
@@ -175,6 +208,7 @@ class OnlineLearner:
             "online": asdict(self.settings),
             "seed": self.seed,
             "prior_algorithm": self.prior_algorithm,
+            **({"task": self.task} if self.task is not None else {}),
         }
 
     def n_online_at_version(self, version: int) -> int:
@@ -192,9 +226,11 @@ class OnlineLearner:
             "learner": learner_training_state(self.learner),
             "sample_generator": self.sample_gen.get_state(),
             "n_online": self.n_online,
+            "n_human": self.n_human_seen,
             "updates": self.updates,
             "train_version": self.version,
-            "online_rows": {name: getattr(self.data, name)[0, self.n_offline: self.n_offline + self.n_online].clone()
+            # the online rows still held, oldest first (the first is transition n_online - len)
+            "online_rows": {name: getattr(self.data, name)[0, self._held_slots()].clone()
                             for name in MemberData.FIELDS},
         }
 
@@ -207,7 +243,20 @@ class OnlineLearner:
         load_learner_training_state(self.learner, state["learner"])
         self.sample_gen.set_state(state["sample_generator"])
         n = int(state["n_online"])
-        for name in MemberData.FIELDS:
-            getattr(self.data, name)[0, self.n_offline: self.n_offline + n] = state["online_rows"][name]
-        self.data.sizes = [self.n_offline + n]
-        self.n_online, self.updates, self.version = n, int(state["updates"]), int(state["train_version"])
+        rows = state["online_rows"]
+        self.data.appended = n
+        self.n_online = n
+        slots = self._held_slots()
+        if len(rows["obs"]) < len(slots):
+            raise ValueError(f"the saved state holds {len(rows['obs'])} online transitions, this learner's buffer "
+                             f"{len(slots)} (resume with the capacity it was saved with)")
+        for name in MemberData.FIELDS:  # a state saved with a larger buffer: its newest rows
+            getattr(self.data, name)[0, slots] = rows[name][len(rows[name]) - len(slots):]
+        self.data.sizes = [self.n_offline + min(n, self.data.ring_rows)]
+        human = state.get("n_human")  # saved since the buffer became a ring; before, every row was held
+        self.n_human_seen = int(rows["human"].sum()) if human is None else int(human)
+        self.updates, self.version = int(state["updates"]), int(state["train_version"])
+
+    def _held_slots(self) -> torch.Tensor:
+        held = self.held_online()
+        return torch.arange(held.start, held.stop) % self.data.ring_rows + self.n_offline

@@ -4,9 +4,10 @@ The nodes hand over a message's fields (``name``, ``effort``, ``position``, ...)
 sequences and get back arrays or a :class:`~offline_rl_core.common.rejections.Rejection` (why the
 message is ignored), so the validation is written once and tested without DDS.
 
-Joint names: an empty ``name`` means the values are in the arm's order (shoulder, elbow);
-otherwise every joint is named once, as many names as values, and both of the arm's joints
-are among them (a state may name more joints: the arm's are picked out).
+Joint names: an empty ``name`` means the values are in the arm's order (``joints``: the
+task's state or command joints; by default pusher_reach's shoulder, elbow); otherwise every
+joint is named once, as many names as values, and all of the arm's joints are among them
+(a state may name more joints: the arm's are picked out, in the arm's order).
 """
 
 from __future__ import annotations
@@ -24,28 +25,29 @@ VALUE_LIMIT = 1e4
 _ARM = ", ".join(JOINT_NAMES)
 
 
-def _joint_index(names, n_values: int, what: str, joints=JOINT_NAMES) -> tuple[list[int] | None, Rejection | None]:
-    """Where ``joints`` (default: shoulder and elbow) are among ``n_values`` values named ``names``."""
+def joint_index(names, n_values: int, what: str,
+                joints: tuple[str, ...] = JOINT_NAMES) -> tuple[list[int] | None, Rejection | None]:
+    """Where each of ``joints`` is among ``n_values`` values named ``names``."""
     names = list(names)
-    arm = _ARM if joints is JOINT_NAMES else _listed(joints)
     if not names:
         if n_values != len(joints):
             return None, Rejection("wrong length",
-                                   f"{n_values} {what} without joint names, expected {len(joints)} ({arm})")
+                                   f"{n_values} {what} without joint names, expected {len(joints)} ({_arm(joints)})")
         return list(range(len(joints))), None
     if len(names) != n_values:
         return None, Rejection("wrong length", f"{len(names)} joint names but {n_values} {what}")
     if len(set(names)) != len(names):
         return None, Rejection("duplicate joints", f"a joint is named twice in {_shown(names)}")
-    if not set(joints) <= set(names):
-        return None, Rejection("unknown joints", f"joint names {_shown(names)} lack {arm}")
+    missing = [j for j in joints if j not in names]
+    if missing:
+        return None, Rejection("unknown joints", f"joint names {_shown(names)} lack {_arm(missing)}")
     return [names.index(j) for j in joints], None
 
 
-def _listed(joints) -> str:
-    """A task's joints for a log line: all of a short list, else the first few and a count."""
+def _arm(joints) -> str:
+    """Joint names as an error line shows them (a few)."""
     joints = list(joints)
-    return ", ".join(joints) if len(joints) <= 4 else f"{', '.join(joints[:3])}, ... ({len(joints)} joints)"
+    return ", ".join(joints[:8]) + (f", ... ({len(joints)} joints)" if len(joints) > 8 else "")
 
 
 def _shown(names: list) -> str:
@@ -63,18 +65,18 @@ def _bad_values(values: np.ndarray, what: str) -> Rejection | None:
 
 
 def action_from_effort(names, effort, allow_empty: bool = False,
-                       joints=JOINT_NAMES) -> tuple[np.ndarray | None, Rejection | None]:
-    """A command's action in [-1, 1] (float32, clipped), or (None, why it is ignored).
+                       joints: tuple[str, ...] = JOINT_NAMES) -> tuple[np.ndarray | None, Rejection | None]:
+    """A command's action in [-1, 1] (float32, clipped, in ``joints`` order: the task's
+    command joints), or (None, why it is ignored).
 
-    ``joints``: the action's joints, in order (a task's ``command.joints``; default the
-    pusher's). An empty effort is (None, None) where ``allow_empty`` (a teleop *yield*).
+    An empty effort is (None, None) where ``allow_empty`` (a teleop *yield*).
     """
     if len(effort) == 0 and allow_empty:
         return None, None
     if len(effort) != len(joints):
-        arm = _ARM if joints is JOINT_NAMES else _listed(joints)
-        return None, Rejection("wrong length", f"effort has {len(effort)} values, expected {len(joints)} ({arm})")
-    index, problem = _joint_index(names, len(effort), "efforts", joints)
+        return None, Rejection("wrong length", f"effort has {len(effort)} values, expected {len(joints)} "
+                                               f"({_arm(joints)})")
+    index, problem = joint_index(names, len(effort), "efforts", joints)
     if problem:
         return None, problem
     action = np.array(effort, dtype=np.float64)[index]
@@ -83,12 +85,17 @@ def action_from_effort(names, effort, allow_empty: bool = False,
     return np.clip(action, -1.0, 1.0).astype(np.float32), None
 
 
-def joints_from_state(names, position, velocity) -> tuple[tuple[np.ndarray, np.ndarray] | None, Rejection | None]:
-    """(position, velocity) of shoulder and elbow from a JointState's fields, or (None, why)."""
+def joints_from_state(names, position, velocity, joints: tuple[str, ...] = JOINT_NAMES,
+                      velocity_optional: bool = False) -> tuple[tuple[np.ndarray, np.ndarray] | None, Rejection | None]:
+    """(position, velocity) of ``joints`` (the task's state joints, in that order) from a
+    JointState's fields, or (None, why). ``velocity_optional``: a state without velocities
+    (a position-only arm) reads as zero velocities."""
     position, velocity = np.asarray(position, np.float64), np.asarray(velocity, np.float64)
+    if velocity_optional and len(velocity) == 0:
+        velocity = np.zeros_like(position)
     if len(position) != len(velocity):
         return None, Rejection("wrong length", f"{len(position)} positions but {len(velocity)} velocities")
-    index, problem = _joint_index(names, len(position), "positions")
+    index, problem = joint_index(names, len(position), "positions", joints)
     if problem:
         return None, problem
     position, velocity = position[index], velocity[index]
@@ -100,9 +107,22 @@ def joints_from_state(names, position, velocity) -> tuple[tuple[np.ndarray, np.n
 
 def point_xy(x: float, y: float, what: str = "point") -> tuple[np.ndarray | None, Rejection | None]:
     """A target's or fingertip's planar position, or (None, why)."""
-    xy = np.array([x, y], np.float64)
-    problem = _bad_values(xy, f"{what} is")
-    return (None, problem) if problem else (xy, None)
+    return checked_vector([x, y], what)
+
+
+def checked_vector(values, what: str = "point") -> tuple[np.ndarray | None, Rejection | None]:
+    """A goal's or tracked point's values (float64), or (None, why): finite and within range."""
+    vector = np.array(values, np.float64).reshape(-1)
+    problem = _bad_values(vector, f"{what} is")
+    return (None, problem) if problem else (vector, None)
+
+
+def command_from_action(command, action) -> np.ndarray:
+    """What the controller takes for an action in [-1, 1] (``command``: a task's
+    ``CommandSpec``): ``offset + scale * action`` per joint, in the controller's joint order
+    (pusher_reach: torques in N·m, the action times the motors' 0.5 N·m gear)."""
+    action = np.clip(np.asarray(action, np.float64), -1.0, 1.0)
+    return np.asarray(command.scale, np.float64) * action + np.asarray(command.offset, np.float64)
 
 
 @lru_cache(maxsize=1)
@@ -140,8 +160,8 @@ def action_from_command(task, values, names=()) -> tuple[np.ndarray | None, Reje
     values = np.asarray(values, np.float64).reshape(-1)
     if not len(names) and values.size != len(joints):
         return None, Rejection("wrong length", f"{values.size} values, expected {len(joints)} "
-                                               f"({_listed(joints)}, the controller's joints)")
-    index, problem = _joint_index(names, values.size, "values", joints)
+                                               f"({_arm(joints)}, the controller's joints)")
+    index, problem = joint_index(names, values.size, "values", joints)
     if problem:
         return None, problem
     values = values[index]

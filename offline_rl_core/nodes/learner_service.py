@@ -38,7 +38,7 @@ from ..learners.config import TrainConfig
 from ..learners.online import OnlineLearner, OnlineSettings, PriorMismatch
 from .joint_messages import VALUE_LIMIT
 from ..common.output_paths import check_output_dir
-from ..serving.checkpoint import load_checkpoint, save_checkpoint
+from ..serving.checkpoint import checkpoint_task, load_checkpoint, save_checkpoint
 from ..serving.policy import policy_for_task
 from ..common.rejections import Rejection, RejectionCounter
 from ..data.transitions import LAYOUT_SLICES, SOURCE_NAMES, Transitions
@@ -54,6 +54,7 @@ class LearnerServiceConfig:
     resume: bool = False
     session_bag: str | None = None  # the session's recording: transitions missed while down
     snapshot_every: int = 0  # live transitions between kept copies of the weights (0: none)
+    task: str | None = None  # a built-in task or a task file; None: the prior's, else the bags'
     settings: OnlineSettings = field(default_factory=OnlineSettings)
     train: TrainConfig = field(default_factory=lambda: TrainConfig(algo="sac"))
 
@@ -89,19 +90,21 @@ def _count(value: float) -> bool:
 
 class LearnerService:
     def __init__(self, cfg: LearnerServiceConfig, log=print):
-        from ..runs.training_run import load_bags
+        from ..runs.training_run import load_bags, task_of_run
 
         self.cfg, self.log = cfg, log
         self.out = check_output_dir(cfg.out, "parameter out:")  # before the bags load: a bad path is refused at once
         self.out.mkdir(parents=True, exist_ok=True)
-        offline, _ = load_bags(cfg.bags)
         prior = load_checkpoint(cfg.prior) if cfg.prior else None  # validated as the policy node validates it
+        given = cfg.task or (checkpoint_task(prior) if prior is not None and "task" in prior else None)
+        self.task = task_of_run(cfg.bags, given)
+        offline, _ = load_bags(cfg.bags, task=self.task)
         if prior is not None:
-            policy_for_task(prior, cfg.prior)  # refused when its dims are not the task's
+            policy_for_task(prior, cfg.prior, self.task)  # a prior of another task: one line naming both
             if prior["hidden"] != cfg.train.hidden:
                 raise UserError(f"{cfg.prior}: the prior's hidden width is {prior['hidden']}, the learner's {cfg.train.hidden}")
         try:
-            self.learner = OnlineLearner(offline, cfg.train, cfg.settings, cfg.seed, prior)
+            self.learner = OnlineLearner(offline, cfg.train, cfg.settings, cfg.seed, prior, self.task)
         except PriorMismatch as exc:
             raise UserError(f"{cfg.prior}: {exc}") from None
         self.rejected = RejectionCounter()  # live transitions refused, by reason (never trained on)
@@ -207,6 +210,6 @@ class LearnerService:
 
     def status(self) -> dict:
         learner = self.learner
-        return {"received": learner.n_online, "updates": learner.updates, "owed": learner.updates_owed,
+        return {"received": learner.n_online, "evicted": learner.n_evicted, "updates": learner.updates, "owed": learner.updates_owed,
                 "weights_version": learner.version, "rejected": dict(self.rejected.counts),
                 "train_s": round(learner.train_seconds, 2), **{k: round(v, 5) for k, v in learner.losses.items()}}

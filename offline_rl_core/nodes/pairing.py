@@ -1,17 +1,20 @@
-"""Pairing a joint state with its target and fingertip by stamp, and judging stamps (no ROS).
+"""Pairing a joint state with its goal and tracked points by stamp, and judging stamps (no ROS).
 
 A policy (or the corrector) must answer each state with the observation the training
-data had: the state, the target of the same instant and, where the source publishes it,
-the fingertip of the same instant. They arrive on separate topics in any order.
+data had: the state, the goal of the same instant and, where the source publishes them,
+the tracked points (pusher_reach: the fingertip) of the same instant. They arrive on
+separate topics in any order.
 
-- Target: once a target has carried a state's stamp (the sim stamps each target with
-  its state), the source is known to *co-stamp*, and a state waits for the target with
-  its stamp; so the first state of an episode is never answered with the previous
-  episode's target. Otherwise (another arm) the latest target is used.
-- Fingertip: once any fingertip has been heard, a state also waits for the fingertip
-  with its stamp; without one the observation uses forward kinematics.
-- The last ``KEEP`` targets and fingertips are remembered by stamp, so one that comes
-  out of order, or a stray one with a wild stamp, never displaces the one a state needs.
+- Goal: once a goal has carried a state's stamp (the sim stamps each target with its
+  state), the source is known to *co-stamp*, and a state waits for the goal with its
+  stamp; so the first state of an episode is never answered with the previous episode's
+  goal. Otherwise (another arm) the latest goal is used.
+- A tracked point: once one has carried the stamp of a state (waiting or recent), its
+  topic co-stamps and a state waits for its point too; a point topic that does not
+  co-stamp gives its latest point; a point never heard is left out of the pairing (the
+  observation takes it from forward kinematics).
+- The last ``KEEP`` goals and points are remembered by stamp, so one that comes out of
+  order, or a stray one with a wild stamp, never displaces the one a state needs.
 
 Only the latest state waits: a newer state replaces it (a controller wants the newest).
 
@@ -28,14 +31,14 @@ sim sends the next one 20 ms later) loses at most one state to it.
 from __future__ import annotations
 
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..common.rejections import Rejection
 
 NS_PER_S = 1_000_000_000
-KEEP = 32  # targets and fingertips remembered by stamp (the latest arrivals)
+KEEP = 32  # goals, points and state stamps remembered (the latest arrivals)
 # Largest forward step of a real source's stamps taken without confirmation: a lockstep
 # episode that ends early jumps to the next episode's first tick, up to 2 s of sim time.
 JUMP_S = 5.0
@@ -45,8 +48,18 @@ JUMP_S = 5.0
 class Paired:
     state: object  # whatever the caller passed with the state (the message)
     stamp: int
-    target_xy: np.ndarray
-    fingertip_xy: np.ndarray | None  # None: none published; use forward kinematics
+    goal: np.ndarray
+    points: dict[str, np.ndarray] = field(default_factory=dict)  # the tracked points heard for it
+
+    @property
+    def target_xy(self) -> np.ndarray:
+        """pusher_reach's name for the goal."""
+        return self.goal
+
+    @property
+    def fingertip_xy(self) -> np.ndarray | None:
+        """pusher_reach's fingertip, or None when none was published (forward kinematics)."""
+        return self.points.get("fingertip")
 
 
 def check_stamp(sec: int, nanosec: int) -> Rejection | None:
@@ -87,52 +100,97 @@ def _remember(store: OrderedDict, stamp: int, value) -> None:
         store.popitem(last=False)
 
 
-class StatePairing:
-    def __init__(self, use_fingertip: bool = True, jump_s: float = JUMP_S):
-        self.use_fingertip = use_fingertip
-        self.order = StampOrder(jump_s)
-        self.targets: OrderedDict[int, np.ndarray] = OrderedDict()
-        self.latest_target: np.ndarray | None = None
+class _Stream:
+    """The latest values of one topic by stamp, and whether its stamps are the states'."""
+
+    def __init__(self):
+        self.by_stamp: OrderedDict[int, np.ndarray] = OrderedDict()
+        self.latest: np.ndarray | None = None
         self.co_stamped = False
-        self.fingertips: OrderedDict[int, np.ndarray] = OrderedDict()
+
+    def add(self, stamp: int, value) -> None:
+        self.latest = np.array(value, np.float64).reshape(-1)
+        _remember(self.by_stamp, stamp, self.latest)
+
+    def value_for(self, stamp: int) -> np.ndarray | None:
+        return self.by_stamp.get(stamp) if self.co_stamped else self.latest
+
+
+class StatePairing:
+    """``points``: the names of the tracked points whose topics are paired (pusher_reach:
+    the fingertip); ``required``: those among them a state always waits for, heard or not
+    (no kinematics stands in for them)."""
+
+    def __init__(self, use_fingertip: bool = True, jump_s: float = JUMP_S, points: tuple[str, ...] | None = None,
+                 required: tuple[str, ...] = ()):
+        self.order = StampOrder(jump_s)
+        self.goal = _Stream()
+        self.points = {name: _Stream() for name in (points if points is not None else
+                                                     ("fingertip",) if use_fingertip else ())}
+        self.required = set(required)
+        self.recent_states: OrderedDict[int, None] = OrderedDict()  # stamps of the latest states
         self.pending: tuple[int, object] | None = None
+
+    @property
+    def co_stamped(self) -> bool:
+        return self.goal.co_stamped
 
     def admit(self, stamp: int) -> Rejection | None:
         """Judge a state's stamp before ``on_state`` (stale and future ones are refused)."""
         return self.order.check(stamp)
 
-    def on_target(self, stamp: int, xy) -> Paired | None:
-        self.latest_target = np.asarray(xy, np.float64)[:2].copy()
-        _remember(self.targets, stamp, self.latest_target)
+    def on_goal(self, stamp: int, value) -> Paired | None:
+        self.goal.add(stamp, value)
         if self.pending is not None and self.pending[0] == stamp:
-            self.co_stamped = True
+            self.goal.co_stamped = True
         return self._ready()
+
+    def on_point(self, name: str, stamp: int, value) -> Paired | None:
+        stream = self.points.get(name)
+        if stream is None:
+            return None
+        stream.add(stamp, value)
+        if stamp in self.recent_states:
+            stream.co_stamped = True
+        return self._ready()
+
+    def on_target(self, stamp: int, xy) -> Paired | None:
+        """pusher_reach's goal: a planar target."""
+        return self.on_goal(stamp, np.asarray(xy, np.float64)[:2])
 
     def on_fingertip(self, stamp: int, xy) -> Paired | None:
-        if not self.use_fingertip:
-            return None
-        _remember(self.fingertips, stamp, np.asarray(xy, np.float64)[:2].copy())
-        return self._ready()
+        return self.on_point("fingertip", stamp, np.asarray(xy, np.float64)[:2])
 
     def on_state(self, stamp: int, state) -> Paired | None:
-        if stamp in self.targets:
-            self.co_stamped = True
+        if stamp in self.goal.by_stamp:
+            self.goal.co_stamped = True
+        for stream in self.points.values():
+            if stamp in stream.by_stamp:
+                stream.co_stamped = True
+        _remember(self.recent_states, stamp, None)
         self.pending = (stamp, state)
         return self._ready()
 
     def _ready(self) -> Paired | None:
         """The waiting state with what it pairs with, once all has arrived."""
-        if self.pending is None or self.latest_target is None:
+        if self.pending is None or self.goal.latest is None:
             return None
         stamp, state = self.pending
-        target = self.targets.get(stamp) if self.co_stamped else self.latest_target
-        if target is None:
-            return None  # its target is still on the way
-        fingertip = self.fingertips.get(stamp)
-        if self.fingertips and fingertip is None:
-            return None  # the source publishes fingertips: wait for this state's
+        goal = self.goal.value_for(stamp)
+        if goal is None:
+            return None  # its goal is still on the way
+        points = {}
+        for name, stream in self.points.items():
+            if stream.latest is None:
+                if name in self.required:
+                    return None  # nothing stands in for it: wait until it is heard
+                continue  # never heard: kinematics
+            value = stream.value_for(stamp)
+            if value is None:
+                return None  # the source publishes this point: wait for this state's
+            points[name] = value
         self.pending = None
-        return Paired(state, stamp, target, fingertip)
+        return Paired(state, stamp, goal, points)
 
 
 def check_answer_stamp(stamp: int, current: int) -> Rejection | None:

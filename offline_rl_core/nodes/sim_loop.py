@@ -89,6 +89,7 @@ class SimLoop:
         self.episode = 0  # index of the current episode; it resets with seed + episode
         self.ticks = 0  # realtime: physics steps so far
         self.results: list[tuple[bool, float, float]] = []  # (success, final distance, return) per episode
+        self.abandoned = 0  # episodes cut short by a reset: counted as failures in the success rate
         self.ep_return = 0.0
         self.obs: np.ndarray | None = None
         self.held_action = np.zeros(self.task.act_dim, np.float32)
@@ -107,7 +108,9 @@ class SimLoop:
         return self._snapshot()
 
     def reset(self) -> ArmState:
-        """Abandon the episode and start the next (the reset service)."""
+        """Abandon the episode and start the next (the reset service): the abandoned one is
+        counted, so resets cannot hide failing episodes from the success rate."""
+        self.abandoned += 1
         self.episode += 1
         return self.start_episode()
 
@@ -193,12 +196,15 @@ class SimLoop:
 
     # ------------------------------------------------------------ results
     def summary(self) -> dict:
+        """Episodes run to their end, and ``abandoned`` ones (reset before it); the success rate
+        is over both, the distance and return over those that ended."""
         n = len(self.results)
+        abandoned = {"abandoned": self.abandoned} if self.abandoned else {}
         if n == 0:
-            return {"episodes": 0, "success_rate": 0.0, "mean_final_dist": None, "mean_return": None}
+            return {"episodes": 0, "success_rate": 0.0, "mean_final_dist": None, "mean_return": None, **abandoned}
         success, dist, ret = (np.array(col, np.float64) for col in zip(*self.results))
-        return {"episodes": n, "success_rate": float(success.mean()), "mean_final_dist": float(dist.mean()),
-                "mean_return": float(ret.mean())}
+        return {"episodes": n, "success_rate": float(success.sum() / (n + self.abandoned)),
+                "mean_final_dist": float(dist.mean()), "mean_return": float(ret.mean()), **abandoned}
 
 
 class TickTiming:

@@ -44,7 +44,8 @@ from ..common.output_paths import remove_if_empty
 from ..evaluation.rollouts import evaluate_policy
 from ..learners.config import TrainConfig
 from ..serving.checkpoint import load_checkpoint
-from ..serving.policy import load_policy
+from ..serving.policy import load_policy, policy_for_task
+from ..task.spec import BUILTIN_DIR, DEFAULT_TASK, TaskSpec, load_task
 from ros2_shim.ament_index import ros2_run
 
 from .processes import LaunchedProcesses, RosProcess, isolated_ros_env
@@ -75,6 +76,7 @@ class HilConfig:
     episodes: int = 30
     prior: str | None = None
     bags: list[str] = field(default_factory=lambda: [DEFAULT_BAG])
+    task: str | None = None  # a built-in task or a task file; None: the one the bags record, else pusher_reach
     seed: int = 0
     algo: str = "awac"
     prior_steps: int = TrainConfig.steps
@@ -120,6 +122,7 @@ class Loop:
         self.log = log
         self.env = isolated_ros_env()
         self.procs: list[RosProcess] = []
+        self.task_arg = DEFAULT_TASK  # how the nodes are told the task (task_argument)
 
     # ------------------------------------------------------------ processes
     def start(self, name: str, cmd: list[str], log_path: Path, ready: str | None = None, timeout: float = 60.0) -> RosProcess:
@@ -177,7 +180,8 @@ class Loop:
     def train(self, name: str, bags: list[str], steps: int | None, seed: int, out_dir: Path, init: str | None = None,
               correction_ratio: float | None = None, algo: str | None = None) -> Path:
         """Train with the trainer node; ``steps`` None: as many as ``--algo auto`` plans."""
-        args = ["--algo", algo or self.cfg.algo, "--seed", seed, "--out", out_dir, "--eval-episodes", 0]
+        args = ["--algo", algo or self.cfg.algo, "--task", self.task_arg, "--seed", seed, "--out", out_dir,
+                "--eval-episodes", 0]
         if steps is not None:
             args += ["--steps", steps, "--log-every", max(100, steps // 8)]
         else:
@@ -204,7 +208,7 @@ class Loop:
         # mux, corrector, recorder, then the sim, which holds its first state until the
         # recorder is matched (corrections.launch.yaml; the policy node already serves)
         launched = self.launch("corrections.launch.yaml", {
-            "with_policy": "false", "out": bag, "episodes": cfg.episodes, "seed": reset_seed,
+            "with_policy": "false", "task": self.task_arg, "out": bag, "episodes": cfg.episodes, "seed": reset_seed,
             "summary": round_dir / "sim.json", "patience": cfg.patience, "hold_steps": cfg.hold_steps,
             "grace_steps": cfg.grace_steps, "noise": float(cfg.noise), "reaction_delay": cfg.reaction_delay,
             "corrector_seed": 1000 * cfg.seed + r,
@@ -271,6 +275,35 @@ class Loop:
                 break
             time.sleep(0.1)
         raise UserError(f"the policy node did not reload {served}; see {policy_node.log_path}:\n" + _tail(policy_node.output()))
+
+
+def resolve_task(loop: Loop, given: str | None, bags: list[str], prior: str | None, out: Path,
+                 in_process: bool = False) -> TaskSpec:
+    """The task of a HIL run: ``--task``, else the bags' (``offline-rl train``'s rule); a given
+    prior must be of it. Sets how the nodes are told it (``loop.task_arg``). ``in_process``: the
+    online stage in one process, which rolls out any task a sim hosts (``task.envs``)."""
+    from ..runs.training_run import task_of_run
+
+    task = task_of_run(bags, given)
+    if prior:
+        policy_for_task(load_checkpoint(prior), prior, task)  # a prior of another task: one line naming both
+    if task.digest != load_task(DEFAULT_TASK).digest and not (in_process and task.sim):
+        raise UserError(f"task {task.name} ({task.source_file()}): offline-rl hil evaluates on pusher_reach's env "
+                        "only (hil --online --in-process: any task a sim hosts)")
+    loop.task_arg = task_argument(task, out)
+    return task
+
+
+def task_argument(task: TaskSpec, out: Path) -> str:
+    """What a node's ``task`` parameter is given for ``task``: a built-in's name, the task
+    file it was read from, or (a task only a bag records) its spec written to OUT/task.yaml."""
+    if task.path is not None and task.path.parent == BUILTIN_DIR and task.digest == load_task(task.name).digest:
+        return task.name
+    if task.path is not None and task.path.is_file() and load_task(task.path).digest == task.digest:
+        return str(task.path)
+    path = out / "task.yaml"
+    write_json_atomic(path, task.describe())  # JSON is YAML
+    return str(path)
 
 
 def _tail(text: str, lines: int = 15) -> str:
@@ -372,12 +405,13 @@ def run_hil(cfg: HilConfig, log: Callable[[str], None] = lambda s: print(s, file
     loop = Loop(cfg, log)
     with hil_session(out, loop):
         log(f"hil: {cfg.rounds} rounds x {cfg.episodes} episodes -> {out} (ROS_DOMAIN_ID {loop.env['ROS_DOMAIN_ID']})")
+        resolve_task(loop, cfg.task, cfg.bags, cfg.prior, out)
         prior_path, prior_from = resolve_prior(loop, cfg.prior, cfg.bags, cfg.seed, cfg.prior_steps, out, log)
         served = out / "policy.pt"
         with atomic_path(served) as tmp:
             shutil.copyfile(prior_path, tmp)
 
-        policy_node = loop.launch("serve.launch.yaml", {"checkpoint": served, "poll_period": 0.2,
+        policy_node = loop.launch("serve.launch.yaml", {"checkpoint": served, "task": loop.task_arg, "poll_period": 0.2,
                                                         "closed_loop": "false"}, out, ready={"policy": "serving"})["policy"]
         rows: list[dict] = []
         correction_bags: list[str] = []

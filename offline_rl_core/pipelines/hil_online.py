@@ -34,6 +34,7 @@ from ..evaluation.rollouts import evaluate_policy
 from ..runs.online_loop import EVAL_SEED, TRAIN_SEED_BASE, steps_to
 from ..serving.checkpoint import load_checkpoint
 from ..serving.policy import load_policy
+from ..serving.signing import make_session_keys
 from ..evaluation.stats import wilson_ci
 from ..data.transitions import SOURCE_HUMAN
 
@@ -55,6 +56,7 @@ class OnlineHilConfig:
     prior_algo: str = "auto"  # auto: the best prior (README, "The best prior"); awac: the chapter's
     prior_steps: int = 8000  # of an AWAC prior
     bags: list[str] = field(default_factory=lambda: [DEFAULT_BAG])
+    task: str | None = None  # a built-in task or a task file; None: the one the bags record, else pusher_reach
     corrector: str = "scripted"  # scripted | keyboard | none
     mode: str = "lockstep"  # lockstep (paced, reproducible) | realtime (50 Hz)
     utd: int = 2
@@ -64,17 +66,16 @@ class OnlineHilConfig:
     eval_seed: int = EVAL_SEED
     in_process: bool = False
     timeout: float = 4 * 3600.0
-    task: str | None = None  # in process: a built-in task or task file (None: pusher_reach)
     success: str | None = None  # in process: a success classifier judges success, not the simulator
     end_on_success: bool = False  # in process: an episode ends where success is judged
 
     def validate(self) -> None:
         if not self.in_process:
-            given = [flag for flag, value in (("--task", self.task), ("--success", self.success),
+            given = [flag for flag, value in (("--success", self.success),
                                               ("--end-on-success", self.end_on_success)) if value]
             if given:
-                raise UserError(f"{', '.join(given)}: only with --in-process (the ROS stage runs pusher_reach "
-                                "and the simulator's success)")
+                raise UserError(f"{', '.join(given)}: only with --in-process (the ROS stage judges success "
+                                "by the simulator)")
         if self.success is not None and not Path(self.success).is_file():
             raise UserError(f"--success {self.success}: no such classifier file (train one with "
                             "`offline-rl classifier train`)")
@@ -116,15 +117,16 @@ def run_hil_online(cfg: OnlineHilConfig, log: Callable[[str], None] = lambda s: 
                                                                                            flush=True)) -> dict:
     cfg.validate()
     out = Path(cfg.out)
-    from .hil import HilConfig, Loop, hil_session, resolve_prior
+    from .hil import HilConfig, Loop, hil_session, resolve_prior, resolve_task
 
     loop = Loop(HilConfig(out=str(out), seed=cfg.seed, bags=cfg.bags), log)
     t0 = time.monotonic()
     with hil_session(out, loop):
+        task = resolve_task(loop, cfg.task, cfg.bags, cfg.prior, out, in_process=cfg.in_process)
         prior_path, prior_from = (None, "none") if cfg.no_prior else resolve_prior(
             loop, cfg.prior, cfg.bags, cfg.seed, cfg.prior_steps, out, log, cfg.prior_algo)
         if cfg.in_process:
-            result = _in_process(cfg, prior_path, log)
+            result = _in_process(cfg, task, prior_path, log)
         else:
             result = _over_ros(cfg, loop, prior_path, out, log)
     summary = _summary(cfg, result, prior_path, prior_from, time.monotonic() - t0)
@@ -140,19 +142,19 @@ def run_hil_online(cfg: OnlineHilConfig, log: Callable[[str], None] = lambda s: 
 
 
 # ------------------------------------------------------------------------ in one process
-def _in_process(cfg: OnlineHilConfig, prior_path: Path | None, log) -> dict:
+def _in_process(cfg: OnlineHilConfig, task, prior_path: Path | None, log) -> dict:
     from ..learners.config import TrainConfig
     from ..learners.online import OnlineSettings
     from ..runs.online_loop import OnlineRunConfig, run_online
     from ..runs.training_run import load_bags
 
-    offline, _ = load_bags(cfg.bags)
+    offline, _ = load_bags(cfg.bags, task=task)
     prior = load_checkpoint(prior_path) if prior_path else None
     run = run_online(offline, prior, OnlineRunConfig(
         env_steps=cfg.env_steps, seed=cfg.seed, corrections=cfg.corrector != "none", eval_every=cfg.eval_every,
         eval_episodes=cfg.eval_episodes, eval_seed=cfg.eval_seed,
         settings=OnlineSettings(utd=cfg.utd, publish_every=cfg.publish_every), train=TrainConfig(algo="sac"),
-        **({} if cfg.task is None else {"task": cfg.task}), success=cfg.success, end_on_success=cfg.end_on_success),
+        task=task, success=cfg.success, end_on_success=cfg.end_on_success),
         log=log)
     return {"curve": run["curve"], "counts": run["counts"], "learner_seconds": run["wall_s"], "where": "in process"}
 
@@ -166,7 +168,7 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
     episodes = cfg.env_steps // EPISODE_STEPS
     lockstep = cfg.mode == "lockstep"
     arguments = {
-        "bag": cfg.bags[0], "prior": prior_path or "", "out": out,
+        "bag": cfg.bags[0], "prior": prior_path or "", "out": out, "task": loop.task_arg,
         # until the learner's first weights, the policy serves the prior (or the learner's initial weights)
         "checkpoint": prior_path or learner_dir / "policy.pt",
         "mode": cfg.mode, "paced_every": cfg.publish_every if lockstep else 0, "publish_every": cfg.publish_every,
@@ -179,6 +181,8 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
     }
     if len(cfg.bags) > 1:
         raise UserError("--online takes one offline bag (merge several with offline-rl dataset first)")
+    # this session's weights key pair: the policy node takes only weights the learner signed with it
+    arguments["keys"] = make_session_keys(out / "keys").signing_key.parent
     log(f"hil online: {cfg.env_steps} environment steps ({episodes} episodes, {cfg.mode}) with the "
         f"{cfg.corrector} corrector, learner utd {cfg.utd}, weights every {cfg.publish_every} steps -> {out} "
         f"(ROS_DOMAIN_ID {loop.env['ROS_DOMAIN_ID']})")

@@ -23,7 +23,6 @@ from pathlib import Path
 from typing import Callable
 
 from ..data.collect import collect_transitions
-from ..common import seeds
 from ..common.seeds import eval_reset_seeds
 from ..common.atomic import write_json_atomic, write_text_atomic
 from ..evaluation.rollouts import RolloutResult, format_rate, round6, rollout_task
@@ -32,6 +31,7 @@ from .parallel import TrainJob, run_jobs
 from ..learners.resume import ResumePoints
 from ..common.machine import available_cores
 from ..serving.checkpoint import save_checkpoint
+from ..task.spec import TaskSpec
 from ..evaluation.stats import excludes_zero, newcombe_diff_ci, wilson_ci
 from ..task.spec import DEFAULT_TASK, load_task
 
@@ -64,6 +64,9 @@ class ExperimentConfig:
     # None: ``steps`` (for 'auto': the chapter's AWAC loop time on this machine)
     budget_s: float | None = None
     task: str = DEFAULT_TASK  # the task collected from and evaluated on (a built-in name or a task file)
+    # where the training jobs run: "local" (worker processes of this machine) or "ray"
+    # (Ray tasks on the cluster connected by ``ray_engine.connected``); same results
+    engine: str = "local"
 
     @classmethod
     def smoke_settings(cls, **overrides) -> "ExperimentConfig":
@@ -187,14 +190,16 @@ def run_experiment(cfg: ExperimentConfig, out_dir: str | Path, log: Callable[[st
 
     def resume_points(role: str, job_seeds: list[int]) -> ResumePoints:
         where = seed_dirs[job_seeds[0]] if len(job_seeds) == 1 else out_dir
-        points.append(ResumePoints(where / f"resume_{role}.pt", resume_every, resume))
+        # absolute: a Ray task writes it from a worker whose folder may not be this one
+        points.append(ResumePoints((where / f"resume_{role}.pt").absolute(), resume_every, resume))
         if resume:
             log(f"resuming from {points[-1].path}" if points[-1].path.exists() else
                 f"no resume point at {points[-1].path}; starting")
         return points[-1]
 
     plans = [cfg.offline_config(data, log) for data in datasets]
-    trained = train_all(cfg, seeds, datasets, log, [p[0] for p in plans], resume_points, task)
+    # the task collected from, recorded in bc.pt and offline.pt
+    trained = train_all(cfg, seeds, datasets, log, [p[0] for p in plans], resume_points, task=task)
     outcomes = []
     for m, s in enumerate(seeds):
         reset_seeds = eval_reset_seeds(s, cfg.n_seeds, cfg.eval_episodes)
@@ -224,30 +229,38 @@ def run_experiment(cfg: ExperimentConfig, out_dir: str | Path, log: Callable[[st
 
 def train_all(cfg: ExperimentConfig, seeds: list[int], datasets: list, log: Callable[[str], None],
               offline_cfgs: list[TrainConfig] | None = None,
-              resume_points: Callable[[str, list[int]], ResumePoints] | None = None, task=None) -> dict:
+              resume_points: Callable[[str, list[int]], ResumePoints] | None = None,
+              task: TaskSpec | None = None) -> dict:
     """{"bc": [TrainResult per seed], "offline": [...]}: BC and the offline learner for
     every seed, one process per core. ``offline_cfgs``: the offline learner's config per
     seed (default: ``cfg.train_config(cfg.algo)``). ``resume_points(role, seeds)``: the
     resume points of the job training ``role`` ("bc" or "offline") for those seeds.
-    ``task``: the data's (default pusher_reach)."""
+    ``task``: the data's task, recorded in the checkpoints."""
     points = resume_points or (lambda role, job_seeds: None)
     offline_cfgs = offline_cfgs or [cfg.train_config(cfg.algo)] * len(seeds)
     per_seed = {"offline": offline_cfgs, "bc": [cfg.train_config("bc")] * len(seeds)}
     roles = ("offline", "bc")  # the heavier learner first: it starts first
     workers = cfg.worker_count()
-    if workers == 1 and all(c == offline_cfgs[0] for c in offline_cfgs):
+    on_ray = cfg.engine == "ray"
+    if workers == 1 and not on_ray and all(c == offline_cfgs[0] for c in offline_cfgs):
         jobs = [TrainJob(per_seed[role][0].algo, datasets, per_seed[role][0], seeds, points(role, seeds), task)
                 for role in roles]
     else:
         jobs = [TrainJob(f"{per_seed[role][m].algo} s{s}", [datasets[m]], per_seed[role][m], [s], points(role, [s]),
-                         task) for role in roles for m, s in enumerate(seeds)]
+                         task)
+                for role in roles for m, s in enumerate(seeds)]
     workers = min(workers, len(jobs))
-    where = "together in this process" if workers == 1 else f"in {workers} worker processes"
+    where = "as Ray tasks" if on_ray else "together in this process" if workers == 1 else f"in {workers} worker processes"
     steps = sorted({c.steps for c in offline_cfgs})
     log(f"training {' / '.join(sorted({c.algo for c in offline_cfgs}))} ({' / '.join(map(str, steps))} steps) "
         f"and bc ({cfg.steps} steps), {len(seeds)} seed(s) {where}")
     t1 = time.perf_counter()
-    results = run_jobs(jobs, workers, progress_for=lambda job: _progress_printer(job.label, log))
+    if on_ray:
+        from .ray_engine import run_train_jobs
+
+        results = run_train_jobs(jobs, log)
+    else:
+        results = run_jobs(jobs, workers, progress_for=lambda job: _progress_printer(job.label, log))
     log(f"  training took {time.perf_counter() - t1:.1f}s")
     trained = {}
     per_role = len(jobs) // len(roles)

@@ -43,7 +43,7 @@ class TrainJob:
     cfg: TrainConfig
     seeds: list[int]
     resume: ResumePoints | None = None  # the job's resume points (None: it writes none)
-    task: TaskSpec | None = None  # the task of the data (None: pusher_reach)
+    task: TaskSpec | None = None  # the task of the data, recorded in the checkpoints (None: pusher_reach)
 
     def train(self, progress: Callable[[Progress], None] | None = None, threads_now=None) -> list[TrainResult]:
         return train_seeds(self.datasets, self.cfg, self.seeds, progress=progress, resume=self.resume,
@@ -125,16 +125,32 @@ def _messages(conn):
 
 
 def run_jobs(jobs: list[TrainJob], workers: int,
-             progress_for: Callable[[TrainJob], Callable[[Progress], None]] | None = None) -> list[list[TrainResult]]:
+             progress_for: Callable[[TrainJob], Callable[[Progress], None]] | None = None,
+             on_done: Callable[[int, object], None] | None = None,
+             keep_going: bool = False) -> list:
     """Train every job; results in job order. ``workers`` <= 1 trains them one after
     another in this process. Give the heaviest jobs first: they are started first.
+    ``on_done(index, result)`` is called here as each job finishes.
     A worker that dies (the OOM killer, a signal) fails the run with RunFailed naming
-    its job; a job's exception is raised here; either way the other workers are stopped."""
+    its job; a job's exception is raised here; either way the other workers are stopped.
+    ``keep_going``: a job that fails stops nothing instead: its result is the exception
+    (RunFailed for a worker that died, which a new worker replaces)."""
     reporters = [progress_for(job) if progress_for else None for job in jobs]
     cores = max(1, min(workers, available_cores()))  # what the runs may use between them
     workers = max(1, min(workers, len(jobs)))
+    done = on_done or (lambda index, result: None)
     if workers == 1:
-        return [job.train(rep) for job, rep in zip(jobs, reporters)]
+        results = []
+        for index, (job, reporter) in enumerate(zip(jobs, reporters)):
+            try:
+                result = job.train(reporter)
+            except Exception as exc:  # noqa: BLE001 - the job's result when keep_going
+                if not keep_going:
+                    raise
+                result = exc
+            results.append(result)
+            done(index, result)
+        return results
 
     # spawn, not fork: the parent has torch (and its OpenMP pool) initialised
     ctx = multiprocessing.get_context("spawn")
@@ -144,6 +160,14 @@ def run_jobs(jobs: list[TrainJob], workers: int,
     running: dict[_Worker, int] = {}  # the index of the job each busy worker trains
     pool = []
 
+    def start_worker() -> _Worker:
+        conn, child_conn = ctx.Pipe()
+        process = ctx.Process(target=_worker, args=(child_conn, os.getpid(), jobs_state, cores), daemon=True)
+        process.start()
+        child_conn.close()
+        pool.append(_Worker(process, conn))
+        return pool[-1]
+
     def hand_out(worker: _Worker) -> None:
         if waiting:
             running[worker] = index = waiting.pop()
@@ -152,16 +176,16 @@ def run_jobs(jobs: list[TrainJob], workers: int,
             with contextlib.suppress(OSError):  # a dead worker: found by the loop below
                 worker.conn.send(job)
 
+    def finished(worker: _Worker, index: int, result) -> None:
+        results[index] = result
+        del running[worker]
+        done(index, result)
+
     # SIGTERM stops the workers too, as Ctrl-C does (a SIGKILL leaves it to _exit_with_parent)
     with sigterm_as_interrupt():
         try:
             for _ in range(workers):
-                conn, child_conn = ctx.Pipe()
-                process = ctx.Process(target=_worker, args=(child_conn, os.getpid(), jobs_state, cores), daemon=True)
-                process.start()
-                child_conn.close()
-                pool.append(_Worker(process, conn))
-                hand_out(pool[-1])
+                hand_out(start_worker())
             while running:
                 # wakes on a message or on a worker's death, whichever comes first
                 multiprocessing.connection.wait([w.conn for w in running] + [w.process.sentinel for w in running])
@@ -170,15 +194,21 @@ def run_jobs(jobs: list[TrainJob], workers: int,
                         if kind == "progress":
                             if reporters[index] is not None:
                                 reporters[index](value)
-                        elif kind == "error":
+                        elif kind == "error" and not keep_going:
                             raise value  # now, not after the other runs finish
                         else:
-                            results[index] = value
-                            del running[worker]
+                            finished(worker, index, value)
                             hand_out(worker)
                             break
                     if running.get(worker) == index and not worker.process.is_alive():
-                        raise RunFailed(f"{worker.process.name} died ({_how_it_ended(worker.process.exitcode)})")
+                        failure = RunFailed(f"{worker.process.name} died ({_how_it_ended(worker.process.exitcode)})")
+                        if not keep_going:
+                            raise failure
+                        with jobs_state.get_lock():  # the dead worker's count of running jobs
+                            jobs_state[1] = max(0, jobs_state[1] - 1)
+                        finished(worker, index, failure)
+                        if waiting:
+                            hand_out(start_worker())
             for worker in pool:
                 with contextlib.suppress(OSError):
                     worker.conn.send(None)  # no more jobs: the worker returns

@@ -75,3 +75,28 @@ def plot_success_bars(summary_rows: list[dict], path: str | os.PathLike, title: 
         ax.set_title(title)
     fig.tight_layout()
     return _save_atomic(fig, path)
+
+
+def plot_arm_success(rows: list[dict], path: str | os.PathLike, title: str | None = None) -> Path:
+    """One bar per arm: its success rate with Wilson 95 % error bars; the baseline grey.
+
+    Each row: ``label``, ``rate``, ``ci`` (lo, hi) and ``baseline`` (bool).
+    """
+    if not rows:
+        raise ValueError("no rows to plot")
+    fig, ax = plt.subplots(figsize=(max(4.0, 0.9 * len(rows) + 1.5), 3.8))
+    xs = list(range(len(rows)))
+    rates = [r["rate"] for r in rows]
+    lo = [max(0.0, rate - r["ci"][0]) for rate, r in zip(rates, rows)]
+    hi = [max(0.0, r["ci"][1] - rate) for rate, r in zip(rates, rows)]
+    colors = ["#8c8c8c" if r.get("baseline") else "#1f77b4" for r in rows]
+    ax.bar(xs, rates, 0.6, yerr=[lo, hi], capsize=4, color=colors)
+    ax.set_xticks(xs, [str(r["label"]) for r in rows], rotation=30 if len(rows) > 4 else 0,
+                  ha="right" if len(rows) > 4 else "center")
+    ax.set_ylabel("success rate (Wilson 95 % CI)")
+    ax.set_ylim(0.0, 1.0)
+    ax.grid(axis="y", alpha=0.3)
+    if title:
+        ax.set_title(title)
+    fig.tight_layout()
+    return _save_atomic(fig, path)

@@ -4,6 +4,11 @@ Reads one or more rosbag2 bags, trains one learner, evaluates it on held-out
 resets, and writes ``DIR/policy.pt`` (atomic), ``DIR/metrics.json`` and
 ``DIR/training_curve.png``. Everything is validated before anything is written, so a
 bad bag or flag leaves the output directory as it was.
+
+The run's task is ``--task`` or the one the bags record (``data.task_record``), else
+pusher_reach; every bag's transitions must have its sizes. The checkpoint records it
+(``checkpoint["task"]``); metrics.json names it for tasks other than pusher_reach (whose
+metrics keep the chapter's bytes).
 """
 
 from __future__ import annotations
@@ -16,12 +21,11 @@ from dataclasses import fields
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
 import torch
 
 from ..common import seeds
 from ..common.seeds import seed_arg
-from ..data.bag import read_transitions
+from ..data.fleet import bag_summary, expand_bags, read_fleet
 from ..common.errors import UserError
 from ..common.atomic import write_json_atomic
 from ..common.output_paths import check_output_dir
@@ -33,9 +37,10 @@ from .plots import plot_training_curve
 from .prior import plan_training
 from ..serving.checkpoint import load_checkpoint, save_checkpoint
 from ..data.raw_topics import transitions_from_topics
-from ..data.transitions import SOURCE_NAMES, Transitions
-from ..data.task_record import task_of_bag
-from ..task.spec import load_task
+from ..data.task_record import check_layout_fits, task_of_bag
+from ..data.transitions import Transitions
+from ..serving.policy import policy_for_task
+from ..task.spec import DEFAULT_TASK, TaskSpec, load_task
 
 DEFAULT_EVAL_SEED = seeds.HELD_OUT
 _CONFIG_FIELDS = {f.name for f in fields(TrainConfig)}
@@ -49,6 +54,9 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--from-topics", metavar="SPEC",
                         help="build the transitions from each bag's raw robot topics as this YAML spec says "
                              "(see `offline-rl dataset --help`, e.g. bags/pusher_topics.yaml)")
+    parser.add_argument("--task", metavar="NAME_OR_FILE",
+                        help="the task of the bags: a built-in task (pusher_reach, ...) or a task file (YAML); "
+                             "default: the one the bags record, else pusher_reach")
     parser.add_argument("--algo", choices=ALGORITHMS + ("auto",), default=d.algo,
                         help="learner; auto: chosen from what the bag holds, trained for --budget-s "
                              "(README, 'The best prior') (default: %(default)s)")
@@ -99,19 +107,42 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
         raise UserError(str(exc)) from None
 
 
-def load_bags(paths: list[str], from_topics: str | None = None) -> tuple[Transitions, list[dict]]:
-    """Read and merge bags; episode ids are offset so they stay unique per bag.
-    ``from_topics``: a raw-topic spec; the transitions are built from each bag's raw topics."""
+def task_of_run(paths: list[str], given: str | os.PathLike | TaskSpec | None = None) -> TaskSpec:
+    """The task of a run on ``paths`` (bags, directories of bags or globs): ``given`` (which
+    every bag that records a task must agree with), else the one they record (the same for
+    all), else pusher_reach."""
+    paths = expand_bags(paths)
+    tasks = [task_of_bag(path, given) for path in paths]
+    for path, task in zip(paths[1:], tasks[1:]):
+        if task.digest != tasks[0].digest:
+            raise UserError(f"{path}: the bag is of task {task.name} (digest {task.digest}), {paths[0]} of "
+                            f"{tasks[0].name} (digest {tasks[0].digest}); train on one task's bags")
+    return tasks[0] if tasks else load_task(given)
+
+
+def load_bags(paths: list[str], from_topics: str | None = None, task: TaskSpec | None = None,
+              workers: int | None = None) -> tuple[Transitions, list[dict]]:
+    """Read and merge bags; episode ids are offset so they stay unique per bag. A path may
+    be a directory of bags or a glob (a fleet, ``data/fleet.py``): its bags are decoded in
+    ``workers`` processes (default: as many as pay for themselves).
+    ``from_topics``: a raw-topic spec; the transitions are built from each bag's raw topics.
+    ``task``: the transitions must have its sizes (one line naming the bag otherwise)."""
+    paths = expand_bags(paths)
+    if not from_topics:
+        data, summary = read_fleet(paths, workers)
+        if task is not None:
+            check_layout_fits(paths[0] if len(paths) == 1 else f"{len(paths)} bags ({paths[0]}, ...)",
+                              data.layout.obs_dim, data.layout.act_dim, task)
+        return data, summary
     parts, summary, offset = [], [], 0
     for path in paths:
-        joined = transitions_from_topics(path, from_topics) if from_topics else None
-        data = joined[0] if joined else read_transitions(path)
+        data, spec = transitions_from_topics(path, from_topics)
+        if task is not None:
+            check_layout_fits(path, data.layout.obs_dim, data.layout.act_dim, task)
         data.episode = data.episode - data.episode.min() + offset
         offset = int(data.episode.max()) + 1
         parts.append(data)
-        counts = {SOURCE_NAMES.get(int(s), str(s)): int(n) for s, n in zip(*np.unique(data.source, return_counts=True))}
-        summary.append({"path": str(path), "transitions": len(data), "sources": counts,
-                        **({"from_topics": joined[1].as_dict()} if joined else {})})
+        summary.append({**bag_summary(path, data), "from_topics": spec.as_dict()})
     return (parts[0] if len(parts) == 1 else Transitions.concatenate(parts)), summary
 
 
@@ -141,25 +172,30 @@ def run_training(
     auto: bool = False,
     budget_s: float | None = None,
     steps: int | None = None,
-    eval_task=None,
+    task: str | os.PathLike | TaskSpec | None = None,
+    dataset: tuple[Transitions, list[dict]] | None = None,
+    decode_workers: int | None = None,
 ) -> Path:
     """Train ``cfg`` on the bags and write the run's files to ``out_dir``. ``auto``: the
     learner is the one ``prior.plan_training`` picks for the bag; ``auto`` or ``budget_s``:
     as many steps as the budget allows, unless ``steps`` is given (then ``steps``).
-    ``eval_task``: the task the held-out rollouts run on (default: the one the first bag
-    records, else pusher_reach); one no sim hosts is not rolled out."""
+    ``task``: the bags' task (default: the one they record, else pusher_reach).
+    ``dataset``: the bags already read (``load_bags(bags)``'s result, e.g. handed to the run
+    by a sweep's engine); else they are read here, in ``decode_workers`` processes."""
     out = check_output_dir(out_dir, "--out")
     if eval_episodes < 0:
         raise UserError(f"--eval-episodes must be >= 0, got {eval_episodes}")
-    data, bag_summary = load_bags(bags, from_topics)
-    data_task = task_of_bag(bags[0])  # where its episodes end at the goal (--algo auto, filtered BC by goal)
-    cfg, plan = plan_training(data, cfg, auto, budget_s, steps, log, data_task)
+    task = task_of_run(bags, task)
+    if dataset is not None:
+        data, bags_read = dataset
+        check_layout_fits(bags[0], data.layout.obs_dim, data.layout.act_dim, task)
+    else:
+        data, bags_read = load_bags(bags, from_topics, task, decode_workers)
+    cfg, plan = plan_training(data, cfg, auto, budget_s, steps, log, task)  # task: where episodes end at the goal
     init_ckpt = None
     if init:
         init_ckpt = load_checkpoint(init)
-        if int(init_ckpt["obs_dim"]) != data.obs.shape[1] or int(init_ckpt["act_dim"]) != data.action.shape[1]:
-            raise UserError(f"{init}: checkpoint dims ({init_ckpt['obs_dim']}, {init_ckpt['act_dim']}) do not match "
-                            f"the bag's ({data.obs.shape[1]}, {data.action.shape[1]})")
+        policy_for_task(init_ckpt, init, task)  # a warm start of another task: one line naming both
         if int(init_ckpt["hidden"]) != cfg.hidden:
             raise UserError(f"{init}: checkpoint hidden size {init_ckpt['hidden']} differs from --hidden {cfg.hidden}")
     if resume_every <= 0:
@@ -168,8 +204,8 @@ def run_training(
     if resume:
         log(f"resuming from {points.path}" if points.path.exists() else f"no resume point at {points.path}; starting")
     log(f"training {cfg.algo} on {len(data)} transitions from {len(bags)} bag(s), {cfg.steps} steps, seed {seed}")
-    result = train(data, cfg, seed, progress=progress, init=init_ckpt, resume=points,  # UserError: a bad resume point
-                   task=data_task)
+    # UserError: a bad resume point
+    result = train(data, cfg, seed, progress=progress, init=init_ckpt, resume=points, task=task)
     _check_finite(result.checkpoint, cfg, points)
 
     metrics: dict = {
@@ -177,7 +213,7 @@ def run_training(
         "seed": seed,
         "steps": cfg.steps,
         "transitions": len(data),
-        "bags": bag_summary,
+        "bags": bags_read,
         "dataset_hash": result.checkpoint["dataset_hash"],
         "config": cfg.to_dict(),
         "init": str(init) if init else None,
@@ -186,7 +222,8 @@ def run_training(
     }
     if plan is not None:
         metrics["plan"] = plan  # what --algo auto / --budget-s decided, and from what
-    task = load_task(eval_task) if eval_task is not None else data_task if eval_episodes else None
+    if task.digest != load_task(DEFAULT_TASK).digest:  # pusher_reach's metrics keep the chapter's bytes
+        metrics["task"] = task.layout()
     if eval_episodes and not task.sim:
         log(f"no held-out rollouts: no sim hosts task {task.name}")
     elif eval_episodes:
@@ -221,7 +258,7 @@ def run_training_from_args(args: argparse.Namespace, progress: Callable[[Progres
     return run_training(args.bag, cfg, args.seed, out, args.eval_episodes, args.eval_seed, args.init,
                         progress=progress or console_progress(), resume=args.resume, resume_every=args.resume_every,
                         from_topics=args.from_topics, auto=args.algo == "auto", budget_s=args.budget_s,
-                        steps=args.steps)
+                        steps=args.steps, task=args.task)
 
 
 def summary_line(out: Path) -> str:

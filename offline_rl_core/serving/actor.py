@@ -23,6 +23,10 @@ import numpy as np
 from .policy import LoadedPolicy
 from ..common.rejections import Rejection
 
+# How far past the acting version a weights message may be: the learner cuts one version
+# at a time, and a policy node reads every one in order unless DDS dropped some.
+MAX_VERSION_STEP = 16
+
 
 class Actor:
     def __init__(self, policy: LoadedPolicy, explore: bool = False, seed: int = 0, paced_every: int = 0):
@@ -46,6 +50,26 @@ class Actor:
             return False
         self.policy = policy
         return True
+
+    def offer_weights(self, policy: LoadedPolicy) -> tuple[bool, Rejection | None]:
+        """Take a weights message's policy (already verified as this session's learner's):
+        only a versioned one, and only one of the next ``MAX_VERSION_STEP`` versions after
+        the one acting, so no message, however it came by its signature, can put a version
+        so far ahead that every later one of the real learner is refused. The first versioned
+        weights after a checkpoint file are taken whatever their version (a policy node may
+        start late in a session). Returns (taken, why refused); an older or equal version is
+        neither taken nor refused: a learner restarted from its last resume point repeats
+        versions the node has."""
+        if not policy.versioned:
+            return False, Rejection("weights version", "unversioned weights are not taken from the topic")
+        if self.policy.versioned:
+            if policy.weights_version <= self.version:
+                return False, None
+            if policy.weights_version > self.version + MAX_VERSION_STEP:
+                return False, Rejection("weights version", f"weights version {policy.weights_version} is more than "
+                                                           f"{MAX_VERSION_STEP} past the acting {self.version}")
+        self.policy = policy
+        return True, None
 
     def see(self, stamp: int) -> None:
         """Count a state (once per stamp: a republished state is the same state)."""

@@ -7,6 +7,10 @@ A checkpoint is a plain dict saved with ``torch.save`` and loaded with
     policy_state   -- Linear weights of obs -> hidden -> hidden -> act (tanh on top)
     obs_mean, obs_std -- input normalisation (identity for the chapter's learners)
     learner_state  -- optional: critic/value weights, for warm starts (``--init``)
+    task           -- the task it acts on: ``{task, digest, observation, action, spec}``, the
+                      task's layout (name, digest, one label per observation and action value)
+                      and its whole spec (``TaskSpec.describe()``); absent: pusher_reach's (every
+                      checkpoint written before tasks existed)
     config, seed, dataset_hash, datasets, metrics
 
 It is written atomically (temp file in the same directory, then ``os.replace``), so a
@@ -19,6 +23,7 @@ from __future__ import annotations
 import io
 import os
 import pickle
+import stat
 import warnings
 import zipfile
 from pathlib import Path
@@ -28,9 +33,31 @@ import torch
 
 from ..common.atomic import atomic_path
 from ..common.errors import UserError
+from ..task.spec import DEFAULT_TASK, TaskSpec, load_task, task_from_dict
 
 CHECKPOINT_FORMAT = "pusher-rl/policy"
 CHECKPOINT_VERSION = 1
+TASK_FIELDS = ("task", "digest", "observation", "action", "spec")
+
+
+def task_field(task: TaskSpec) -> dict:
+    """What a checkpoint records of its task (``checkpoint["task"]``)."""
+    return {**task.layout(), "spec": task.describe()}
+
+
+def checkpoint_layout(ckpt: dict) -> dict:
+    """The task layout a (validated) checkpoint records: its ``task`` field without the spec,
+    or pusher_reach's when it records none."""
+    recorded = ckpt.get("task")
+    if recorded is None:
+        return load_task(DEFAULT_TASK).layout()
+    return {k: recorded[k] for k in TASK_FIELDS if k != "spec"}
+
+
+def checkpoint_task(ckpt: dict) -> TaskSpec:
+    """The task a (validated) checkpoint acts on: the spec it records, else pusher_reach."""
+    recorded = ckpt.get("task")
+    return load_task(DEFAULT_TASK) if recorded is None else task_from_dict(recorded["spec"])
 
 
 def save_checkpoint(path: str | os.PathLike, checkpoint: dict) -> Path:
@@ -51,7 +78,7 @@ def checkpoint_to_bytes(checkpoint: dict) -> bytes:
 
 def checkpoint_from_bytes(data: bytes, source: str) -> dict:
     """``checkpoint_to_bytes`` reversed and validated like a file; ``source`` names it in errors."""
-    return _validated(_torch_load(io.BytesIO(bytes(data)), source), source)
+    return validated_checkpoint(_torch_load(io.BytesIO(bytes(data)), source), source)
 
 
 def read_torch_file(path: str | os.PathLike) -> dict:
@@ -119,6 +146,20 @@ def checkpoint_file(path: str | os.PathLike) -> Path:
     return path / "policy.pt" if path.is_dir() else path
 
 
+def regular_file_problem(path: str | os.PathLike) -> str | None:
+    """Why ``path`` cannot be a checkpoint file without opening it (missing, not a regular
+    file: a FIFO or a terminal would block a reader), or None."""
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        return f"{path}: no such checkpoint file"
+    except OSError as exc:
+        return f"{path}: cannot read the checkpoint ({exc.strerror})"
+    if not stat.S_ISREG(mode):
+        return f"{path}: not a regular file (a FIFO, device or socket); expected a checkpoint file"
+    return None
+
+
 def load_checkpoint(path: str | os.PathLike) -> dict:
     """Read and validate a checkpoint; a clear ``UserError`` for anything wrong."""
     path = Path(path)
@@ -130,14 +171,20 @@ def load_checkpoint(path: str | os.PathLike) -> dict:
             raise UserError(f"{path}: is a directory without policy.pt; expected a checkpoint file")
         path = candidate
     try:
-        f = open(path, "rb")  # one open file for the CRC check and the load, whatever renames meanwhile
+        # one open file for the CRC check and the load, whatever renames meanwhile; opened
+        # without blocking, so a FIFO or a terminal put in its place is refused, not waited on
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
     except OSError as exc:
         raise UserError(f"{path}: cannot read the checkpoint ({exc.strerror})") from None
+    f = os.fdopen(fd, "rb")
     with f:
-        return _validated(_torch_load(f, path), path)
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise UserError(f"{path}: not a regular file (a FIFO, device or socket); expected a checkpoint file")
+        return validated_checkpoint(_torch_load(f, path), path)
 
 
-def _validated(ckpt, path) -> dict:
+def validated_checkpoint(ckpt, path) -> dict:
+    """``ckpt`` if it is a servable checkpoint (fields, shapes, finite values); a UserError naming ``path`` if not."""
     if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
         raise UserError(f"{path}: not a pusher-rl checkpoint (expected format '{CHECKPOINT_FORMAT}')")
     if ckpt.get("version") != CHECKPOINT_VERSION:
@@ -150,6 +197,7 @@ def _validated(ckpt, path) -> dict:
             raise UserError(f"{path}: checkpoint field '{key}' is {ckpt[key]!r}, expected a positive integer")
     _check_policy_state(ckpt, path)
     _check_normalisation(ckpt, path)
+    _check_task(ckpt, path)
     log_std = ckpt.get("exploration_log_std")
     if log_std is not None and (not torch.is_tensor(log_std) or log_std.numel() != int(ckpt["act_dim"])
                                 or not bool(torch.isfinite(log_std).all())):
@@ -197,3 +245,30 @@ def _check_normalisation(ckpt: dict, path) -> None:
                             f"(or both obs_mean and obs_std absent)")
         if name == "obs_std" and not (values > 0).all():
             raise UserError(f"{path}: obs_std must be > 0 everywhere (it divides each observation)")
+
+
+def _check_task(ckpt: dict, path) -> None:
+    """The ``task`` field: absent (pusher_reach's), or a layout that fits the policy's sizes
+    and a spec that reads as a task of that layout."""
+    recorded = ckpt.get("task")
+    if recorded is None:
+        return
+    expected = "a mapping of " + ", ".join(TASK_FIELDS)
+    if not isinstance(recorded, dict) or set(recorded) != set(TASK_FIELDS):
+        got = sorted(recorded) if isinstance(recorded, dict) else type(recorded).__name__
+        raise UserError(f"{path}: checkpoint field 'task' must be {expected}, got {got}")
+    for key in ("task", "digest"):
+        if not isinstance(recorded[key], str) or not recorded[key]:
+            raise UserError(f"{path}: checkpoint field 'task.{key}' must be a non-empty string, got {recorded[key]!r}")
+    for key, size in (("observation", ckpt["obs_dim"]), ("action", ckpt["act_dim"])):
+        labels = recorded[key]
+        if not isinstance(labels, list) or not all(isinstance(v, str) for v in labels) or len(labels) != size:
+            raise UserError(f"{path}: checkpoint field 'task.{key}' must be {size} labels "
+                            f"(the policy's {'obs_dim' if key == 'observation' else 'act_dim'}), got "
+                            f"{len(labels) if isinstance(labels, list) else type(labels).__name__}")
+    task = task_from_dict(recorded["spec"], Path(f"{path}: checkpoint field task.spec"))  # its errors name the field
+    if task.name != recorded["task"] or list(task.observation_labels()) != recorded["observation"] \
+            or list(task.action_labels()) != recorded["action"]:
+        raise UserError(f"{path}: checkpoint field 'task': its spec (task {task.name}, obs {task.obs_dim}, "
+                        f"action {task.act_dim}) is not the layout it records (task {recorded['task']}, "
+                        f"obs {len(recorded['observation'])}, action {len(recorded['action'])})")

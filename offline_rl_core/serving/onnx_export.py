@@ -1,13 +1,17 @@
 """Export a trained policy to ONNX and check it against the numpy policy.
 
 The graph maps ``obs`` (float32, [batch, obs_dim], dynamic batch) to ``action``
-(float32, [batch, act_dim], tanh-squashed), the same function as ``LoadedPolicy.act``.
+(float32, [batch, act_dim], tanh-squashed), the same function as ``LoadedPolicy.act``;
+the sizes are the checkpoint's, whatever its task. The model's metadata names the task
+(``pusher-rl.task``: the checkpoint's task layout as JSON: name, digest, one label per
+observation and action value), so a runtime outside this project knows what to feed it.
 torch 2.13's default (dynamo) exporter needs ``onnxscript``; the TorchScript-based
 exporter (``dynamo=False``) needs only ``onnx``, so that is what we use.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import warnings
 from pathlib import Path
@@ -17,6 +21,7 @@ import torch
 
 from ..common.errors import UserError
 from ..common.atomic import atomic_path
+from .checkpoint import checkpoint_layout
 from .policy import LoadedPolicy
 
 OPSET = 17
@@ -40,7 +45,17 @@ def export_onnx(policy: LoadedPolicy, out: str | os.PathLike) -> Path:
             opset_version=OPSET,
             dynamo=False,
         )
+        _name_the_task(tmp, checkpoint_layout(policy.checkpoint))
     return out
+
+
+def _name_the_task(path, layout: dict) -> None:
+    import onnx  # the exporter above needs it too
+
+    model = onnx.load(str(path))
+    entry = model.metadata_props.add()
+    entry.key, entry.value = "pusher-rl.task", json.dumps(layout)
+    onnx.save(model, str(path))
 
 
 def verify_onnx(policy: LoadedPolicy, onnx_path: str | os.PathLike, n: int = 256, seed: int = 0, atol: float = 1e-5) -> float:

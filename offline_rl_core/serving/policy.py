@@ -1,4 +1,4 @@
-"""The policy that serves from a checkpoint: numpy inference, dims checked against the task."""
+"""The policy that serves from a checkpoint: numpy inference, refused for a task it was not trained on."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import torch
 from torch import nn
 
 from ..common.errors import UserError
-from ..task.pusher_reach import ACT_DIM, OBS_DIM
-from .checkpoint import load_checkpoint
+from ..task.spec import DEFAULT_TASK, TaskSpec, load_task
+from .checkpoint import checkpoint_layout, load_checkpoint
 
 
 def policy_sequential(obs_dim: int, hidden: int, act_dim: int) -> nn.Sequential:
@@ -102,16 +102,27 @@ class LoadedPolicy:
         return TanhPolicy().eval()
 
 
-def load_policy(path: str | os.PathLike, obs_dim: int = OBS_DIM, act_dim: int = ACT_DIM) -> LoadedPolicy:
-    """Load a checkpoint for acting; refuses one whose dims do not match the task."""
-    return policy_for_task(load_checkpoint(path), path, obs_dim, act_dim)
+def load_policy(path: str | os.PathLike, task: TaskSpec | str | os.PathLike | None = None) -> LoadedPolicy:
+    """Load a checkpoint for acting; with ``task`` (a TaskSpec, a built-in name or a task
+    file), refuse one of another task."""
+    return policy_for_task(load_checkpoint(path), path, task)
 
 
-def policy_for_task(ckpt: dict, source, obs_dim: int = OBS_DIM, act_dim: int = ACT_DIM) -> LoadedPolicy:
-    """A validated checkpoint as a policy, refused when its dims do not match the task."""
-    if int(ckpt["obs_dim"]) != obs_dim or int(ckpt["act_dim"]) != act_dim:
-        raise UserError(
-            f"{source}: checkpoint has obs_dim={ckpt['obs_dim']}, act_dim={ckpt['act_dim']}; "
-            f"the pusher task needs obs_dim={obs_dim}, act_dim={act_dim}"
-        )
+def policy_for_task(ckpt: dict, source, task: TaskSpec | str | os.PathLike | None = None) -> LoadedPolicy:
+    """A validated checkpoint as a policy; with ``task``, refused in one line naming both
+    layouts unless the checkpoint is of that task (same digest and sizes). A checkpoint that
+    records no task is pusher_reach's (and refused, without ``task``, when its sizes are not)."""
+    if task is None and "task" not in ckpt:
+        task = DEFAULT_TASK
+    if task is not None:
+        task = load_task(task)
+        theirs = checkpoint_layout(ckpt)
+        if theirs["digest"] != task.digest or int(ckpt["obs_dim"]) != task.obs_dim \
+                or int(ckpt["act_dim"]) != task.act_dim:
+            recorded = "" if "task" in ckpt else ", recording none"
+            raise UserError(
+                f"{source}: a checkpoint of task {theirs['task']} (digest {theirs['digest']}{recorded}, "
+                f"obs_dim={ckpt['obs_dim']}, act_dim={ckpt['act_dim']}); the task here is {task.name} "
+                f"(digest {task.digest}, obs_dim={task.obs_dim}, act_dim={task.act_dim})"
+            )
     return LoadedPolicy(ckpt, source=str(source))

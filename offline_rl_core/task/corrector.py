@@ -13,13 +13,15 @@ perfect. Everything random comes from one numpy Generator seeded by ``seed``.
 One call of :meth:`ScriptedCorrector.decide` per state; the answer is the correction
 action (float32, one value per command joint) or None (the policy keeps control).
 
-Any task (:meth:`ScriptedCorrector.for_task`): progress is the task's reward distance (every
-distance term, weighted: the fingertip nearing the puck counts as much as the puck nearing
-the goal), success its success distance under ``success_within`` (not latched where the
-task judges success at the episode's end: a puck pushed off the goal again is worth a
-takeover), and the takeover acts with the task's scripted expert, on the joint state, the
-goal and the tracked points a robot publishes. The default is pusher_reach's (the
-fingertip's planar distance to the target, ``expert.expert_action``), the chapter's.
+Any task: the rule judges the task's reward distance and takes over with the task's
+scripted expert (:func:`task_rule`, from joint positions and the goal, as the corrector node
+has them; or :meth:`ScriptedCorrector.for_task`, which also reads the tracked points a robot
+publishes: progress is every reward distance, weighted, so the fingertip nearing the puck
+counts as much as the puck nearing the goal, and success is not latched where the task judges
+it at the episode's end: a puck pushed off the goal again is worth a takeover). pusher_reach's
+are the chapter's (the fingertip's planar distance to the target, ``expert.expert_action``).
+Another task's expert comes with its env (``offline_rl_core.task.envs.task_expert``); without
+it, a corrector for that task is refused in one line.
 """
 
 from __future__ import annotations
@@ -29,11 +31,13 @@ from typing import Callable
 
 import numpy as np
 
+from ..common.errors import UserError
 from .pusher_reach import SUCCESS_TOL, fingertip_from_joints
 from .expert import expert_action
-from .spec import TaskSpec, load_task
+from .spec import DEFAULT_TASK, TaskSpec, load_task
 
-# expert(qpos, qvel, goal, points) -> action in [-1, 1]; distance(qpos, goal, points) -> m
+# expert(qpos, qvel, goal[, points]) -> action in [-1, 1]; distance(qpos, goal[, points]) -> the
+# reward's distance (points: the tracked points' vectors, for the tasks that track any)
 Expert = Callable[..., np.ndarray]
 Distance = Callable[..., float]
 
@@ -45,6 +49,22 @@ def pusher_distance(qpos, target_xy, points=None) -> float:
 
 def pusher_expert(qpos, qvel, target_xy, points=None) -> np.ndarray:
     return expert_action(qpos, qvel, np.asarray(target_xy, np.float64)[:2])
+
+
+def task_rule(task: TaskSpec, distance: Distance | None = None) -> tuple[Expert, Distance]:
+    """The expert and the distance a corrector of ``task`` uses. ``distance``: the task's
+    reward distance from joint positions and goal (e.g. ``ObservationBuilder.distance``),
+    for tasks other than pusher_reach."""
+    if task.digest == load_task(DEFAULT_TASK).digest:
+        return pusher_expert, pusher_distance
+    try:
+        from .envs import task_expert
+    except ImportError:  # the task envs are not part of this build
+        raise UserError(f"the scripted corrector knows pusher_reach's expert only; task {task.name} "
+                        f"({task.source_file()}) has none in this build (offline_rl_core.task.envs)") from None
+    if distance is None:
+        raise ValueError(f"a corrector of task {task.name} needs its reward distance")
+    return task_expert(task), distance
 
 
 @dataclass
@@ -96,9 +116,10 @@ class TaskDistances:
 
 
 class ScriptedCorrector:
-    """``expert``, ``distance`` (progress) and ``success_distance``: pusher_reach's by default;
-    ``success_within``: the success threshold on ``success_distance``; ``latch``: success
-    latches for the episode (else it is each state's)."""
+    """``expert`` and ``distance`` (progress; ``task_rule``, ``for_task``): the task's; default
+    pusher_reach's; ``success_distance`` (default ``distance``) and ``success_within``: the
+    task's success threshold on it; ``latch``: success latches for the episode (else it is
+    each state's)."""
 
     def __init__(self, params: CorrectorParams | None = None, expert: Expert = pusher_expert,
                  distance: Distance = pusher_distance, success_within: float = SUCCESS_TOL,
@@ -118,7 +139,7 @@ class ScriptedCorrector:
         """The corrector of ``task``: pusher_reach's is the chapter's; another task's judges its
         reward distances and acts with its scripted expert (``task.envs.task_expert``)."""
         task = load_task(task)
-        if task.sim == {"env": "pusher_reach"}:
+        if task.digest == load_task(DEFAULT_TASK).digest:
             return cls(params)
         from .envs import task_expert
 
@@ -142,14 +163,15 @@ class ScriptedCorrector:
 
     def decide(self, qpos, qvel, goal, points=None) -> np.ndarray | None:
         """Decide the correction for this state (``goal``: the task's goal vector, pusher_reach's
-        the target's x, y; ``points``: the tracked points' vectors), or None. Call once per
-        state, in order."""
+        the target's x, y; ``points``: the tracked points' vectors, for a task that tracks any),
+        or None. Call once per state, in order."""
         if self.is_new_episode(goal):
             self.new_episode(goal)
         self.step += 1
-        dist = self.distance(qpos, self.target, points)
+        tracked = () if points is None else (points,)
+        dist = self.distance(qpos, self.target, *tracked)
         at_goal = (dist if self.success_distance is self.distance else
-                   self.success_distance(qpos, self.target, points)) < self.success_within
+                   self.success_distance(qpos, self.target, *tracked)) < self.success_within
         # latched for the episode, as the env's success is; or this state's, as the task's
         self.succeeded = (self.succeeded or at_goal) if self.latch else at_goal
         if self.intervening:
@@ -179,7 +201,8 @@ class ScriptedCorrector:
         return self.act(qpos, qvel, points)
 
     def act(self, qpos, qvel, points=None) -> np.ndarray:
-        action = np.asarray(self.expert(qpos, qvel, self.target, points), np.float64)
+        tracked = () if points is None else (points,)
+        action = np.asarray(self.expert(qpos, qvel, self.target, *tracked), np.float64)
         if self.p.noise > 0:
             action = action + self.rng.normal(0.0, self.p.noise, size=action.shape)
         self.held += 1

@@ -254,7 +254,7 @@ class TaskSpec:
                 "action": list(self.action_labels())}
 
     def source_file(self) -> str:
-        return str(self.path) if self.path else f"built-in task {self.name}"
+        return str(self.path) if self.path and self.path.parent != BUILTIN_DIR else f"built-in task {self.name}"
 
 
 # ------------------------------------------------------------------------ loading

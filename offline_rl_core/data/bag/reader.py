@@ -353,6 +353,12 @@ def read_transition_rows(path: str | os.PathLike) -> np.ndarray:
         return transition_rows_from_reader(reader, Path(path))
 
 
+def count_transition_messages(path: str | os.PathLike) -> int:
+    """The /pusher/transition messages a bag's index counts; no payload is read."""
+    with open_bag(path) as reader:
+        return sum(c.msgcount for c in _transition_connections(reader, Path(path)))
+
+
 def read_transitions(path: str | os.PathLike) -> Transitions:
     """The transitions of a rosbag2 bag (a directory, or a bare .db3/.mcap file).
 

@@ -13,6 +13,11 @@ background thread, so a quiet topic is flushed too) and whenever ``FLUSH_BYTES``
 pending. What a flush leaves on disk is a complete bag (see ``storage_sqlite`` and
 ``storage_mcap`` for the exceptions a kill inside a flush can leave, and ``repair``).
 ``close()`` flushes everything, so SIGINT/SIGTERM lose nothing received.
+
+With ``min_free_space``, a flush that leaves less than that free on the bag's file system
+sets ``low_space``: the bag holds everything written so far, ``close()`` still fits (the
+margin is for it), and further writes are refused (``OutOfSpace``), so a full disk ends a
+recording cleanly instead of in the middle of a transaction.
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ from pathlib import Path
 from rosbags.interfaces import Qos
 
 from ...common.errors import UserError
+from ...common.interrupts import signals_deferred
 from .metadata import FileStats, Topic, bag_metadata, make_topic, ros_distro, storage_metadata_text, write_metadata_yaml
 from .paths import STORAGE_SUFFIX, resolve_target
 from .storage_mcap import McapFileWriter
@@ -36,6 +42,16 @@ FILE_WRITERS = {"sqlite3": SqliteFileWriter, "mcap": McapFileWriter}
 DEFAULT_FLUSH_INTERVAL = 1.0
 FLUSH_BYTES = 8 << 20  # flush early past this much pending data: bounded memory
 MIN_SQLITE_SPLIT_SIZE = 86016  # rosbag2's minimum: an empty rosbag2 sqlite3 file is about this big
+
+
+class OutOfSpace(UserError):
+    """The bag stopped taking messages: its file system is below ``min_free_space``."""
+
+
+def free_space(directory: Path) -> int:
+    """Bytes an unprivileged writer may still use on ``directory``'s file system."""
+    st = os.statvfs(directory)
+    return st.f_bavail * st.f_frsize
 
 
 def split_file_name(bag_dir: Path, index: int, storage: str) -> str:
@@ -88,6 +104,7 @@ class BagWriter:
         max_bag_size: int = 0,
         max_bag_duration: float = 0.0,
         custom_data: dict[str, str] | None = None,
+        min_free_space: int = 0,
     ):
         self.target = resolve_target(path, storage)
         self.path = path = self.target.path
@@ -100,6 +117,12 @@ class BagWriter:
             raise UserError(f"{path}: splitting needs a bag directory as output, not a single {path.suffix} file")
         if self.storage_id == "sqlite3" and 0 < max_bag_size < MIN_SQLITE_SPLIT_SIZE:
             raise UserError(f"{path}: max bag size {max_bag_size} B is below the sqlite3 minimum of {MIN_SQLITE_SPLIT_SIZE} B")
+        self.min_free_space = int(min_free_space)
+        self.low_space: int | None = None  # free bytes when the bag stopped for lack of space
+        where = path.parent if path.parent.is_dir() else None
+        if self.min_free_space and where is not None and free_space(where) < self.min_free_space:
+            raise UserError(f"{path}: only {free_space(where) >> 20} MiB free on {where}, below the minimum of "
+                            f"{self.min_free_space >> 20} MiB; not starting a recording")
         if path.exists() or path.is_symlink():
             if not overwrite:
                 raise UserError(f"{path} exists already; not overwriting a recording")
@@ -194,8 +217,9 @@ class BagWriter:
             self._flush()
 
     def close(self) -> None:
-        """Write everything pending and finalize the bag. Safe to call more than once."""
-        with self._lock:
+        """Write everything pending and finalize the bag. Safe to call more than once. A
+        Ctrl-C (or SIGTERM) that comes meanwhile waits until the bag is whole, then acts."""
+        with signals_deferred(), self._lock:
             if self.closed:
                 return
             self.closed = True
@@ -217,6 +241,9 @@ class BagWriter:
     def _check_open(self) -> None:
         if self.closed:
             raise UserError(f"{self.path}: the bag is closed")
+        if self.low_space is not None:
+            raise OutOfSpace(f"{self.path}: stopped: {self.low_space >> 20} MiB free, below the minimum of "
+                             f"{self.min_free_space >> 20} MiB")
         if self._error is not None:
             raise UserError(f"{self.path}: writing the bag failed: {self._error}") from self._error
 
@@ -269,6 +296,10 @@ class BagWriter:
         except Exception as exc:  # OSError (disk full), sqlite3.Error: the bag keeps what it had
             self._error = exc
             raise UserError(f"{self.path}: writing the bag failed: {exc}") from exc
+        if self.min_free_space and self.low_space is None and not self.closed:
+            free = free_space(self._bag_dir)
+            if free < self.min_free_space:
+                self.low_space = free
 
     def _flush_loop(self) -> None:
         while not self._stop.wait(self.flush_interval):

@@ -12,6 +12,7 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
         ("share/" + package_name + "/launch", glob("launch/*.launch.yaml")),
+        ("share/" + package_name + "/config", glob("config/*.xml")),
     ],
     install_requires=["setuptools"],
     extras_require={"test": ["pytest"]},  # colcon test runs test/ with pytest

@@ -1,10 +1,14 @@
 """``ros2 run corrections corrector``: the human in human-in-the-loop, or a stand-in.
 
-Watches ``pusher/state`` with its ``pusher/target`` (paired by stamp, as the policy
-node does: ``offline_rl_core.nodes.pairing``) and answers every state on ``teleop/action``
-(JointState, stamp = the state's): either a correction (effort = torques in [-1, 1]) or a
-*yield* (empty effort: the policy keeps the arm). A republished state gets the same
-answer again; each state is decided once.
+Watches the task's state (``-p task:=NAME_OR_FILE``, default pusher_reach: ``pusher/state``)
+with its goal (``pusher/target``), paired by stamp as the policy node does
+(``offline_rl_core.nodes.pairing``), and answers every state on ``teleop/action``
+(JointState of the command joints, stamp = the state's): either a correction (effort =
+the action in [-1, 1]) or a *yield* (empty effort: the policy keeps the arm). A
+republished state gets the same answer again; each state is decided once. The scripted
+rule judges the task's reward distance (tracked points from forward kinematics) and
+takes over with the task's scripted expert (``offline_rl_core.task.corrector.task_rule``);
+a task without one in this build is refused at start in one line.
 
 ``--mode scripted`` (default): takes over with the scripted expert when the fingertip
 has not got closer to the target for ``patience`` steps, hands back after
@@ -23,7 +27,6 @@ Any torque key takes over; the held torques are sent with every state until spac
 
 from __future__ import annotations
 
-import math
 import os
 import select
 import sys
@@ -33,21 +36,21 @@ import tty
 from dataclasses import replace
 
 import numpy as np
-from geometry_msgs.msg import PointStamped
+from geometry_msgs.msg import PointStamped, PoseStamped
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.task import Future
 from sensor_msgs.msg import JointState
 
 from offline_rl_core.common.errors import UserError
-from offline_rl_core.task.pusher_reach import ACT_DIM, JOINT_NAMES
-from offline_rl_core.nodes.joint_messages import joints_from_state
+from offline_rl_core.nodes.observation import ObservationBuilder, kinematics_model
 from offline_rl_core.nodes.pairing import Paired, StatePairing
+from offline_rl_core.task.spec import DEFAULT_TASK, JOINT_STATE, POSE_STAMPED, load_task
 from pusher_common.node_main import run_node
 from pusher_common.params import Param, Settings
 from pusher_common.stamps import stamp_key
 
-from offline_rl_core.task.corrector import CorrectorParams, ScriptedCorrector
+from offline_rl_core.task.corrector import CorrectorParams, ScriptedCorrector, task_rule
 
 KEEP_ANSWERS = 64
 KEYS = {
@@ -59,11 +62,11 @@ KEYS = {
 class KeyboardTeleop:
     """Torques set by keys in a raw-mode terminal; read on a background thread."""
 
-    def __init__(self, stream=sys.stdin):
+    def __init__(self, act_dim: int, stream=sys.stdin):
         if not stream.isatty():
             raise UserError("--mode keyboard needs an interactive terminal (stdin is not a tty)")
         self.stream = stream
-        self.torque = np.zeros(ACT_DIM, np.float32)
+        self.torque = np.zeros(act_dim, np.float32)
         self.active = False
         self.quit = threading.Event()
         self.lock = threading.Lock()
@@ -102,6 +105,8 @@ class KeyboardTeleop:
 
 
 PARAMS = (
+    Param("task", DEFAULT_TASK, "the task: a built-in task or a task file (its state, goal, reward distance and "
+          "scripted expert)", read_only=True, flag="--task"),
     Param("mode", "scripted", "scripted: the scripted expert takes over when progress stalls; keyboard: a person "
           "at this terminal", choices=("scripted", "keyboard"), read_only=True, flag="--mode"),
     Param("patience", 8, "k: states without progress before taking over", low=1, flag="--patience"),
@@ -113,7 +118,7 @@ PARAMS = (
     Param("reaction_delay", 0, "states between deciding to take over and acting", low=0, flag="--reaction-delay"),
     Param("seed", 0, "seed of the correction noise", low=0, read_only=True, flag="--seed"),
 )
-RULE_PARAMS = tuple(p.name for p in PARAMS if p.name != "mode")
+RULE_PARAMS = tuple(p.name for p in PARAMS if p.name not in ("mode", "task"))
 
 
 class Corrector(Node):
@@ -123,24 +128,36 @@ class Corrector(Node):
         self.mode = self.settings.mode
         self.finished = Future()  # done when the person quits (keyboard mode)
         values = {name: getattr(self.settings, name) for name in RULE_PARAMS}
+        task = self.task = load_task(self.settings.task or None)  # UserError: one line naming the task
+        self.builder = ObservationBuilder(task, kinematics_model(task))
         if self.mode == "scripted":
+            heard = [v for v in task.reward.distance if v in self.builder.topic_only]
+            if heard:  # this node hears no points: the rule's distance must come from the joints
+                raise UserError(f"{task.source_file()}: the scripted corrector computes reward.distance from the "
+                                f"joints, but point {heard[0]} has no kinematics it can compute")
+            expert, distance = task_rule(task, self.builder.distance)  # UserError: no expert for the task
             try:
-                self.teleop = ScriptedCorrector(CorrectorParams(**values))
+                self.teleop = ScriptedCorrector(CorrectorParams(**values), expert, distance, task.reward.success_within)
             except ValueError as exc:
                 raise UserError(str(exc)) from None
         else:
-            self.teleop = KeyboardTeleop()
+            if task.act_dim != 2:
+                raise UserError(f"--mode keyboard drives a two-joint arm; task {task.name} has {task.act_dim} "
+                                "command joints")
+            self.teleop = KeyboardTeleop(task.act_dim)
             self.create_timer(0.1, self.check_quit, clock=Clock(clock_type=ClockType.STEADY_TIME))
-        self.pairing = StatePairing(use_fingertip=False)  # the rule computes its fingertip
+        self.pairing = StatePairing(points=())  # the rule computes its tracked points
         self.answers: dict[int, JointState] = {}
         self.states = 0
         self.corrections = 0
-        self.create_subscription(PointStamped, "pusher/target", self.on_target, 10)
-        self.create_subscription(JointState, "pusher/state", self.on_state, 10)
+        goal_type = {JOINT_STATE: JointState, POSE_STAMPED: PoseStamped}.get(task.goal.type, PointStamped)
+        self.create_subscription(goal_type, task.goal.topic, self.on_goal, 10)
+        state_sub = self.create_subscription(JointState, task.state.topic, self.on_state, 10)
         self.pub = self.create_publisher(JointState, "teleop/action", 10)
         rule = ", ".join(f"{k}={v}" for k, v in values.items())
         desc = f"scripted ({rule})" if self.mode == "scripted" else "keyboard"
-        self.get_logger().info(f"corrector {desc}: answering /pusher/state on /teleop/action")
+        self.get_logger().info(f"corrector {desc} of task {task.name}: answering {state_sub.topic_name} on "
+                               f"{self.pub.topic_name}")
 
     def check_parameter(self, name: str, value) -> str | None:
         if self.mode != "scripted":
@@ -158,9 +175,14 @@ class Corrector(Node):
         if self.teleop.quit.is_set() and not self.finished.done():
             self.finished.set_result(True)
 
-    def on_target(self, msg: PointStamped) -> None:
-        if math.isfinite(msg.point.x) and math.isfinite(msg.point.y):
-            self.answer(self.pairing.on_target(stamp_key(msg.header.stamp), (msg.point.x, msg.point.y)))
+    def on_goal(self, msg) -> None:
+        if self.builder.joint_goal:
+            goal, problem = self.builder.goal_from_joints(msg.name, msg.position)
+        else:
+            p = msg.pose.position if isinstance(msg, PoseStamped) else msg.point
+            goal, problem = self.builder.goal_from_point(p.x, p.y, p.z)
+        if problem is None:
+            self.answer(self.pairing.on_goal(stamp_key(msg.header.stamp), goal))
 
     def on_state(self, msg: JointState) -> None:
         self.answer(self.pairing.on_state(stamp_key(msg.header.stamp), msg))
@@ -171,12 +193,12 @@ class Corrector(Node):
         msg, stamp = paired.state, paired.stamp
         out = self.answers.get(stamp)
         if out is None:  # a new state: decide once
-            joints, _ = joints_from_state(msg.name, msg.position, msg.velocity)
+            joints, _ = self.builder.state(msg.name, msg.position, msg.velocity)
             if joints is None:
                 return
-            action = self.teleop.decide(joints[0], joints[1], paired.target_xy)
+            action = self.teleop.decide(joints[0], joints[1], paired.goal)
             self.states += 1
-            out = JointState(name=list(JOINT_NAMES))
+            out = JointState(name=list(self.task.command.joints))
             if action is not None:
                 out.effort = [float(a) for a in action]
                 self.corrections += 1

@@ -6,6 +6,9 @@ that say who acted (codes 2 and 3 in ``pusher/transition``, so the bag records i
 ``corrections/intervening`` (std_msgs/Bool, transient local) is published on each change.
 
 Its parameters:
+- ``task`` (pusher_reach): a built-in task or a task file: the actions are JointStates of
+  its command joints (``robot.command.joints``, named in any order, or unnamed in that
+  order); one of another length, or lacking one of them, is refused and counted.
 - ``mode``: ``realtime`` (default) or ``lockstep``, as the sim's.
 - ``hold_ms`` (100): realtime: a teleop action holds the arm this long (on the node's
   clock: sim time under ``use_sim_time``);
@@ -31,8 +34,8 @@ from rclpy.qos import DurabilityPolicy, QoSProfile
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool
 
-from offline_rl_core.task.pusher_reach import JOINT_NAMES
 from offline_rl_core.nodes.joint_messages import action_from_effort
+from offline_rl_core.task.spec import DEFAULT_TASK, load_task
 from offline_rl_core.nodes.pairing import check_stamp
 from pusher_common.node_main import run_node
 from pusher_common.params import Param, Settings
@@ -46,6 +49,8 @@ LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 PARAMS = (
+    Param("task", DEFAULT_TASK, "the task: a built-in task or a task file; actions are JointStates of its command "
+          "joints", read_only=True),
     Param("mode", "realtime", "as the sim's: realtime (a teleop action holds the arm for hold_ms) or lockstep "
           "(exactly one command per state stamp)", choices=("realtime", "lockstep"), read_only=True),
     Param("hold_ms", 100.0, "realtime: milliseconds a teleop action holds the arm; policy actions inside the hold "
@@ -69,6 +74,7 @@ class Mux(Node):
         self.mode = self.settings.mode
         self.hold_s = self.settings.hold_ms / 1000.0
         self.require_teleop = self.settings.require_teleop
+        self.joints = load_task(self.settings.task or None).command.joints  # UserError: one line naming the task
         self.arbiter = LockstepArbiter() if self.mode == "lockstep" else RealtimeArbiter(self.hold_s)
         self.intervening: bool | None = None
         self.status = NodeStatus(self, fields=lambda: {"forwarded": dict(self.arbiter.counts),
@@ -106,7 +112,7 @@ class Mux(Node):
     def parse(self, msg: JointState, topic: str, allow_empty: bool) -> np.ndarray | None | bool:
         """Read the action: None for an empty effort (a yield) when allowed; False if refused."""
         self.status.took(topic)
-        action, problem = action_from_effort(msg.name, msg.effort, allow_empty)
+        action, problem = action_from_effort(msg.name, msg.effort, allow_empty, self.joints)
         problem = check_stamp(msg.header.stamp.sec, msg.header.stamp.nanosec) or problem
         if problem:
             self.status.reject(topic, problem)
@@ -144,7 +150,7 @@ class Mux(Node):
     def send(self, command, msg: JointState) -> None:
         if command is None:
             return
-        out = JointState(name=list(JOINT_NAMES), effort=[float(a) for a in command.action])
+        out = JointState(name=list(self.joints), effort=[float(a) for a in command.action])
         out.header.stamp = msg.header.stamp
         self.command_pubs[command.source].publish(out)
         if self.mode == "lockstep" and not command.resend:

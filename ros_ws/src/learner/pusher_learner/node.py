@@ -5,16 +5,20 @@ to the live ``pusher/transition`` stream (every source: the policy's steps and a
 takeovers), keeps it in an online buffer beside the offline bag(s), trains
 continuously (``utd`` gradient steps per transition, half of each batch from the offline
 data), and every ``publish_every`` transitions publishes a new weights version on
-``~/weights`` (``std_msgs/UInt8MultiArray``, layout label ``pusher-rl/weights``: a
-checkpoint in torch.save form; reliable, transient local, so a policy node that starts late
-gets the latest). The policy node acts on them (``-p weights_topic:=/learner/weights``).
+``~/weights`` (``std_msgs/UInt8MultiArray``, layout label ``pusher-rl/weights``: raw tensors
+with a JSON header, signed with the session's private key ``signing_key``, see
+``offline_rl_core.serving.weights``; reliable, transient local, so a policy node that starts
+late gets the latest). The policy node acts on them (``-p weights_topic:=/learner/weights``
+with ``-p weights_key:=`` the session's public key).
 ``OUT/policy.pt`` always holds the latest version; ``OUT/learner_state.pt`` is a resume point
 (every ``save_every`` s and at exit); ``--resume`` continues from it, reading the
 transitions that arrived while it was down from ``--session-bag`` (the session's
 recording). ``~/status`` (``std_msgs/String``, JSON, once a second; ``pusher_common.status``):
 counts, losses, rejections by reason. A transition with a non-finite value, an action
 outside [-1, 1], a value out of range or an unknown layout is dropped, counted and warned
-about (throttled), never trained on.
+about (throttled), never trained on. The learner trains on the wall clock: with
+``use_sim_time`` its work still runs (the sim's clock waits for the policy, which waits
+for the learner's weights).
 
 The logic lives in ``offline_rl_core.nodes.learner_service``; this node only moves messages.
 """
@@ -25,6 +29,7 @@ import array
 import os
 import sys
 
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float32MultiArray, MultiArrayDimension, UInt8MultiArray
@@ -32,6 +37,7 @@ from std_msgs.msg import Float32MultiArray, MultiArrayDimension, UInt8MultiArray
 from offline_rl_core.learners.config import TrainConfig
 from offline_rl_core.learners.online import OnlineSettings
 from offline_rl_core.nodes.learner_service import LearnerService, LearnerServiceConfig
+from offline_rl_core.serving.signing import load_signer
 from offline_rl_core.serving.weights import WEIGHTS_LABEL, encode_weights
 from pusher_common.node_main import run_node
 from pusher_common.params import Param, Settings
@@ -40,7 +46,8 @@ from pusher_common.status import NodeStatus
 # Deep and reliable: in lockstep the sim publishes as fast as it is answered, and a
 # transition lost here is a transition the learner never trains on.
 TRANSITION_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
-WEIGHTS_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+# Several versions kept: a policy node that falls behind still gets each one in order.
+WEIGHTS_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 _T = TrainConfig(algo="sac")
 _O = OnlineSettings()
@@ -49,8 +56,12 @@ PARAMS = [
           kind=list),
     Param("prior", None, "checkpoint that initialises the actor (and the critic, when it holds one); "
           "unset: from scratch", read_only=True, flag="--prior", kind=str),
+    Param("task", "", "the task (a built-in name or a task file), recorded in every weights version; empty: the "
+          "prior's, else the one the bag records, else pusher_reach", read_only=True, flag="--task"),
     Param("out", "runs/online", "directory for policy.pt, learner_state.pt and progress.jsonl", read_only=True,
           flag="--out"),
+    Param("signing_key", "", "the session's private key file (weights.key, from offline-rl weights-key; readable "
+          "by this user alone): every weights message is signed with it", read_only=True, flag="--signing-key"),
     Param("seed", 0, "seed of initialisation, batches and the policy's noise", read_only=True, flag="--seed"),
     Param("utd", _O.utd, "gradient steps per live transition", low=1, high=64, read_only=True, flag="--utd"),
     Param("offline_ratio", _O.offline_ratio, "share of each batch drawn from the offline bag(s)", low=0.0, high=1.0,
@@ -90,19 +101,26 @@ class Learner(Node):
             os.nice(s.nice)  # training yields the CPU to the nodes that answer the arm in time
         if not s.bag:
             raise UserError("no offline bag given: pass --bag PATH (repeat for several) or -p bag:=[PATH, ...]")
+        if not s.signing_key:
+            raise UserError("no signing key given: pass --signing-key PATH (offline-rl weights-key DIR makes "
+                            "DIR/weights.key for the learner and DIR/weights.pub for the policy node)")
+        self.signer = load_signer(s.signing_key)
         train = TrainConfig(algo="sac", alpha=s.alpha, bc_weight=s.bc_weight, init_log_std=s.init_log_std, lr=s.lr,
                             batch_size=s.batch_size, threads=s.threads)
         settings = OnlineSettings(utd=s.utd, offline_ratio=s.offline_ratio, publish_every=s.publish_every,
                                   capacity=s.capacity)
         self.service = LearnerService(LearnerServiceConfig(
-            bags=list(s.bag), out=s.out, prior=s.prior or None, seed=s.seed, save_every=s.save_every, resume=s.resume,
+            bags=list(s.bag), out=s.out, prior=s.prior or None, task=s.task or None, seed=s.seed,
+            save_every=s.save_every, resume=s.resume,
             session_bag=s.session_bag or None, snapshot_every=s.snapshot_every, settings=settings, train=train),
             log=self.get_logger().info)
         self.weights_pub = self.create_publisher(UInt8MultiArray, "~/weights", WEIGHTS_QOS)
         self.status = NodeStatus(self, fields=self.service.status, counter=self.service.rejected)
         self.create_subscription(Float32MultiArray, "pusher/transition", self.on_transition, TRANSITION_QOS,
                                  raw=True)
-        self.create_timer(0.002, self.work)
+        # wall-clock work, also under use_sim_time: a timer on sim time would wait for a
+        # clock that waits for these weights
+        self.create_timer(0.002, self.work, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.publish(self.service.weights)
         self.get_logger().info(
             f"learning from {len(s.bag)} bag(s) + live transitions; weights version "
@@ -120,7 +138,7 @@ class Learner(Node):
             self.publish(weights)
 
     def publish(self, weights: dict) -> None:
-        msg = UInt8MultiArray(data=array.array("B", encode_weights(weights)))
+        msg = UInt8MultiArray(data=array.array("B", encode_weights(weights, self.signer)))
         msg.layout.dim = [MultiArrayDimension(label=WEIGHTS_LABEL, size=len(msg.data), stride=1)]
         self.weights_pub.publish(msg)
 

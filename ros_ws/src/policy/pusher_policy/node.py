@@ -1,28 +1,45 @@
-"""``ros2 run policy node --checkpoint PATH``: serve a trained policy over topics.
+"""``ros2 run policy node --checkpoint PATH``: serve a trained policy over topics, on any task's arm.
 
-Every ``pusher/state`` (with its ``pusher/target``) is answered on ``policy/action``:
-a JointState whose effort is the action in [-1, 1], stamped with the state's stamp; and,
-on ``effort_topic`` (default ``effort_controller/commands``), the same action as joint
-torques in N·m (std_msgs/Float64MultiArray), what a ros2_control effort controller
-takes. A malformed, non-finite or out-of-order state (``offline_rl_core.nodes.joint_messages``,
-``offline_rl_core.nodes.pairing``), target or weights message gets no action: it is counted
-by reason on ``~/status`` (``pusher_common.status``) with a throttled warning.
+The task (``-p task:=NAME_OR_FILE``, default: the one the checkpoint records; a checkpoint
+that records none is pusher_reach's) says what is heard and what is sent
+(``offline_rl_core.task.spec``): every state on its ``robot.state.topic`` (JointState: the
+task's joints picked out by name, in any order, other joints ignored), with its goal
+(``goal.topic``: PointStamped, PoseStamped or a JointState goal) and the tracked points
+that have a topic (forward kinematics of those not heard: ``offline_rl_core.task.kinematics``),
+is answered on ``policy/action``: a JointState of the command joints whose effort is the
+action in [-1, 1], stamped with the state's stamp; and (``publish_command``) on the
+controller's ``robot.command.topic``, as the controller takes it: ``offset + scale *
+action`` per joint in the controller's joint order, a std_msgs/Float64MultiArray as a
+ros2_control forward_command_controller takes it (or a JointState command where the
+task says so). pusher_reach: ``pusher/state`` + ``pusher/target`` + ``pusher/fingertip`` in,
+``effort_controller/commands`` in N·m (the action times the motors' 0.5 N·m gear) out.
+A task given that is not the checkpoint's is refused at start in one line naming both
+layouts (exit 2); so is, at run time, a checkpoint or weights version of another task.
+
+A malformed, non-finite or out-of-order state (``offline_rl_core.nodes.observation``,
+``offline_rl_core.nodes.pairing``), goal, point or weights message gets no action: it is
+counted by reason on ``~/status`` (``pusher_common.status``) with a throttled warning.
 The checkpoint (``--checkpoint`` or ``-p checkpoint:=``)
 is polled every ``poll_period`` seconds and hot-swapped when it changes; a file that
 fails to load leaves the previous policy serving, with an error logged. A missing or
 broken checkpoint at start is one error line and exit status 2.
 
-State, target and fingertip are paired by stamp as ``offline_rl_core.nodes.pairing`` says;
-an arm that publishes no fingertip gets planar forward kinematics of its joints.
+State, goal and points are paired by stamp as ``offline_rl_core.nodes.pairing`` says.
 
 The actor of the HIL-SERL stage (``offline_rl_core.serving.actor``): with ``weights_topic`` set
 (``learner/weights``) it also takes each new weights version the online learner
-publishes; it acts deterministically unless ``explore`` is set, then it samples the
+publishes, signed with the session's key (``weights_key``: the learner's public key; see
+``offline_rl_core.serving.weights``: anything else on the topic is refused and counted); it
+acts deterministically unless ``explore`` is set, then it samples the
 learner's Gaussian from its own ``seed``; with ``paced_every`` (the learner's
 ``publish_every``) state n waits for weights version n // paced_every, so a lockstep sim
 cannot outrun the learner. Every answer is also reported on ``policy/provenance``
 (std_msgs/String, JSON: stamp, weights_version, trained_through, weights_age_s: seconds
 since the learner cut them, explore), so a bag says which weights acted.
+
+Checkpoint files and weights messages are read, checked and decoded on a worker thread
+(``offline_rl_core.nodes.background_loads``), never on the thread that answers states;
+a ``checkpoint`` that is not a regular file (a FIFO, a terminal) is refused.
 """
 
 from __future__ import annotations
@@ -35,21 +52,26 @@ import time
 # One observation per call: BLAS threads only add hand-off latency (set before numpy loads).
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-from geometry_msgs.msg import PointStamped  # noqa: E402
+from geometry_msgs.msg import PointStamped, PoseStamped  # noqa: E402
 from rclpy.clock import Clock, ClockType  # noqa: E402
 from rclpy.node import Node  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
+from rclpy.serialization import deserialize_message  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64MultiArray, String, UInt8MultiArray  # noqa: E402
 
 from offline_rl_core.serving.actor import Actor  # noqa: E402
-from offline_rl_core.task.pusher_reach import JOINT_NAMES, observation_from_joints  # noqa: E402
 from offline_rl_core.common.errors import UserError  # noqa: E402
-from offline_rl_core.nodes.joint_messages import joints_from_state, point_xy, torques_from_action  # noqa: E402
-from offline_rl_core.serving.weights import policy_from_weights_message  # noqa: E402
+from offline_rl_core.nodes.background_loads import BackgroundLoads  # noqa: E402
+from offline_rl_core.nodes.joint_messages import command_from_action  # noqa: E402
+from offline_rl_core.nodes.observation import ObservationBuilder, kinematics_model  # noqa: E402
 from offline_rl_core.nodes.pairing import Paired, StatePairing, check_stamp  # noqa: E402
-from offline_rl_core.serving.checkpoint import checkpoint_file
-from offline_rl_core.serving.policy import LoadedPolicy, load_policy
+from offline_rl_core.serving.checkpoint import checkpoint_file, checkpoint_task, regular_file_problem  # noqa: E402
+from offline_rl_core.serving.policy import LoadedPolicy, load_policy, policy_for_task  # noqa: E402
+from offline_rl_core.serving.signing import load_verifier  # noqa: E402
+from offline_rl_core.serving.weights import MAX_MESSAGE_BYTES, policy_from_weights_message  # noqa: E402
+from offline_rl_core.task.spec import JOINT_STATE, POSE_STAMPED, load_task  # noqa: E402
 from offline_rl_core.common.rejections import Rejection  # noqa: E402
 from pusher_common.node_main import run_node  # noqa: E402
 from pusher_common.params import Param, Settings  # noqa: E402
@@ -77,12 +99,17 @@ def file_signature(path: str):
 PARAMS = (
     Param("checkpoint", "", "policy checkpoint to serve (policy.pt, or a run directory holding one); "
           "watched and reloaded when replaced; setting it switches to another checkpoint", flag="--checkpoint"),
+    Param("task", "", "the task served: a built-in task or a task file, which must be the checkpoint's (empty: "
+          "the one the checkpoint records; pusher_reach where it records none)", read_only=True, flag="--task"),
     Param("poll_period", 0.5, "seconds between checks of the checkpoint file for a new version", low=0.01, high=60.0),
-    Param("effort_topic", "effort_controller/commands", "also publish each action as std_msgs/Float64MultiArray joint "
-          "torques in N·m (action x motor gear) on this topic, as a ros2_control effort controller takes them "
-          "(empty: off)", read_only=True),
+    Param("publish_command", True, "also publish each action as the task's controller takes it (offset + scale x "
+          "action, in the controller's joint order) on its robot.command.topic (pusher_reach: joint torques in N·m "
+          "on effort_controller/commands); remap the topic with -r", read_only=True),
     Param("weights_topic", "", "also act on the weights versions the online learner publishes on this topic "
           "(std_msgs/UInt8MultiArray, e.g. learner/weights; empty: off)", read_only=True, flag="--weights-topic"),
+    Param("weights_key", "", "the session learner's public key file (weights.pub, from offline-rl weights-key): "
+          "weights on weights_topic are taken only when signed with its private key (required with "
+          "weights_topic)", read_only=True, flag="--weights-key"),
     Param("explore", False, "sample exploration actions from the policy's Gaussian (the online learner's std) "
           "instead of acting deterministically", flag="--explore"),
     Param("seed", 0, "seed of the exploration noise", low=0, read_only=True, flag="--seed"),
@@ -102,33 +129,56 @@ class PolicyServer(Node):
             raise UserError("no checkpoint given: pass --checkpoint PATH or -p checkpoint:=PATH")
         self.path = str(checkpoint_file(self.settings.checkpoint))
         self.signature = file_signature(self.path)
-        self.actor = Actor(load_policy(self.path),  # UserError with one clear line if missing/broken
-                           explore=self.settings.explore, seed=self.settings.seed,
+        self.verifier = None
+        if self.settings.weights_topic:
+            if not self.settings.weights_key:
+                raise UserError("weights_topic needs weights_key: the session learner's public key file (weights.pub)")
+            self.verifier = load_verifier(self.settings.weights_key)
+        policy = load_policy(self.path)  # UserError with one clear line if missing/broken
+        # the task given must be the checkpoint's (one line naming both layouts otherwise)
+        self.task = load_task(self.settings.task) if self.settings.task else checkpoint_task(policy.checkpoint)
+        policy = policy_for_task(policy.checkpoint, self.path, self.task)
+        self.actor = Actor(policy, explore=self.settings.explore, seed=self.settings.seed,
                            paced_every=self.settings.paced_every)
-        self.candidate = None  # a checkpoint set at run time, loaded while checking it
-        self.pairing = StatePairing()
+        self.reverting = None  # the checkpoint parameter being set back after a failed switch
+        self.builder = ObservationBuilder(self.task, kinematics_model(self.task))
+        self.pairing = StatePairing(points=tuple(self.builder.point_topics), required=self.builder.topic_only)
         self.held: Paired | None = None  # a state waiting for the weights version it needs
         self.answered = 0
+        # what the worker loaded is taken on this thread, woken by the guard condition
+        self.loads_ready = self.create_guard_condition(self.on_loaded)
+        self.loads = BackgroundLoads(self.loads_ready.trigger, max_pending=WEIGHTS_QOS.depth, name="policy-loads")
         self.status = NodeStatus(self, fields=lambda: {"answered": self.answered,
-                                                       "weights_version": self.policy.weights_version})
+                                                       "weights_version": self.policy.weights_version,
+                                                       "loads_dropped": dict(self.loads.dropped)})
 
-        # Target subscription first: when both are ready the executor takes it first.
+        # Goal subscription first: when both are ready the executor takes it first.
         # Paced, every state counts (it indexes the pacing and the exploration noise), and
         # while a person holds the arm the sim runs ahead of this node: keep them all.
         depth = PACED_QUEUE_DEPTH if self.settings.paced_every else 10
-        self.create_subscription(PointStamped, "pusher/target", self.on_target, depth)
-        self.create_subscription(PointStamped, "pusher/fingertip", self.on_fingertip, depth)
-        self.create_subscription(JointState, "pusher/state", self.on_state, depth)
+        task = self.task
+        goal_type = {JOINT_STATE: JointState, POSE_STAMPED: PoseStamped}.get(task.goal.type, PointStamped)
+        self.create_subscription(goal_type, task.goal.topic, self.on_goal, depth)
+        for name, point in self.builder.point_topics.items():
+            self.create_subscription(PoseStamped if point.type == POSE_STAMPED else PointStamped, point.topic,
+                                     lambda msg, name=name: self.on_point(name, msg), depth)
+        self.create_subscription(JointState, task.state.topic, self.on_state, depth)
         self.action_pub = self.create_publisher(JointState, "policy/action", 10)
         self.provenance_pub = self.create_publisher(String, "policy/provenance", 10)
-        if self.settings.weights_topic:
-            self.create_subscription(UInt8MultiArray, self.settings.weights_topic, self.on_weights, WEIGHTS_QOS)
-        effort_topic = self.settings.effort_topic
-        self.effort_pub = self.create_publisher(Float64MultiArray, effort_topic, 10) if effort_topic else None
+        if self.settings.weights_topic:  # raw: its size is checked before anything is decoded
+            self.create_subscription(UInt8MultiArray, self.settings.weights_topic, self.on_weights, WEIGHTS_QOS,
+                                     raw=True)
+        self.command_joint_state = task.command.type == JOINT_STATE
+        self.command_pub = self.create_publisher(JointState if self.command_joint_state else Float64MultiArray,
+                                                 task.command.topic, 10) if self.settings.publish_command else None
         # Watching a file is wall-clock work, also under use_sim_time.
         self.poll_timer = self.create_timer(self.poll_period, self.check_checkpoint,
                                             clock=Clock(clock_type=ClockType.STEADY_TIME))
-        self.get_logger().info(f"serving {self.policy.algorithm} policy from {self.path}")
+        self.get_logger().info(f"serving {self.policy.algorithm} policy from {self.path} on task {task.name} "
+                               f"({task.source_file()}): {task.state.topic} + {task.goal.topic} -> policy/action"
+                               + (f" + {self.command_pub.topic_name}" if self.command_pub is not None else "")
+                               + (f"; points {', '.join(self.builder.topic_only)} only from their topics"
+                                  if self.builder.topic_only else ""))
 
     @property
     def policy(self) -> LoadedPolicy:
@@ -136,27 +186,18 @@ class PolicyServer(Node):
 
     # -------------------------------------------------------------- parameters
     def check_parameter(self, name: str, value) -> str | None:
+        """Refuse a new checkpoint that is not a regular file (the load itself runs on the worker)."""
         if name != "checkpoint":
             return None
-        path = str(checkpoint_file(value))
-        try:
-            self.candidate = (path, file_signature(path), load_policy(path))
-        except UserError as exc:  # refused with the reason; the old policy serves on
-            return str(exc)
-        except Exception as exc:  # noqa: BLE001 - whatever is wrong with the file
-            return f"cannot load {path}: {exc}"
-        return None
+        return regular_file_problem(checkpoint_file(value))
 
     def on_parameter_change(self, name: str, value) -> None:
         if name == "explore":
             self.actor.explore = bool(value)
         elif name == "poll_period":
             self.poll_timer.timer_period_ns = int(value * 1e9)
-        elif name == "checkpoint" and self.candidate is not None:
-            self.path, self.signature, policy = self.candidate
-            self.actor.offer(policy)
-            self.candidate = None
-            self.get_logger().info(f"serving {self.policy.algorithm} policy from {self.path}")
+        elif name == "checkpoint" and value != self.reverting:
+            self.load_checkpoint(str(checkpoint_file(value)), switch=True)
 
     # -------------------------------------------------------------- checkpoint
     def check_checkpoint(self) -> None:
@@ -167,53 +208,112 @@ class PolicyServer(Node):
         if signature is None:
             self.get_logger().warning(f"{self.path} disappeared; still serving the loaded policy")
             return
-        try:
-            policy = load_policy(self.path)
-        except Exception as exc:  # noqa: BLE001 - whatever is wrong with the file, keep serving
-            self.status.rejections.add(Rejection("bad checkpoint", str(exc)))
-            self.get_logger().error(f"cannot reload {self.path}, keeping the previous policy: {exc}")
-            return
-        self.actor.offer(policy)  # one reference swap: a callback sees the old or the new policy
-        self.get_logger().info(f"reloaded {self.path} ({policy.algorithm})")
+        self.load_checkpoint(self.path, switch=False)
 
-    def on_weights(self, msg: UInt8MultiArray) -> None:
+    def load_checkpoint(self, path: str, switch: bool) -> None:
+        """Load ``path`` on the worker; ``on_loaded`` takes it (``switch``: serve from it from now on)."""
+        task = self.task
+
+        def job():
+            signature = file_signature(path)
+            try:
+                return "checkpoint", path, signature, switch, load_policy(path, task)  # another task's: refused
+            except Exception as exc:  # noqa: BLE001 - whatever is wrong with the file, keep serving
+                return "checkpoint", path, signature, switch, exc
+        self.loads.submit("checkpoint", job)
+
+    def on_weights(self, raw: bytes) -> None:
         topic = self.settings.weights_topic
         self.status.took(topic)
-        label = msg.layout.dim[0].label if msg.layout.dim else ""
-        policy, problem = policy_from_weights_message(label, msg.data, topic)
+        if len(raw) > MAX_MESSAGE_BYTES + 1024:  # the CDR framing around the bytes is a few dozen bytes
+            self.status.reject(topic, Rejection("bad weights", f"{len(raw)} bytes, more than weights may hold"))
+            return
+        verifier, task = self.verifier, self.task
+
+        def job():
+            msg = deserialize_message(raw, UInt8MultiArray)
+            label = msg.layout.dim[0].label if msg.layout.dim else ""
+            return ("weights", *policy_from_weights_message(label, msg.data, verifier, topic, task))
+        self.loads.submit("weights", job)
+
+    def on_loaded(self) -> None:
+        """Take what the worker finished: weights to act on, checkpoints to serve (swapped on this thread)."""
+        for result in self.loads.drain():
+            if isinstance(result, Exception):  # a bug in a job, not in the input: said, and serving goes on
+                self.get_logger().error(f"loading failed: {type(result).__name__}: {result}")
+            elif result[0] == "weights":
+                self.take_weights(*result[1:])
+            else:
+                self.take_checkpoint(*result[1:])
+
+    def take_weights(self, policy: LoadedPolicy | None, problem: Rejection | None) -> None:
+        topic = self.settings.weights_topic
+        if problem is None:
+            taken, problem = self.actor.offer_weights(policy)
         if problem:  # whatever is wrong with the message, the held policy serves on
             self.status.reject(topic, problem)
             return
-        if self.actor.offer(policy):
+        if taken:
             self.get_logger().info(f"acting on weights version {policy.weights_version}",
                                    throttle_duration_sec=WARN_THROTTLE_S)
             held, self.held = self.held, None
             self.answer(held)
 
+    def take_checkpoint(self, path: str, signature, switch: bool, policy) -> None:
+        if not switch and path != self.path:
+            return  # a reload of the file served before a switch
+        if isinstance(policy, Exception):
+            self.status.rejections.add(Rejection("bad checkpoint", str(policy)))
+            self.get_logger().error(f"cannot {'load' if switch else 'reload'} {path}, still serving "
+                                    f"{self.path}: {policy}")
+            if switch:  # the parameter says again what serves
+                self.reverting = self.path
+                self.set_parameters([Parameter("checkpoint", value=self.path)])
+                self.reverting = None
+            return
+        if switch:
+            self.path, self.signature = path, signature
+        self.actor.offer(policy)  # one reference swap: a callback sees the old or the new policy
+        self.get_logger().info(f"serving {policy.algorithm} policy from {path}" if switch else
+                               f"reloaded {path} ({policy.algorithm})")
+
+    def close(self) -> None:
+        self.loads.stop()  # before the guard condition it triggers goes with the node
+
     # -------------------------------------------------------------- serving
-    def on_target(self, msg: PointStamped) -> None:
-        self.on_point(msg, "pusher/target", self.pairing.on_target)
-
-    def on_fingertip(self, msg: PointStamped) -> None:
-        self.on_point(msg, "pusher/fingertip", self.pairing.on_fingertip)
-
-    def on_point(self, msg: PointStamped, topic: str, pair) -> None:
+    def on_goal(self, msg) -> None:
+        topic = self.task.goal.topic
         self.status.took(topic)
-        xy, problem = point_xy(msg.point.x, msg.point.y, topic)
+        if self.builder.joint_goal:
+            value, problem = self.builder.goal_from_joints(msg.name, msg.position)
+        else:
+            p = msg.pose.position if isinstance(msg, PoseStamped) else msg.point
+            value, problem = self.builder.goal_from_point(p.x, p.y, p.z)
+        self.pair(msg, topic, problem, lambda stamp: self.pairing.on_goal(stamp, value))
+
+    def on_point(self, name: str, msg) -> None:
+        topic = self.builder.point_topics[name].topic
+        self.status.took(topic)
+        p = msg.pose.position if isinstance(msg, PoseStamped) else msg.point
+        value, problem = self.builder.point(name, p.x, p.y, p.z)
+        self.pair(msg, topic, problem, lambda stamp: self.pairing.on_point(name, stamp, value))
+
+    def pair(self, msg, topic: str, problem, pair) -> None:
         problem = check_stamp(msg.header.stamp.sec, msg.header.stamp.nanosec) or problem
         if problem:
             self.status.reject(topic, problem)
             return
-        self.answer(pair(stamp_key(msg.header.stamp), xy))
+        self.answer(pair(stamp_key(msg.header.stamp)))
 
     def on_state(self, msg: JointState) -> None:
-        self.status.took("pusher/state")
-        joints, problem = joints_from_state(msg.name, msg.position, msg.velocity)
+        topic = self.task.state.topic
+        self.status.took(topic)
+        joints, problem = self.builder.state(msg.name, msg.position, msg.velocity)
         problem = check_stamp(msg.header.stamp.sec, msg.header.stamp.nanosec) or problem
         stamp = stamp_key(msg.header.stamp)
         problem = problem or self.pairing.admit(stamp)  # stale and future stamps: only for a sound state
         if problem:
-            self.status.reject("pusher/state", problem)
+            self.status.reject(topic, problem)
             return
         self.actor.see(stamp)  # every state of the session counts, answered or not
         self.answer(self.pairing.on_state(stamp, (msg.header.stamp, joints)))
@@ -225,19 +325,31 @@ class PolicyServer(Node):
             self.held = paired  # answered when the weights version it needs arrives
             return
         header_stamp, (position, velocity) = paired.state
-        obs = observation_from_joints(position, velocity, paired.target_xy, paired.fingertip_xy)
+        obs = self.builder.observe(position, velocity, paired.goal, paired.points)
         action, problem = self.actor.answer(obs, paired.stamp)
         if problem:
-            self.status.reject("pusher/state", problem)
+            self.status.reject(self.task.state.topic, problem)
             return
-        out = JointState(name=list(JOINT_NAMES), effort=[float(a) for a in action])
+        joints = list(self.task.command.joints)
+        out = JointState(name=joints, effort=[float(a) for a in action])
         out.header.stamp = header_stamp
         self.action_pub.publish(out)
         if self.provenance_pub.get_subscription_count():  # formatting it costs the answer's latency
             self.publish_provenance(paired.stamp)
-        if self.effort_pub is not None and self.effort_pub.get_subscription_count():
-            self.effort_pub.publish(Float64MultiArray(data=[float(t) for t in torques_from_action(action)]))
+        if self.command_pub is not None and self.command_pub.get_subscription_count():
+            self.publish_command(command_from_action(self.task.command, action), header_stamp)
         self.answered += 1
+
+    def publish_command(self, values, header_stamp) -> None:
+        """Publish the action as the controller takes it, in the controller's joint order."""
+        data = [float(v) for v in values]
+        if not self.command_joint_state:
+            self.command_pub.publish(Float64MultiArray(data=data))
+            return
+        command = JointState(name=list(self.task.command.joints))
+        setattr(command, self.task.command.interface, data)  # the interface's field: effort, velocity or position
+        command.header.stamp = header_stamp
+        self.command_pub.publish(command)
 
     def publish_provenance(self, stamp: int) -> None:
         cut = self.policy.checkpoint.get("cut_unix")  # when the learner cut these weights (same machine clock)

@@ -18,7 +18,9 @@
 - Before spinning, what set-up allocated is moved out of the garbage collector's reach
   (``gc.freeze``), so no collection pauses a node for tens of milliseconds.
 - ``node.close()`` (if defined) runs on every way out, before the node is destroyed: the
-  place to write a summary or restore a terminal.
+  place to write a summary or restore a terminal. From then on SIGINT and SIGTERM are
+  ignored and rclpy's signal thread is stopped (``pusher_common.shutdown``): a second
+  Ctrl-C cannot cut a close short, and nothing triggers a guard condition being destroyed.
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ from offline_rl_core.common.errors import UserError, caused_by_interrupt
 from offline_rl_core.common.interrupts import raise_keyboard_interrupt
 
 from .params import Param, add_flags, overrides_from_flags
+from .shutdown import quiet_signals
 
 
 def spin_executor(executor, node) -> None:
@@ -115,6 +118,8 @@ def run_node(
         if runs_in_main:
             signal.signal(signal.SIGTERM, previous_term)
             signal.signal(signal.SIGINT, previous_int)
+        else:
+            quiet_signals()  # before anything is destroyed or closed (``shutdown``)
         if node is not None:
             close = getattr(node, "close", None)
             if close is not None:

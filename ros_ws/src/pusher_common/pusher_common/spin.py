@@ -22,6 +22,8 @@ import time
 from rclpy.executors import Executor, ExternalShutdownException
 from rclpy.task import Future
 
+from .shutdown import quiet_signals
+
 try:  # private API: kept only while this rclpy has it
     from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
     from rclpy.signals import SignalHandlerGuardCondition
@@ -31,7 +33,6 @@ except ImportError:
     _FAST_PATH = False
 
 POLL_S = 0.1
-_KEPT_UNTIL_EXIT: list = []  # guard conditions a signal may still be triggering
 
 
 def fast_path_available() -> bool:
@@ -84,14 +85,11 @@ def spin_until_future_complete(executor: Executor, future: Future) -> None:
                 next_poll = now + POLL_S
                 executor.spin_once(timeout_sec=0)
     finally:
-        if context.ok():
-            sigint.destroy()
-        else:
-            # A signal shut the context down: rclpy's signal thread may still be triggering
-            # the guard conditions it had registered, this one included (a core dump showed
-            # it in rcl_trigger_guard_condition on a destroyed one). Keep it for the
-            # process's last moments rather than free it under that thread.
-            _KEPT_UNTIL_EXIT.append(sigint)
+        if not context.ok():
+            # a signal shut the context down: rclpy's signal thread may still be triggering
+            # the guard conditions it had registered, this one included (``shutdown``)
+            quiet_signals()
+        sigint.destroy()
 
 
 def spin_node_fast(executor: Executor, node) -> None:

@@ -21,7 +21,14 @@ bag keeps their offered QoS, as ``ros2 bag record`` does. Topic names are relati
 Messages are stamped with the node's clock (sim time with ``-p use_sim_time:=true``),
 strictly increasing so the bag's order is the arrival order. Ctrl-C or SIGTERM close the
 bag with every message received; a SIGKILL loses at most the last ``flush_interval``
-(1 s) of messages (``offline_rl_core.data.bag.recording``).
+(at most 1 s) of messages (``offline_rl_core.data.bag.recording``). When the bag's file
+system has less than ``min_free_space`` left, the recorder stops: the bag is closed whole
+with every message before the stop, and the node exits with status 1.
+
+A topic whose type discovery reports in a form that is no ``pkg/msg/Name`` (or whose
+package is not installed) is skipped with one warning. Under ``use_sim_time``, messages
+that come before the first ``/clock`` wait for it, at most ``BEFORE_CLOCK_BYTES`` of them
+(the oldest are dropped beyond that, counted in the closing line).
 
 Who acts, episode counting and the command/transition handshake are
 ``offline_rl_core.nodes.collect_driver.CollectDriver`` (free of ROS, its docstring gives the
@@ -31,8 +38,10 @@ protocol); this node subscribes, publishes and writes the bag.
 from __future__ import annotations
 
 import importlib
+import re
 import sys
 import time
+from collections import deque
 from pathlib import Path
 
 from geometry_msgs.msg import PointStamped
@@ -45,7 +54,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float32MultiArray
 
 from offline_rl_core.data.bag import BagWriter, transition_ends_episode, typestore
-from offline_rl_core.data.bag.recording import MIN_SQLITE_SPLIT_SIZE
+from offline_rl_core.data.bag.recording import MIN_SQLITE_SPLIT_SIZE, OutOfSpace
 from offline_rl_core.data.collect import EpisodePlan
 from offline_rl_core.nodes.collect_driver import CollectDriver, Command
 from offline_rl_core.task.pusher_reach import JOINT_NAMES
@@ -66,6 +75,8 @@ LOOP_TYPES = {
     COMMAND: ("sensor_msgs/msg/JointState", JointState),
 }
 DISCOVERY_PERIOD_S = 0.5
+MESSAGE_TYPE = re.compile(r"[A-Za-z][A-Za-z0-9_]*/msg/[A-Za-z][A-Za-z0-9_]*")
+BEFORE_CLOCK_BYTES = 64 << 20  # what may wait for the first /clock under use_sim_time
 
 PARAMS = (
     Param("out", "", "bag to write: x.db3 / x.mcap (one file) or a directory (metadata.yaml + x_0.db3, x_1.db3, ...)",
@@ -87,8 +98,10 @@ PARAMS = (
           "at start)", read_only=True, flag="--make-parents"),
     Param("topics", [], "topics to record (relative names resolve in the node's namespace); none: every topic when "
           "passive, the loop's when driving", read_only=True, flag="--topics", kind=list),
-    Param("flush_interval", 1.0, "seconds between writes to disk: a kill loses at most this much", low=0.001,
-          high=3600.0, flag="--flush-interval"),
+    Param("flush_interval", 1.0, "seconds between writes to disk: a kill loses at most this much (at most 1 s, "
+          "the recorder's promise)", low=0.001, high=1.0, flag="--flush-interval"),
+    Param("min_free_space", 128 << 20, "stop recording (the bag closed whole, exit 1) when the bag's file system "
+          "has fewer bytes free than this (0: never)", low=0, flag="--min-free-space"),
     Param("max_bag_size", 0, "start a new file of the bag directory past this many bytes (0: never)", low=0,
           flag="--max-bag-size"),
     Param("max_bag_duration", 0.0, "start a new file of the bag directory after this many seconds of stamps (0: never)",
@@ -98,11 +111,13 @@ TRANSITION_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 
 
 def message_class(msgtype: str):
-    """The Python class of 'pkg/msg/Name', or None when its package is not installed."""
+    """The Python class of 'pkg/msg/Name', or None when it is not one or its package is not installed."""
+    if not MESSAGE_TYPE.fullmatch(msgtype):
+        return None
     package, _, name = msgtype.split("/")
     try:
         return getattr(importlib.import_module(f"{package}.msg"), name)
-    except (ImportError, AttributeError):
+    except Exception:  # noqa: BLE001 - whatever importing a package named by discovery raises
         return None
 
 
@@ -161,7 +176,9 @@ class Recorder(Node):
         self.finished = Future()
         self.exit_code = 0
         self.last_stamp_ns = 0
-        self.before_clock: list[tuple[str, bytes]] = []  # (topic, message) received before sim time starts
+        self.before_clock: deque[tuple[str, bytes]] = deque()  # (topic, message) received before sim time starts
+        self.before_clock_bytes = 0
+        self.dropped_before_clock = 0
         self.start_time = time.monotonic()
         self.progress_tty = sys.stderr.isatty()
         self.last_progress_decile = -1
@@ -173,7 +190,8 @@ class Recorder(Node):
             parent = check_output_dir(Path(s.out).parent, "--out")
             parent.mkdir(parents=True, exist_ok=True)
         self.bag = BagWriter(s.out, storage=s.storage or None, overwrite=s.overwrite, flush_interval=s.flush_interval,
-                             max_bag_size=s.max_bag_size, max_bag_duration=s.max_bag_duration)
+                             max_bag_size=s.max_bag_size, max_bag_duration=s.max_bag_duration,
+                             min_free_space=s.min_free_space)
         self.record_all = self.active is False and not s.topics
         self.wanted = {self.resolve(t) for t in s.topics or ()}
         self.subs: dict[str, object] = {}  # resolved name -> subscription
@@ -218,6 +236,8 @@ class Recorder(Node):
             self.bag.max_bag_size = int(value)
         elif name == "max_bag_duration":
             self.bag.max_bag_duration_ns = int(value * 1e9)
+        elif name == "min_free_space":
+            self.bag.min_free_space = int(value)
 
     # -------------------------------------------------------------- subscribing
     def subscribe(self, topic: str, msgtype: str, msg_class, qos) -> None:
@@ -240,7 +260,8 @@ class Recorder(Node):
                 continue
             msg_class = message_class(types[0])
             if msg_class is None:
-                self.warn_once(topic, f"not recording {topic}: its type {types[0]} is not installed here")
+                why = "is not installed here" if MESSAGE_TYPE.fullmatch(types[0]) else "is not a pkg/msg/Name type"
+                self.warn_once(topic, f"not recording {topic}: its type {types[0][:80]!r} {why}")
                 continue
             infos = self.get_publishers_info_by_topic(topic)
             if infos:  # subscribe with what they offer
@@ -270,18 +291,28 @@ class Recorder(Node):
     def write(self, topic: str, raw: bytes) -> None:
         if self.finished.done():
             return
+        if self.bag.low_space is not None:
+            self.stop_for_space()
+            return
         if topic not in self.bag_topics:
             self.add_to_bag(topic, self.types[topic], self.get_publishers_info_by_topic(topic))
             self.bag_topics.add(topic)
         now_ns = self.get_clock().now().nanoseconds
         if now_ns == 0:
             # sim time before the first /clock: held until the clock starts, so no message
-            # is stamped at the epoch (ros2 bag record would)
+            # is stamped at the epoch (ros2 bag record would); bounded: the oldest go first
             self.before_clock.append((topic, raw))
+            self.before_clock_bytes += len(raw)
+            while self.before_clock_bytes > BEFORE_CLOCK_BYTES:
+                self.before_clock_bytes -= len(self.before_clock.popleft()[1])
+                self.dropped_before_clock += 1
+                self.warn_once("before clock", f"no /clock yet: dropping the oldest of the messages waiting "
+                                               f"for it (more than {BEFORE_CLOCK_BYTES >> 20} MiB)")
             return
         for held_topic, held_raw in self.before_clock:
             self.write_stamped(held_topic, now_ns, held_raw)
         self.before_clock.clear()
+        self.before_clock_bytes = 0
         self.write_stamped(topic, now_ns, raw)
 
     def write_stamped(self, topic: str, now_ns: int, raw: bytes) -> None:
@@ -289,7 +320,10 @@ class Recorder(Node):
         # bag's order is the arrival order.
         stamp = max(now_ns, self.last_stamp_ns + 1)
         self.last_stamp_ns = stamp
-        self.bag.write(topic, stamp, raw)
+        try:
+            self.bag.write(topic, stamp, raw)
+        except OutOfSpace:  # the flush thread found the disk nearly full since write() looked
+            self.stop_for_space()
 
     def on_transition(self, raw: bytes) -> None:
         if self.finished.done():
@@ -355,6 +389,16 @@ class Recorder(Node):
         self.write(topic, serialize_message(msg))
 
     # -------------------------------------------------------------- the end
+    def stop_for_space(self) -> None:
+        """The disk is nearly full: end the recording now, the bag whole (exit status 1)."""
+        if self.finished.done():
+            return
+        print(f"recorder: error: only {self.bag.low_space >> 20} MiB free for {self.bag.path}, below "
+              f"min_free_space ({self.bag.min_free_space >> 20} MiB): recording stopped, the bag holds every "
+              f"message before the stop", file=sys.stderr)
+        self.exit_code = 1
+        self.finish()
+
     def finish(self) -> None:
         """All episodes are in: close the bag now, so its outcome sets the exit status."""
         if not self.finished.done():
@@ -364,7 +408,7 @@ class Recorder(Node):
     def close_bag(self) -> None:
         if self.before_clock:  # /clock never came: keep the messages, stamped with the wall clock
             self.get_logger().warn(f"no /clock came: {len(self.before_clock)} messages stamped with the wall clock")
-            held, self.before_clock = self.before_clock, []
+            held, self.before_clock = self.before_clock, deque()
             for topic, raw in held:
                 self.write_stamped(topic, time.time_ns(), raw)
         try:
@@ -382,7 +426,8 @@ class Recorder(Node):
         print(
             f"recorder: {'interrupted; ' if interrupted else ''}wrote {driver.transitions} transitions "
             f"({driver.episodes_done} episodes, {self.bag.message_count} messages) to {self.bag.path} "
-            f"in {elapsed:.1f} s",
+            f"in {elapsed:.1f} s" + (f"; {self.dropped_before_clock} dropped while waiting for /clock"
+                                     if self.dropped_before_clock else ""),
             file=sys.stderr,
         )
 

@@ -96,8 +96,10 @@ PARAMS = (
           choices=MODES, read_only=True),
     Param("seed", 0, "episode e resets with reset seed seed + e", low=0, read_only=True),
     Param("episodes", 0, "episodes to run before exiting (0: run until stopped)", low=0),
-    Param("summary", "", "JSON file written on exit: episodes, success_rate, mean_final_dist, mean_return "
-          "(empty: none); checked at start, missing directories made on writing"),
+    Param("summary", "", "JSON file written on exit: episodes, success_rate, mean_final_dist, mean_return, "
+          "abandoned (episodes cut short by pusher/reset, failures in the success rate; absent when none) "
+          "(empty: none); checked at start, missing directories made on writing; fixed at start, so no one "
+          "on the domain can point it at another file", read_only=True),
     Param("terminate_on_success", False, "end an episode as soon as it succeeds (also where the task's "
           "reward.terminate_on_success says so)"),
     Param("republish_period", 0.1, "lockstep: seconds before a state whose command has not come is published again",
@@ -118,7 +120,7 @@ PARAMS = (
 class PusherSim(Node):
     def __init__(self, overrides=()):
         super().__init__("sim", parameter_overrides=list(overrides))
-        self.settings = s = Settings(self, PARAMS, on_change=self.on_parameter_change, check=self.check_parameter)
+        self.settings = s = Settings(self, PARAMS, on_change=self.on_parameter_change)
         if s.summary:  # checked now, not after the whole run
             check_output_file(s.summary, "parameter summary:")
         self.task = task = load_task(s.task)
@@ -206,7 +208,6 @@ class PusherSim(Node):
             self.loop.env.terminate_on_success = value or self.task.reward.terminate_on_success
         elif name == "republish_period" and self.republish_timer is not None:
             self.republish_timer.timer_period_ns = int(value * 1e9)
-        # summary: read when written, on exit
 
     # -------------------------------------------------------------- publishing
     def publish_state(self, state: ArmState | None = None, new: bool = True) -> None:

@@ -1,0 +1,267 @@
+"""Safety over real DDS: the policy node takes only the session learner's weights, refuses a
+checkpoint that is no file and answers every state meanwhile; the recorder survives odd type
+names, bounds what waits for /clock, stops cleanly when the disk fills, and a Ctrl-C (or two)
+never crashes it or cuts its bag short."""
+
+from __future__ import annotations
+
+import array
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from ros_helpers import probe_node, ros2, ros_env, spawn  # noqa: F401 - fixtures
+
+pytestmark = pytest.mark.ros
+START = 1_800_000_000 * 10**9
+TICK = 20_000_000
+
+
+def _rss_mib(pid: int) -> float:
+    with open(f"/proc/{pid}/status") as f:
+        return int(next(line for line in f if line.startswith("VmRSS:")).split()[1]) / 1024
+
+
+def _checkpoint(seed: int, version: int | None = None, hidden: int = 64) -> dict:
+    import torch
+
+    from offline_rl_core.serving.policy import policy_sequential
+
+    torch.manual_seed(seed)
+    net = policy_sequential(8, hidden, 2)
+    ckpt = {"format": "pusher-rl/policy", "version": 1, "algorithm": "sac", "obs_dim": 8, "act_dim": 2,
+            "hidden": hidden, "policy_state": {k: v.detach().clone() for k, v in net.state_dict().items()}}
+    if version is not None:
+        ckpt["weights_version"] = version
+    return ckpt
+
+
+def test_the_policy_node_takes_only_the_sessions_weights_and_answers_every_state(spawn, tmp_path, ros_env):
+    from geometry_msgs.msg import PointStamped
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import MultiArrayDimension, String, UInt8MultiArray
+
+    from fuzz_messages import stride0_checkpoint
+    from offline_rl_core.serving.checkpoint import save_checkpoint
+    from offline_rl_core.serving.policy import LoadedPolicy
+    from offline_rl_core.serving.signing import Signer, make_session_keys, load_signer
+    from offline_rl_core.serving.weights import encode_weights
+    from offline_rl_core.task.pusher_reach import observation_from_joints
+
+    keys = make_session_keys(tmp_path / "keys")
+    learner = load_signer(keys.signing_key)
+    served = save_checkpoint(tmp_path / "policy.pt", _checkpoint(0))
+    fifo = tmp_path / "fifo.pt"
+    os.mkfifo(fifo)
+    proc = spawn([sys.executable, "-m", "pusher_policy.node", "--ros-args", "-p", f"checkpoint:={served}",
+                  "-p", "weights_topic:=learner/weights", "-p", f"weights_key:={keys.public_key}"], "policy")
+    v1, v2 = _checkpoint(1, 1), _checkpoint(2, 2)
+    rogue = {**_checkpoint(3, 2**62)}
+    rogue["policy_state"]["4.bias"][:] = 1e6  # saturates every action
+    messages = {"v1": encode_weights(v1, learner), "v2": encode_weights(v2, learner),
+                "rogue": encode_weights(rogue, Signer.generate()), "stride-0": stride0_checkpoint(8192)}
+    answers, statuses = {}, []
+    with probe_node() as node:
+        pubs = {t: node.create_publisher(m, f"/{t}", 10) for t, m in (
+            ("pusher/target", PointStamped), ("pusher/fingertip", PointStamped), ("pusher/state", JointState))}
+        weights = node.create_publisher(UInt8MultiArray, "/learner/weights", QoSProfile(
+            depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        node.create_subscription(String, "/policy/provenance", lambda m: answers.setdefault(
+            json.loads(m.data)["stamp"], json.loads(m.data)["weights_version"]), 1000)
+        actions = {}
+        node.create_subscription(JointState, "/policy/action", lambda m: actions.setdefault(
+            m.header.stamp.sec * 10**9 + m.header.stamp.nanosec, np.array(m.effort, np.float32)), 1000)
+        node.create_subscription(String, "/policy/status", lambda m: statuses.append(json.loads(m.data)), 10)
+        assert node.spin_until(lambda: weights.get_subscription_count() and node.count_publishers(
+            "/policy/action"), 30), proc.output()
+        rng = np.random.default_rng(5)
+        obs_of = {}
+        stamp = [START]
+
+        def state() -> int:
+            stamp[0] += TICK
+            s = stamp[0]
+            q, qd, target, tip = (rng.uniform(-1, 1, 2) for _ in range(4))
+            for topic, xy in (("pusher/target", target), ("pusher/fingertip", tip)):
+                msg = PointStamped()
+                msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(s, 10**9)
+                msg.point.x, msg.point.y = float(xy[0]), float(xy[1])
+                pubs[topic].publish(msg)
+            msg = JointState(name=["shoulder", "elbow"], position=list(q), velocity=list(qd))
+            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(s, 10**9)
+            pubs["pusher/state"].publish(msg)
+            obs_of[s] = observation_from_joints(q, qd, target, tip)
+            return s
+
+        def answered(timeout=10.0) -> int:
+            s = state()
+            assert node.spin_until(lambda: s in answers and s in actions, timeout), proc.output()[-3000:]
+            return s
+
+        def send(name: str) -> None:
+            msg = UInt8MultiArray(data=array.array("B", messages[name]))
+            msg.layout.dim = [MultiArrayDimension(label="pusher-rl/weights", size=len(msg.data), stride=1)]
+            weights.publish(msg)
+
+        deadline = time.monotonic() + 20  # discovery can drop the first states
+        while not answers and time.monotonic() < deadline:
+            state()
+            node.spin_until(lambda: bool(answers), 1.0)
+        send("v1")
+        assert node.spin_until(lambda: answers[answered()] == 1, 20), proc.output()[-3000:]
+        rss_before = _rss_mib(proc.pid)
+        for i in range(40):  # the rogue's messages among the arm's states: none acts, each state answered
+            send("rogue" if i % 2 else "stride-0")
+            s = answered()
+            assert answers[s] == 1
+            assert np.allclose(actions[s], LoadedPolicy(v1).act(obs_of[s]), atol=1e-6)
+        assert node.spin_until(lambda: statuses and statuses[-1]["rejected"].get("unsigned weights", 0) == 40, 15), \
+            (statuses[-1:], proc.output()[-2000:])
+        assert _rss_mib(proc.pid) - rss_before < 50
+        # a checkpoint that is no file: refused at once, serving goes on
+        refused = subprocess.run(ros2("param", "set", "/policy", "checkpoint", str(fifo)), capture_output=True,
+                                 text=True, env=ros_env, timeout=60)
+        assert "not a regular file" in refused.stdout + refused.stderr, refused
+        send("v2")
+        assert node.spin_until(lambda: answers[answered()] == 2, 20), proc.output()[-3000:]
+    assert proc.running(), proc.output()[-3000:]
+
+
+def test_the_recorder_survives_odd_type_names_and_bounds_what_waits_for_the_clock(ros_env, tmp_path, monkeypatch):
+    """Discovery may report any type string; sim time may never start."""
+    import rclpy
+    from rclpy.parameter import Parameter
+    from rosbags.rosbag2 import Reader
+
+    from pusher_recorder import node as recorder_node
+
+    for odd in ("Foo", "a/b/c/d", "/msg/X", "pkg/msg/", "no_such_pkg/msg/X", ""):
+        assert recorder_node.message_class(odd) is None, odd
+    monkeypatch.setattr(recorder_node, "BEFORE_CLOCK_BYTES", 1 << 20)
+    monkeypatch.setenv("ROS_DOMAIN_ID", ros_env["ROS_DOMAIN_ID"])
+    rclpy.init()  # the recorder node is made in this process, on the default context
+    bag = tmp_path / "odd.db3"
+    rec = recorder_node.Recorder([Parameter("out", value=str(bag)), Parameter("passive", value=True),
+                                  Parameter("use_sim_time", value=True)])
+    try:
+        odd = [("/x", ["Foo"]), ("/y", ["a/b/c/d"]), ("/z", ["/msg/X"]), ("/w", ["std_msgs/msg/String", "Foo"])]
+        rec.get_topic_names_and_types = lambda: odd
+        rec.record_all = True
+        rec.discover()  # no exception, one warning each, nothing subscribed
+        assert {"/x", "/y", "/z", "/w"} <= rec.warned and not {"/x", "/y", "/z", "/w"} & set(rec.subs)
+        rec.types["/notes"] = "std_msgs/msg/String"
+        payload = bytes([0, 1, 0, 0]) + (60_000).to_bytes(4, "little") + b"n" * 59_999 + b"\x00"
+        for _ in range(100):  # 6 MB before any /clock
+            rec.write("/notes", payload)
+        assert rec.before_clock_bytes <= 1 << 20 and rec.dropped_before_clock == 100 - len(rec.before_clock)
+        kept = len(rec.before_clock)
+        rec.close()
+        with Reader(bag) as reader:
+            assert reader.message_count == kept
+    finally:
+        rec.destroy_node()
+        rclpy.try_shutdown()
+
+
+def _sent_numbers(bag) -> list[int]:
+    from rosbags.rosbag2 import Reader
+
+    from offline_rl_core.data.bag import typestore
+
+    with Reader(bag) as reader:
+        conns = [c for c in reader.connections if c.topic == "/notes"]
+        return [int(typestore().deserialize_cdr(raw, "std_msgs/msg/String").data)
+                for _, _, raw in reader.messages(conns)]
+
+
+def _flushed(bag) -> bool:
+    try:
+        return bool(_sent_numbers(bag))
+    except Exception:  # noqa: BLE001 - nothing flushed yet
+        return False
+
+
+def test_the_recorder_stops_cleanly_when_the_disk_fills(spawn, tmp_path, ros_env):
+    """Free space below ``min_free_space`` (here: the minimum raised past what is free, as a
+    filling disk does): the recording ends, the bag holds every message before the stop."""
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import String
+
+    from offline_rl_core.data.bag.recording import free_space
+
+    bag = tmp_path / "full.db3"
+    refused = spawn(ros2("run", "recorder", "node", "--passive", "--topics", "notes", "--out", tmp_path / "x.db3",
+                         "--min-free-space", free_space(tmp_path) + (1 << 40)), "refused")
+    assert refused.wait(30) == 2 and "below the minimum" in refused.output(), refused.output()
+    recorder = spawn(ros2("run", "recorder", "node", "--passive", "--topics", "notes", "--out", bag,
+                          "--flush-interval", "0.05"), "recorder")
+    assert recorder.wait_for_output("recording passively", 30), recorder.output()
+    with probe_node() as node:
+        pub = node.create_publisher(String, "/notes", QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
+        assert node.spin_until(lambda: pub.get_subscription_count() > 0, 30), recorder.output()
+        sent = 0
+        while sent < 50:
+            pub.publish(String(data=str(sent)))
+            sent += 1
+            node.spin_for(0.01)
+        done = subprocess.run(ros2("param", "set", "/recorder", "min_free_space", str(free_space(tmp_path) + (1 << 40))),
+                              capture_output=True, text=True, env=ros_env, timeout=60)
+        assert "successful" in done.stdout.lower(), done
+        while recorder.running() and sent < 100_000:
+            pub.publish(String(data=str(sent)))
+            sent += 1
+            node.spin_for(0.005)
+    assert recorder.wait(30) == 1, recorder.output()
+    assert "recording stopped, the bag holds every message before the stop" in recorder.output()
+    numbers = _sent_numbers(bag)
+    wrote = int(re.search(r"(\d+) messages\)", recorder.output()).group(1))
+    assert numbers == list(range(len(numbers))) and len(numbers) == wrote >= 50
+
+
+@pytest.mark.slow
+def test_ctrl_c_and_a_second_one_never_crash_the_recorder_or_cut_its_bag(spawn, tmp_path):
+    """With a core kept busy beside it (the race needs the signal thread and the main thread
+    to interleave): every run exits 0 with a whole bag holding what it said it wrote.
+    bench/shutdown_sigint.py runs this 200 times."""
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import String
+
+    busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        with probe_node() as node:
+            pub = node.create_publisher(String, "/notes", QoSProfile(depth=1000,
+                                                                     reliability=ReliabilityPolicy.RELIABLE))
+            for run in range(6):
+                bag = tmp_path / f"run{run}.db3"
+                recorder = spawn(ros2("run", "recorder", "node", "--passive", "--topics", "notes", "--out", bag),
+                                 f"recorder{run}")
+                assert recorder.wait_for_output("recording passively", 60), recorder.output()
+                i = 0
+                while not _flushed(bag):  # recording for real
+                    assert recorder.running() and i < 5000, recorder.output()
+                    if "subscribed to /notes" in recorder.output():
+                        pub.publish(String(data=str(i)))
+                        i += 1
+                    node.spin_for(0.02)
+                for j in range(2000):  # pending in the writer when the signal comes
+                    pub.publish(String(data=str(10**6 + j)))
+                recorder.proc.send_signal(signal.SIGINT)
+                if run % 2:
+                    time.sleep(0.005 * run)  # the second Ctrl-C, into the close
+                    recorder.proc.send_signal(signal.SIGINT)
+                rc = recorder.wait(60)
+                assert rc == 0, f"run {run}: exit {rc}\n{recorder.output()[-3000:]}"
+                wrote = int(re.search(r"(\d+) messages\)", recorder.output()).group(1))
+                numbers = _sent_numbers(bag)  # what it took, in order (DDS may drop some of a burst before)
+                assert len(numbers) == wrote > 0 and all(a < b for a, b in zip(numbers, numbers[1:])), run
+    finally:
+        busy.kill()
+        busy.wait()
