@@ -70,6 +70,7 @@ PUSH := runs/push-demo
 PUSH_STEPS ?= 4000
 PUSH_ENV_STEPS ?= 3000
 push-demo: setup
+	mkdir -p $(PUSH)
 	$(VENV)/bin/offline-rl eval --task pusher_push --expert --episodes 20
 	$(VENV)/bin/offline-rl collect --task pusher_push --episodes 200 --expert-frac 0.3 --seed 0 --out $(PUSH)/push.db3
 	$(VENV)/bin/offline-rl train --bag $(PUSH)/push.db3 --algo bc --steps $(PUSH_STEPS) --eval-episodes 20 --out $(PUSH)/bc
