@@ -80,6 +80,8 @@ def main(argv=None) -> int:
     ap.add_argument("--train-per-kind", type=int, default=30, help="training episodes of each kind")
     ap.add_argument("--held-out-per-kind", type=int, default=40, help="held-out episodes of each kind")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--head", type=int, default=0, help="classifier train --head: first states of every episode "
+                    "that are failures")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
     task = load_task("pusher_push")
@@ -93,7 +95,7 @@ def main(argv=None) -> int:
         write_transitions(train_bag, train_data, task=task, labels=labels_from_success(train_data))
         write_transitions(held_bag, held_out, task=task, labels=labels_from_success(held_out))
         t1 = time.perf_counter()
-        contents = train_from_bags([str(train_bag)], Path(tmp) / "cls.pt", ClassifierConfig(), args.seed,
+        contents = train_from_bags([str(train_bag)], Path(tmp) / "cls.pt", ClassifierConfig(head=args.head), args.seed,
                                    labels="topic", successes=args.successes, failures=args.failures)
         train_s = time.perf_counter() - t1
         judge = load_classifier(Path(tmp) / "cls.pt", task)

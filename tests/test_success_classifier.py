@@ -179,3 +179,17 @@ def test_hil_takes_the_classifier_in_process_only(tmp_path):
     missing = offline_rl("hil", "--online", "--in-process", "--success", str(tmp_path / "none.pt"),
                          "--out", str(tmp_path / "c"))
     assert missing.returncode == 2 and "none.pt: no such classifier file" in missing.stderr
+
+
+def test_head_states_of_a_success_are_failures_and_never_its_tail(push_data):
+    from offline_rl_core.learners.success_classifier import labelled_states
+
+    labels = {0: True, 3: False}
+    obs, success = labelled_states(push_data, labels, tail=10, head=40)
+    steps = {e: int((push_data.episode == e).sum()) for e in labels}
+    assert len(obs) == 40 + 10 + steps[3]
+    assert success.tolist() == [False] * 40 + [True] * 10 + [False] * steps[3]
+    first = push_data.next_obs[(push_data.episode == 0) & (push_data.step == 0)]
+    assert np.array_equal(obs[0], first[0])
+    _, short = labelled_states(push_data, {0: True}, tail=10, head=10_000)  # head stops short of the tail
+    assert short.sum() == 10 and len(short) == steps[0]

@@ -38,6 +38,9 @@ def register(subparsers) -> None:
     t.add_argument("--seed", type=seed_arg, default=0, help="seed of the weights and batches (default: %(default)s)")
     t.add_argument("--steps", type=int, default=d.steps, help="gradient steps (default: %(default)s)")
     t.add_argument("--tail", type=int, default=d.tail, help="last states of a success that are successes (default: %(default)s)")
+    t.add_argument("--head", type=int, default=d.head,
+                   help="first states of every episode that are failures, a success's too (for a task whose "
+                   "resets never start at the goal; default: %(default)s, only a failure's states)")
     t.add_argument("--threshold", type=float, default=d.threshold,
                    help="probability from which a state is judged a success (default: %(default)s)")
     t.set_defaults(func=_train)
@@ -58,10 +61,12 @@ def _count(name: str, value):
 def _train(args: argparse.Namespace) -> int:
     for name in ("successes", "failures", "steps", "tail"):
         _count(name, getattr(args, name))
+    if args.head < 0:
+        raise UserError(f"--head must be >= 0, got {args.head}")
     if not 0.0 < args.threshold < 1.0:
         raise UserError(f"--threshold must be between 0 and 1, got {args.threshold}")
     check_output_file(args.out, "--out")
-    cfg = ClassifierConfig(steps=args.steps, tail=args.tail, threshold=args.threshold)
+    cfg = ClassifierConfig(steps=args.steps, tail=args.tail, head=args.head, threshold=args.threshold)
     contents = train_from_bags(args.bag, args.out, cfg, args.seed, args.labels, args.successes, args.failures,
                                args.task)
     print(json.dumps({"out": args.out, **contents["trained_on"]}))

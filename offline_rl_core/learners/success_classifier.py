@@ -7,7 +7,10 @@ on images; this one on the state). What an episode's label says about its states
 
 - a success ends at the goal: its last ``tail`` states are successes; its earlier ones may
   or may not be (the puck may have been there a while), so they are not trained on;
-- a failure never ended at the goal: every state of it is a failure.
+- a failure never ended at the goal: every state of it is a failure;
+- with ``head``, the first ``head`` states of every episode are failures too, a success's
+  included (a task whose resets draw the goal away from where the object starts: pusher_push's),
+  so that the approach and the push itself are seen as not yet a success.
 
 ``train_classifier`` fits an MLP (``hidden`` x 2, ReLU, one logit) by cross-entropy with
 the classes weighted equally, on z-scored observations, seeded (``torch.Generator``), so a
@@ -42,14 +45,17 @@ class ClassifierConfig:
     lr: float = 1e-3
     weight_decay: float = 1e-4
     tail: int = 10  # the last states of a success episode that are successes
+    head: int = 0  # the first states of every episode that are failures (0: only a failure's)
     threshold: float = 0.5  # probability at and above which a state is judged a success
 
 
-def labelled_states(data: Transitions, labels: dict[int, bool], tail: int) -> tuple[np.ndarray, np.ndarray]:
+def labelled_states(data: Transitions, labels: dict[int, bool], tail: int,
+                    head: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """(observations (N, obs_dim) float32, success (N,) bool) of the labelled episodes: the
-    last ``tail`` next-observations of each success, every next-observation of each failure."""
-    if tail < 1:
-        raise ValueError(f"tail must be >= 1, got {tail}")
+    last ``tail`` next-observations of each success, every next-observation of each failure,
+    and the first ``head`` of each success as failures."""
+    if tail < 1 or head < 0:
+        raise ValueError(f"tail must be >= 1 and head >= 0, got tail {tail}, head {head}")
     obs, ys = [], []
     for episode, success in sorted(labels.items()):
         rows = np.flatnonzero(data.episode == episode)
@@ -57,6 +63,9 @@ def labelled_states(data: Transitions, labels: dict[int, bool], tail: int) -> tu
             raise UserError(f"episode {episode} is labelled but holds no transitions")
         rows = rows[np.argsort(data.step[rows], kind="stable")]
         if success:
+            first = rows[:max(0, min(head, len(rows) - tail))]  # never a tail state
+            obs.append(data.next_obs[first])
+            ys.append(np.zeros(len(first), bool))
             rows = rows[-tail:]
         obs.append(data.next_obs[rows])
         ys.append(np.full(len(rows), bool(success)))

@@ -71,7 +71,7 @@ def train_from_bags(paths: list[str], out: str | os.PathLike, cfg: ClassifierCon
         if bag.data.obs.shape[1] != task.obs_dim:
             raise UserError(f"{bag.path}: its transitions have {bag.data.obs.shape[1]} observations; task "
                             f"{task.name} has {task.obs_dim}")
-        o, y = labelled_states(bag.data, bag.labels, cfg.tail)
+        o, y = labelled_states(bag.data, bag.labels, cfg.tail, cfg.head)
         obs.append(o)
         ys.append(y)
     every = {f"{b.path}#{e}": s for b in bags for e, s in b.labels.items()}
