@@ -46,7 +46,15 @@ def main() -> int:
                                                     if "offline-rl" in line]}
     bc, awac = offline_figures(args.run / "bc" / "metrics.json"), offline_figures(args.run / "awac" / "metrics.json")
     lo, hi = newcombe_diff_ci(awac["successes"], awac["episodes"], bc["successes"], bc["episodes"])
-    out["offline"] = {"bc": bc, "awac": awac, "awac_minus_bc": round(awac["success_rate"] - bc["success_rate"], 4),
+    # the puck's distance to the goal at the held-out resets: a final distance equal to it is a puck never moved
+    from offline_rl_core.task.envs import make_env
+
+    env = make_env("pusher_push")
+    start = []
+    for seed in range(bc["first_reset_seed"], bc["first_reset_seed"] + bc["episodes"]):
+        env.reset(seed)
+        start.append(env.distance())
+    out["offline"] = {"mean_start_dist_m": round(sum(start) / len(start), 5), "bc": bc, "awac": awac, "awac_minus_bc": round(awac["success_rate"] - bc["success_rate"], 4),
                       "newcombe_ci": [round(lo, 4), round(hi, 4)]}
     summary_path = args.run / "online" / "summary.json"
     if summary_path.exists():
