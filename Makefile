@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.setup-done
 ROS_PACKAGES := $(sort $(dir $(wildcard ros_ws/src/*/package.xml)))
 ROS_FILES := $(wildcard ros_ws/src/*/package.xml ros_ws/src/*/setup.py ros_ws/src/*/setup.cfg)
 
-.PHONY: setup demo test test-fast bag bench hil-demo hil-online clean help
+.PHONY: setup demo push-demo test test-fast bag bench hil-demo hil-online clean help
 
 help:
 	@echo "make demo      set up .venv, then train BC and AWAC over ROS on bags/mix.db3 and print the comparison"
@@ -17,6 +17,7 @@ help:
 	@echo "make bench     full benchmark against the reference implementations -> bench/results.json, then bench/RESULTS.md"
 	@echo "make hil-demo  the corrections loop: serve, correct, record, retrain, reload"
 	@echo "make hil-online the HIL-SERL stage: the online learner fine-tunes the prior while the policy node acts"
+	@echo "make push-demo the push task end to end: expert, mixed log, BC and AWAC, a success classifier, online stage on it"
 
 # The C++ step replayer of the speed layer (offline_rl_core/fast/csrc) compiles once into torch's extension cache;
 # later runs only check it (about a second). Without a compiler the Python step runs.
@@ -65,6 +66,25 @@ hil-demo: setup
 
 hil-online: setup
 	$(VENV)/bin/offline-rl hil --online --out runs/hil-online
+
+# pusher_push end to end at small budgets (PUSH_STEPS, PUSH_ENV_STEPS): its scripted expert, a mixed log of
+# 200 episodes (30 % expert), BC and AWAC on it, a success classifier from 20 successes and 20 failures
+# (labelled by the simulator, as a person would label them), and the online stage from the AWAC prior
+# with the classifier's reward and episode end
+PUSH := runs/push-demo
+PUSH_STEPS ?= 4000
+PUSH_ENV_STEPS ?= 3000
+push-demo: setup
+	mkdir -p $(PUSH)
+	$(VENV)/bin/offline-rl eval --task pusher_push --expert --episodes 20
+	$(VENV)/bin/offline-rl collect --task pusher_push --episodes 200 --expert-frac 0.3 --seed 0 --out $(PUSH)/push.db3
+	$(VENV)/bin/offline-rl train --bag $(PUSH)/push.db3 --algo bc --steps $(PUSH_STEPS) --eval-episodes 20 --out $(PUSH)/bc
+	$(VENV)/bin/offline-rl train --bag $(PUSH)/push.db3 --algo awac --steps $(PUSH_STEPS) --eval-episodes 20 --out $(PUSH)/awac
+	$(VENV)/bin/offline-rl classifier train --bag $(PUSH)/push.db3 --labels simulator --successes 20 --failures 20 --head 40 \
+		--out $(PUSH)/classifier.pt
+	$(VENV)/bin/offline-rl hil --online --in-process --task pusher_push --bag $(PUSH)/push.db3 \
+		--prior $(PUSH)/awac/policy.pt --success $(PUSH)/classifier.pt --end-on-success \
+		--env-steps $(PUSH_ENV_STEPS) --eval-every 1500 --publish-every 50 --eval-episodes 20 --out $(PUSH)/online
 
 clean:
 	rm -rf runs build ros_ws/build ros_ws/install ros_ws/log

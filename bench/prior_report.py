@@ -23,6 +23,17 @@ the machine (one per file).
     flock /tmp/pusher-cpu.lock .venv/bin/python bench/prior_report.py musthold
     flock /tmp/pusher-cpu.lock .venv/bin/python bench/prior_report.py curves
     .venv/bin/python bench/prior_report.py render
+
+``--task NAME`` runs ``curves`` and ``render`` on another task's datasets (``offline-rl collect
+--task NAME --seed S``, kept under runs/prior/NAME/) and held-out resets; with ``--validation``
+on the VALIDATION data instead (data seeds 10 and 11, resets 600000 + 100 S ..: never the
+report's), where a recipe for ``--algo auto`` is chosen:
+
+    .venv/bin/python bench/prior_report.py curves --task pusher_push --validation \
+        --json bench/pusher_push_validation.json --fractions 0.25 0.5 1
+    .venv/bin/python bench/prior_report.py curves --task pusher_push --json bench/pusher_push_report.json
+    .venv/bin/python bench/prior_report.py render --task pusher_push --json bench/pusher_push_report.json \
+        --png bench/pusher_push_curves.png
 """
 
 from __future__ import annotations
@@ -40,15 +51,18 @@ import torch
 from offline_rl_core.benchmarks.harness import add_run_facts
 from offline_rl_core.common.atomic import write_json_atomic
 from offline_rl_core.data.bag import read_transitions
-from offline_rl_core.evaluation.rollouts import rollout
-from offline_rl_core.evaluation.stats import wilson_ci
+from offline_rl_core.evaluation.rollouts import rollout_task
+from offline_rl_core.evaluation.stats import newcombe_diff_ci, wilson_ci
 from offline_rl_core.learners import TrainConfig, train
 from offline_rl_core.runs import chapter_loop as chapter
 from offline_rl_core.runs.prior import chapter_awac_seconds, plan_training, step_rate, steps_for_budget
+from offline_rl_core.task.spec import DEFAULT_TASK, load_task
 from results_page import curves_table, musthold_table
 
 ROOT = Path(__file__).resolve().parents[1]
 SEEDS = (0, 1, 2)
+VALIDATION_SEEDS = (10, 11)  # data seeds of the validation data (prior_selection.py's)
+VALIDATION_RESETS = 600000  # + 100 * data seed: never a held-out reset (500000 + seed + 0..99)
 FRACTIONS = (1 / 32, 1 / 16, 0.125, 0.25, 0.5, 1.0)
 LEARNERS = {  # label -> TrainConfig overrides (the chapter's hyper-parameters otherwise)
     "BC": {"algo": "bc"},
@@ -58,23 +72,30 @@ LEARNERS = {  # label -> TrainConfig overrides (the chapter's hyper-parameters o
 }
 
 
+TASK = DEFAULT_TASK  # --task
+VALIDATION = False  # --validation
+
+
 def bag_for(seed: int, expert_frac: float) -> Path:
-    if seed == 0 and expert_frac == 0.3:
+    if seed == 0 and expert_frac == 0.3 and TASK == DEFAULT_TASK:
         return ROOT / "bags" / "mix.db3"
-    path = ROOT / "runs" / "prior" / "bags" / f"mix_s{seed}_e{expert_frac}.db3"
+    folder = ROOT / "runs" / "prior" / ("" if TASK == DEFAULT_TASK else TASK) / "bags"
+    path = folder / f"mix_s{seed}_e{expert_frac}.db3"
     if not path.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
-        subprocess.run([sys.executable, "-m", "offline_rl_core", "collect", "--episodes", "200", "--expert-frac",
-                        str(expert_frac), "--seed", str(seed), "--out", str(path)], check=True)
+        subprocess.run([sys.executable, "-m", "offline_rl_core", "collect", "--task", TASK, "--episodes", "200",
+                        "--expert-frac", str(expert_frac), "--seed", str(seed), "--out", str(path)], check=True)
     return path
 
 
 def resets(seed: int) -> range:
+    if VALIDATION:
+        return range(VALIDATION_RESETS + 100 * seed, VALIDATION_RESETS + 100 * seed + 100)
     return range(500000 + seed, 500000 + seed + 100)
 
 
 def score(act, seed: int) -> dict:
-    r = rollout(act, resets(seed))
+    r = rollout_task(TASK, act, resets(seed))
     lo, hi = wilson_ci(r.successes, r.episodes)
     return {"successes": r.successes, "episodes": r.episodes, "success_rate": r.success_rate,
             "wilson": [round(lo, 4), round(hi, 4)], "mean_final_dist": round(r.mean_final_dist, 6)}
@@ -136,8 +157,11 @@ def musthold(store: Store, expert_frac: float) -> None:
               f"success {metrics['eval']['success_rate']:.2f}", flush=True)
 
 
-def curves(store: Store, expert_frac: float, learners: list[str]) -> None:
-    for seed in SEEDS:
+def curves(store: Store, expert_frac: float, learners: list[str], fractions=FRACTIONS) -> None:
+    task = load_task(TASK)
+    store.data.setdefault("task", {"name": task.name, "digest": task.digest,
+                                   "resets": "validation" if VALIDATION else "held-out"})
+    for seed in VALIDATION_SEEDS if VALIDATION else SEEDS:
         data = read_transitions(bag_for(seed, expert_frac))
         budget = chapter_awac_seconds(data, print)
         for label in learners:
@@ -145,17 +169,19 @@ def curves(store: Store, expert_frac: float, learners: list[str]) -> None:
             if store.has("curves", key):
                 continue
             if label == "auto":
-                cfg, plan = plan_training(data, TrainConfig(), True, budget, None)
+                cfg, plan = plan_training(data, TrainConfig(), True, budget, None, task=task)
                 # a constant-rate run passes through the shorter budgets' runs: keep its policy on the way
                 assert cfg.lr_schedule == "constant", "auto with a schedule needs one run per budget"
             else:
                 cfg = TrainConfig(**LEARNERS[label])
             rate = step_rate(cfg, data, print)
-            marks = {steps_for_budget(budget * f, rate): f for f in FRACTIONS}
+            marks = {steps_for_budget(budget * f, rate): f for f in fractions}
             kept = {}
             run = replace(cfg, steps=max(marks), log_every=100)
+            t0 = time.perf_counter()
             result = train(data, run, seed, snapshot=lambda step, elapsed, policy_state: kept.__setitem__(
-                step, (elapsed, policy_state(0))) if step in marks else None)
+                step, (elapsed, policy_state(0))) if step in marks else None, task=task)
+            wall = time.perf_counter() - t0
             points = []
             for steps, (elapsed, state) in sorted(kept.items()):
                 policy = type(result.policy)(dict(result.checkpoint, policy_state=state))
@@ -163,7 +189,9 @@ def curves(store: Store, expert_frac: float, learners: list[str]) -> None:
                                "nominal_s": round(steps / rate, 3), "train_s": round(elapsed, 3),
                                "algorithm": cfg.algo, **score(policy.act, seed)})
             store.put("curves", key, {"label": label, "seed": seed, "expert_frac": expert_frac, "budget_s": budget,
-                                      "steps_per_s": rate, "algorithm": cfg.algo, "points": points})
+                                      "steps_per_s": rate, "algorithm": cfg.algo, "train_wall_s": round(wall, 2),
+                                      "resets": [resets(seed)[0], resets(seed)[-1]], "points": points,
+                                      **({"plan": plan} if label == "auto" else {})})
             print(f"seed {seed} {label}: " + ", ".join(f"{p['steps']} steps {p['success_rate']:.2f}" for p in points),
                   flush=True)
 
@@ -200,13 +228,36 @@ def render(store: Store, out_png: Path, expert_frac: float) -> None:
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     ax.set_xscale("log")
-    ax.set_title(f"Success against training time, {expert_frac:.0%} expert episodes (Wilson 95 %)")
+    ax.set_title(f"{'' if TASK == DEFAULT_TASK else TASK + ': '}success against training time, "
+                 f"{expert_frac:.0%} expert episodes (Wilson 95 %)")
     fig.tight_layout()
     fig.savefig(out_png, dpi=120)
     print(f"wrote {out_png}")
-    print(curves_table(store.data.get("curves", {}), expert_frac))
-    print()
-    print(musthold_table(store.data.get("musthold", {})))
+    if TASK == DEFAULT_TASK:
+        print(curves_table(store.data.get("curves", {}), expert_frac))
+        print()
+        print(musthold_table(store.data.get("musthold", {})))
+        return
+    rows = [(label, [r["points"][-1] for r in recs]) for label, recs in by_label.items()]  # the whole budget, per seed
+    pooled = {label: (sum(p["successes"] for p in pts), sum(p["episodes"] for p in pts)) for label, pts in rows}
+    print("| learner | steps in the budget, seeds | success | pooled [95 % CI] | minus BC [95 % CI, Newcombe] "
+          "| final distance m |")
+    print("|---|---|---|---|---|---|")
+    for label, pts in rows:
+        s, n = pooled[label]
+        a, b = wilson_ci(s, n)
+        steps = " / ".join(str(p["steps"]) for p in pts)
+        success = " / ".join(f"{p['success_rate']:.2f}" for p in pts)
+        dist = " / ".join(f"{p['mean_final_dist']:.3f}" for p in pts)
+        diff = "-"
+        if "BC" in pooled and label != "BC":
+            lo, hi = newcombe_diff_ci(s, n, *pooled["BC"])
+            diff = f"{s / n - pooled['BC'][0] / pooled['BC'][1]:+.3f} [{lo:+.3f}, {hi:+.3f}]"
+        print(f"| {label} | {steps} | {success} | {s / n:.3f} [{a:.3f}, {b:.3f}] | {diff} | {dist} |")
+    for key, rec in sorted(store.data.get("musthold", {}).items()):
+        print(f"{key}: chapter {rec['chapter_awac_s']} s, auto {rec['auto_command_s']} s "
+              f"({rec['auto_train_s']} s training, {rec['steps']} steps), within {rec['within']}, "
+              f"success {rec['eval']['success_rate']}")
 
 
 def main() -> int:
@@ -216,14 +267,24 @@ def main() -> int:
     ap.add_argument("--expert-frac", type=float, default=0.3)
     ap.add_argument("--learners", nargs="*", default=[*LEARNERS, "auto"])
     ap.add_argument("--png", default=str(ROOT / "bench" / "prior_curves.png"))
+    ap.add_argument("--task", default=DEFAULT_TASK, help="curves and render on this task's data and resets")
+    ap.add_argument("--validation", action="store_true",
+                    help="the validation data and resets (data seeds 10, 11; resets 600000 + 100 x seed)")
+    ap.add_argument("--fractions", type=float, nargs="*", default=list(FRACTIONS),
+                    help="budget fractions at which each learner's policy is scored")
     args = ap.parse_args()
+    global TASK, VALIDATION
+    TASK, VALIDATION = args.task, args.validation
     store = Store(Path(args.json))
     if args.what == "musthold":
+        if TASK != DEFAULT_TASK or VALIDATION:
+            ap.error("musthold is the chapter's task's, on its report data")
         store.measuring()
         musthold(store, args.expert_frac)
     elif args.what == "curves":
         store.measuring()
-        curves(store, args.expert_frac, args.learners)
+        store.data.setdefault("command", "python bench/prior_report.py " + " ".join(sys.argv[1:]))
+        curves(store, args.expert_frac, args.learners, tuple(args.fractions))
     else:
         render(store, Path(args.png), args.expert_frac)
     return 0

@@ -27,6 +27,7 @@ COMMAND_MODULES = (
     "export_onnx",
     "bench",
     "hil",
+    "classifier",
     "weights_key",
     "sros2",
 )

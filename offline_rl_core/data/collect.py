@@ -7,7 +7,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..task.envs import make_env, task_expert
+from ..task.envs import make_env, point_vectors, task_expert
 from ..task.spec import TaskSpec, load_task
 from .transitions import SOURCE_EXPERT, SOURCE_RANDOM, Layout, Transitions
 
@@ -36,11 +36,12 @@ class EpisodePlan:
     def source(self, episode: int) -> int:
         return SOURCE_EXPERT if episode < self.n_expert else SOURCE_RANDOM
 
-    def action(self, episode: int, position, velocity, goal) -> np.ndarray:
+    def action(self, episode: int, position, velocity, goal, points=None) -> np.ndarray:
         """The float32 action for a state of ``episode``: joint positions and velocities (in
-        the state's joint order) and the task's goal vector (pusher_reach: the target's x, y)."""
+        the state's joint order), the task's goal vector (pusher_reach: the target's x, y) and
+        the tracked points' vectors (a pushed object's, for the experts that need one)."""
         if episode < self.n_expert:
-            return self.expert(position, velocity, goal)
+            return self.expert(position, velocity, goal, points)
         return self.rng.uniform(-1, 1, size=self.task.act_dim).astype(np.float32)
 
 
@@ -75,7 +76,8 @@ def collect_transitions(
         done = False
         t = 0
         while not done:
-            a = plan.action(ep, env.joint_positions, env.joint_velocities, env.goal)
+            points = point_vectors(task, env.point_positions()) if ep < plan.n_expert else None
+            a = plan.action(ep, env.joint_positions, env.joint_velocities, env.goal, points)
             o2, r, done, info = env.step(a)
             obs[i], action[i], reward[i], next_obs[i] = o, a, r, o2
             terminated[i], truncated[i], success[i] = info["terminated"], info["truncated"], info["success"]

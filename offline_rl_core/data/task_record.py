@@ -15,7 +15,7 @@ import struct
 from pathlib import Path
 
 from ..common.errors import UserError
-from ..task.spec import TaskSpec, load_task, task_from_dict
+from ..task.spec import TaskSpec, builtin_tasks, load_task, task_from_dict
 
 TASK_TOPIC = "/task_description"
 TASK_MSGTYPE = "std_msgs/msg/String"
@@ -37,7 +37,9 @@ def decode_task_message(payload: bytes, source: str) -> TaskSpec:
         doc = json.loads(bytes(payload[8: 8 + n]).rstrip(b"\x00").decode())
     except (struct.error, ValueError, UnicodeDecodeError, IndexError) as exc:
         raise UserError(f"{source}: {TASK_TOPIC} does not hold a task description ({exc})") from None
-    return task_from_dict(doc, Path(f"{source}:{TASK_TOPIC}"))
+    task = task_from_dict(doc, Path(f"{source}:{TASK_TOPIC}"))
+    # a built-in task is the built-in file, whose neighbours (a sim's model file) are here
+    return next((b for b in map(load_task, builtin_tasks()) if b.digest == task.digest), task)
 
 
 def recorded_task(path: str | os.PathLike) -> TaskSpec | None:

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from ..task import features
 from ..task.pusher_reach import SUCCESS_TOL
 from ..data.transitions import SOURCE_HUMAN, SOURCE_POLICY, Transitions
 
@@ -213,21 +214,31 @@ def top_episode_rows(data: Transitions, top_frac: float) -> np.ndarray:
     return np.flatnonzero(np.isin(data.episode, best))
 
 
-def episodes_at_goal(data: Transitions) -> tuple[np.ndarray, np.ndarray]:
+def episodes_at_goal(data: Transitions, task=None) -> tuple[np.ndarray, np.ndarray]:
     """(episode ids sorted, whether each ends at the goal): its last observation within
     the success tolerance of the target. A demonstration ends there; random actions that
-    pass through the goal on the way almost never do."""
+    pass through the goal on the way almost never do.
+
+    ``task`` (a ``TaskSpec``; default pusher_reach): the observation's columns of the success
+    distance (``features.success_columns``); a task whose observation has none is judged by
+    the last step's success flag (at the goal then, for a task that judges success at the
+    episode's end)."""
     order = np.lexsort((data.step, data.episode))
     ep = data.episode[order]
     last = order[np.r_[ep[1:] != ep[:-1], True]] if len(data) else order
-    goal = data.next_obs[last, OBS_GOAL].astype(np.float64)
-    return data.episode[last], np.hypot(goal[:, 0], goal[:, 1]) < SUCCESS_TOL
+    columns, tolerance = (OBS_GOAL, SUCCESS_TOL) if task is None else \
+        (features.success_columns(task), task.reward.success_within)
+    if columns is None:
+        return data.episode[last], data.success[last].astype(bool)
+    goal = data.next_obs[last, columns].astype(np.float64)
+    dist = np.hypot(goal[:, 0], goal[:, 1]) if goal.shape[1] == 2 else np.sqrt(np.sum(goal * goal, axis=1))
+    return data.episode[last], dist < tolerance
 
 
-def goal_episode_rows(data: Transitions) -> np.ndarray:
+def goal_episode_rows(data: Transitions, task=None) -> np.ndarray:
     """Row indices of the episodes that end at the goal: the filtered-BC dataset of
-    ``--filter-by goal``."""
-    ids, at_goal = episodes_at_goal(data)
+    ``--filter-by goal`` (``task``: as ``episodes_at_goal``)."""
+    ids, at_goal = episodes_at_goal(data, task)
     if not at_goal.any():
         raise ValueError("filtered BC by goal: no episode of the data ends at the goal")
     return np.flatnonzero(np.isin(data.episode, ids[at_goal]))

@@ -77,9 +77,9 @@ def seed_generators(seed: int) -> tuple[torch.Generator, torch.Generator]:
     return (torch.Generator().manual_seed(int(init_seed)), torch.Generator().manual_seed(int(sample_seed)))
 
 
-def _member_pools(data: Transitions, cfg: TrainConfig):
+def _member_pools(data: Transitions, cfg: TrainConfig, task=None):
     if cfg.algo == "filtered_bc":
-        rows = goal_episode_rows(data) if cfg.filter_by == "goal" else top_episode_rows(data, cfg.filter_top_frac)
+        rows = goal_episode_rows(data, task) if cfg.filter_by == "goal" else top_episode_rows(data, cfg.filter_top_frac)
         return (torch.from_numpy(rows), None)
     if cfg.correction_ratio is not None:
         prior, corrections = correction_pools(data)
@@ -113,7 +113,8 @@ def train_seeds(
     ``THREADS_CHECK_EVERY`` steps unless ``cfg.threads`` fixes them), e.g. more once the
     runs beside this one have finished; the result is the same bytes either way.
     ``task`` (a ``TaskSpec``): the task the data is of, recorded in every checkpoint
-    (``checkpoint["task"]``); the data's sizes must be its observation and action sizes."""
+    (``checkpoint["task"]``), which also says where an episode ends at the goal (filtered BC by
+    goal; default pusher_reach's columns); the data's sizes must be its observation and action sizes."""
     seeds = [int(s) for s in seeds]
     if not seeds:
         raise ValueError("no seeds to train")
@@ -131,7 +132,7 @@ def train_seeds(
 
     gens = [seed_generators(s) for s in seeds]
     learner = LEARNERS[cfg.algo](cfg, len(seeds), [g[0] for g in gens], obs_dim, act_dim)
-    pools = [_member_pools(d, cfg) for d in datasets]
+    pools = [_member_pools(d, cfg, task) for d in datasets]
     # --normalize-obs: train on z-scored observations (stats of the rows each member samples),
     # save networks with the stats folded in; identity otherwise
     norms = [obs_stats(d, None if p is None else p[0].numpy()) for d, p in zip(datasets, pools)] \

@@ -283,8 +283,8 @@ def resolve_task(loop: Loop, given: str | None, bags: list[str], prior: str | No
                  any_task: bool = False) -> TaskSpec:
     """The task of a HIL run: ``--task``, else the bags' (``offline-rl train``'s rule); a given
     prior must be of it. Sets how the nodes are told it (``loop.task_arg``). ``any_task``:
-    the caller evaluates on the task's own env (the online stage); else (the corrections
-    rounds) only pusher_reach is taken."""
+    the caller evaluates on the task's own env (the online stage, over ROS or in one
+    process); else (the corrections rounds) only pusher_reach is taken."""
     from ..runs.training_run import task_of_run
 
     task = task_of_run(bags, given)
@@ -292,7 +292,7 @@ def resolve_task(loop: Loop, given: str | None, bags: list[str], prior: str | No
         policy_for_task(load_checkpoint(prior), prior, task)  # a prior of another task: one line naming both
     if not any_task and task.digest != load_task(DEFAULT_TASK).digest:
         raise UserError(f"task {task.name} ({task.source_file()}): offline-rl hil evaluates on pusher_reach's env "
-                        "only; another task's rollouts come with its env (offline_rl_core.task.envs)")
+                        "only (hil --online --in-process: any task a sim hosts)")
     loop.task_arg = task_argument(task, out)
     return task
 

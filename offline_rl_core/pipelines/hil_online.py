@@ -75,6 +75,8 @@ class OnlineHilConfig:
     in_process: bool = False
     timeout: float = 4 * 3600.0
     from_topics: bool = False  # the learner joins the task's raw topics instead of pusher/transition
+    success: str | None = None  # in process: a success classifier judges success, not the simulator
+    end_on_success: bool = False  # in process: an episode ends where success is judged
 
     @property
     def raw_topics(self) -> bool:
@@ -83,6 +85,15 @@ class OnlineHilConfig:
     def validate(self) -> None:
         if self.env_steps < 1:
             raise UserError(f"--env-steps must be >= 1 (whole episodes of the task), got {self.env_steps}")
+        if not self.in_process:
+            given = [flag for flag, value in (("--success", self.success),
+                                              ("--end-on-success", self.end_on_success)) if value]
+            if given:
+                raise UserError(f"{', '.join(given)}: only with --in-process (the ROS stage judges success "
+                                "by the simulator)")
+        if self.success is not None and not Path(self.success).is_file():
+            raise UserError(f"--success {self.success}: no such classifier file (train one with "
+                            "`offline-rl classifier train`)")
         for name in ("utd", "publish_every", "eval_every", "eval_episodes"):
             if int(getattr(self, name)) < 1:
                 raise UserError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
@@ -114,17 +125,16 @@ class OnlineHilConfig:
 
     def check_task(self, task: TaskSpec) -> None:
         """What the run's task must allow: a sim that hosts it (the arm of the session and the
-        held-out rollouts of its learning curve), whole episodes, and the in-process stage
-        only on pusher_reach (its loop steps that env)."""
+        held-out rollouts of its learning curve), and whole episodes (unless episodes end
+        where success is judged)."""
         if not task.sim:
             raise UserError(f"task {task.name} ({task.source_file()}): the online stage runs in a sim and scores "
                             "its learning curve on held-out rollouts there; the task has no sim section")
         steps = task.episodes.max_steps
-        if self.env_steps < steps or self.env_steps % steps:
+        early_ends = self.in_process and (self.success or self.end_on_success)
+        if not early_ends and (self.env_steps < steps or self.env_steps % steps):
             raise UserError(f"--env-steps must be a positive multiple of {steps} (whole episodes of task "
                             f"{task.name}), got {self.env_steps}")
-        if self.in_process and task.digest != load_task(DEFAULT_TASK).digest:
-            raise UserError(f"--in-process runs pusher_reach's env; task {task.name} runs over ROS (drop --in-process)")
 
 
 def run_hil_online(cfg: OnlineHilConfig, log: Callable[[str], None] = lambda s: print(s, file=sys.stderr, flush=True),
@@ -151,7 +161,7 @@ def run_hil_online(cfg: OnlineHilConfig, log: Callable[[str], None] = lambda s: 
         if cfg.in_process:
             curves = open_logger(logger, out, name=out.name, config=asdict(cfg))
             try:
-                result = _in_process(cfg, prior_path, log, curves)
+                result = _in_process(cfg, task, prior_path, log, curves)
             except BaseException:
                 curves.close()
                 raise
@@ -178,18 +188,19 @@ def run_hil_online(cfg: OnlineHilConfig, log: Callable[[str], None] = lambda s: 
 
 
 # ------------------------------------------------------------------------ in one process
-def _in_process(cfg: OnlineHilConfig, prior_path: Path | None, log, curves) -> dict:
+def _in_process(cfg: OnlineHilConfig, task, prior_path: Path | None, log, curves) -> dict:
     from ..learners.config import TrainConfig
     from ..learners.online import OnlineSettings
     from ..runs.online_loop import OnlineRunConfig, run_online
     from ..runs.training_run import load_bags
 
-    offline, _ = load_bags(cfg.bags)
+    offline, _ = load_bags(cfg.bags, task=task)
     prior = load_checkpoint(prior_path) if prior_path else None
     run = run_online(offline, prior, OnlineRunConfig(
         env_steps=cfg.env_steps, seed=cfg.seed, corrections=cfg.corrector != "none", eval_every=cfg.eval_every,
         eval_episodes=cfg.eval_episodes, eval_seed=cfg.eval_seed,
-        settings=OnlineSettings(utd=cfg.utd, publish_every=cfg.publish_every), train=TrainConfig(algo="sac")),
+        settings=OnlineSettings(utd=cfg.utd, publish_every=cfg.publish_every), train=TrainConfig(algo="sac"),
+        task=task, success=cfg.success, end_on_success=cfg.end_on_success),
         log=log, logger=curves)
     return {"curve": run["curve"], "counts": run["counts"], "learner_seconds": run["wall_s"], "where": "in process"}
 

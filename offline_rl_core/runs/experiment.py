@@ -108,7 +108,7 @@ class ExperimentConfig:
         # a budget sets the steps; without one, 'auto' takes the chapter's AWAC time, except in
         # the smoke run, which keeps its fixed small steps
         fixed = self.steps if self.budget_s is None and (not auto or self.smoke) else None
-        return plan_training(data, self.train_config(self.algo), auto, self.budget_s, fixed, log)
+        return plan_training(data, self.train_config(self.algo), auto, self.budget_s, fixed, log, load_task(self.task))
 
 
 def seed_metrics(cfg: ExperimentConfig, seed: int, bc: RolloutResult, offline: RolloutResult, mean_abs_q,

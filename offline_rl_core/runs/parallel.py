@@ -43,7 +43,7 @@ class TrainJob:
     cfg: TrainConfig
     seeds: list[int]
     resume: ResumePoints | None = None  # the job's resume points (None: it writes none)
-    task: TaskSpec | None = None  # the task of the data, recorded in the checkpoints
+    task: TaskSpec | None = None  # the task of the data, recorded in the checkpoints (None: pusher_reach)
 
     def train(self, progress: Callable[[Progress], None] | None = None, threads_now=None) -> list[TrainResult]:
         return train_seeds(self.datasets, self.cfg, self.seeds, progress=progress, resume=self.resume,

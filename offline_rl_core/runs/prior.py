@@ -74,11 +74,12 @@ class BagProfile:
             {"expert_like_share": round(self.expert_like_share, 6)}
 
 
-def profile_bag(data: Transitions) -> BagProfile:
+def profile_bag(data: Transitions, task=None) -> BagProfile:
+    """``task`` (default pusher_reach): where its episodes end at the goal (``episodes_at_goal``)."""
     if len(data) == 0:
         raise UserError("the bag holds no transitions to train on")
     _, returns, _ = data.episode_returns()  # sorted by episode id, as episodes_at_goal
-    ids, at_goal = episodes_at_goal(data)
+    ids, at_goal = episodes_at_goal(data, task)
     mean = lambda a: float(a.mean()) if len(a) else None  # noqa: E731
     rows = int(np.isin(data.episode, ids[at_goal]).sum())
     return BagProfile(len(returns), len(data), int(at_goal.sum()), rows, float(returns.mean()),
@@ -188,10 +189,11 @@ def steps_for_budget(budget_s: float, steps_per_s: float, quantum: int = 100) ->
 
 
 def plan_training(data: Transitions, cfg: TrainConfig, auto: bool, budget_s: float | None, steps: int | None,
-                  log: Callable[[str], None] = lambda s: None) -> tuple[TrainConfig, dict | None]:
+                  log: Callable[[str], None] = lambda s: None, task=None) -> tuple[TrainConfig, dict | None]:
     """The config to train and, for ``auto`` or a budget, what was decided and why (for
     metrics.json). ``steps`` given wins; otherwise a budget (given, or for ``auto`` the
-    chapter's AWAC time) becomes steps; otherwise ``cfg.steps`` stands."""
+    chapter's AWAC time) becomes steps; otherwise ``cfg.steps`` stands. ``task``: the data's
+    (default pusher_reach)."""
     if steps is not None and budget_s is not None:
         raise UserError("give --steps or --budget-s, not both")
     if budget_s is not None and not budget_s > 0:
@@ -203,7 +205,7 @@ def plan_training(data: Transitions, cfg: TrainConfig, auto: bool, budget_s: flo
     info: dict = {}
     recipe = None
     if auto:
-        profile = profile_bag(data)
+        profile = profile_bag(data, task)
         recipe = choose_recipe(profile)
         cfg = replace(cfg, algo=recipe.algo, **recipe.overrides)
         info.update(profile=profile.as_dict(), choice=recipe.algo, reason=recipe.reason)

@@ -216,7 +216,7 @@ def run_training(
         check_layout_fits(bags[0], data.layout.obs_dim, data.layout.act_dim, task)
     else:
         data, bags_read = load_bags(bags, from_topics, task, decode_workers)
-    cfg, plan = plan_training(data, cfg, auto, budget_s, steps, log)
+    cfg, plan = plan_training(data, cfg, auto, budget_s, steps, log, task)  # task: where episodes end at the goal
     init_ckpt = None
     if init:
         init_ckpt = load_checkpoint(init)

@@ -81,6 +81,13 @@ def checkpoint_from_bytes(data: bytes, source: str) -> dict:
     return validated_checkpoint(_torch_load(io.BytesIO(bytes(data)), source), source)
 
 
+def read_torch_file(path: str | os.PathLike) -> dict:
+    """A file of ``torch.save`` (tensors and plain values only), checked as a checkpoint's file
+    is (not a bag, not truncated, its CRCs); a UserError of one line naming it otherwise."""
+    with open(path, "rb") as f:
+        return _torch_load(f, str(path))
+
+
 def _torch_load(f, source) -> dict:
     problem = _not_a_checkpoint(f)
     try:

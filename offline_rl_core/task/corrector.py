@@ -14,10 +14,14 @@ One call of :meth:`ScriptedCorrector.decide` per state; the answer is the correc
 action (float32, one value per command joint) or None (the policy keeps control).
 
 Any task: the rule judges the task's reward distance and takes over with the task's
-scripted expert (:func:`task_rule`); pusher_reach's are the chapter's (the fingertip's
-planar distance to the target, ``expert.expert_action``). Another task's expert comes
-with its env (``offline_rl_core.task.envs.task_expert``); without it, a corrector for
-that task is refused in one line.
+scripted expert (:func:`task_rule`, from joint positions and the goal, as the corrector node
+has them; or :meth:`ScriptedCorrector.for_task`, which also reads the tracked points a robot
+publishes: progress is every reward distance, weighted, so the fingertip nearing the puck
+counts as much as the puck nearing the goal, and success is not latched where the task judges
+it at the episode's end: a puck pushed off the goal again is worth a takeover). pusher_reach's
+are the chapter's (the fingertip's planar distance to the target, ``expert.expert_action``).
+Another task's expert comes with its env (``offline_rl_core.task.envs.task_expert``); without
+it, a corrector for that task is refused in one line.
 """
 
 from __future__ import annotations
@@ -32,17 +36,18 @@ from .pusher_reach import SUCCESS_TOL, fingertip_from_joints
 from .expert import expert_action
 from .spec import DEFAULT_TASK, TaskSpec, load_task
 
-# expert(qpos, qvel, goal) -> action in [-1, 1]; distance(qpos, goal) -> the reward's distance
-Expert = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
-Distance = Callable[[np.ndarray, np.ndarray], float]
+# expert(qpos, qvel, goal[, points]) -> action in [-1, 1]; distance(qpos, goal[, points]) -> the
+# reward's distance (points: the tracked points' vectors, for the tasks that track any)
+Expert = Callable[..., np.ndarray]
+Distance = Callable[..., float]
 
 
-def pusher_distance(qpos, target_xy) -> float:
+def pusher_distance(qpos, target_xy, points=None) -> float:
     """pusher_reach: the fingertip's planar distance to the target."""
     return float(np.linalg.norm(np.asarray(target_xy, np.float64)[:2] - fingertip_from_joints(qpos)))
 
 
-def pusher_expert(qpos, qvel, target_xy) -> np.ndarray:
+def pusher_expert(qpos, qvel, target_xy, points=None) -> np.ndarray:
     return expert_action(qpos, qvel, np.asarray(target_xy, np.float64)[:2])
 
 
@@ -81,19 +86,66 @@ class CorrectorParams:
             raise ValueError("reaction_delay, noise and min_progress must be >= 0")
 
 
+class TaskDistances:
+    """A task's progress (its reward's distances, weighted) and success distance from what a
+    robot publishes: joint positions, the goal vector and the tracked points' vectors."""
+
+    def __init__(self, task: TaskSpec):
+        from . import features
+
+        self.task, self.features = task, features
+
+    def vectors(self, qpos, goal, points) -> tuple[np.ndarray, dict]:
+        positions = np.asarray(qpos, np.float64)[None]
+        vectors = {"goal": np.asarray(goal, np.float64)[None]}
+        vectors.update({k: np.asarray(v, np.float64)[None] for k, v in (points or {}).items()})
+        return positions, vectors
+
+    def success(self, qpos, goal, points=None) -> float:
+        """The success distance (``reward.distance``)."""
+        positions, vectors = self.vectors(qpos, goal, points)
+        return float(self.features.distances(*self.features.pair(self.task, *self.task.reward.distance,
+                                                                 positions, vectors))[0])
+
+    def progress(self, qpos, goal, points=None) -> float:
+        """Every reward distance, weighted (the reward less its bonus, negated)."""
+        positions, vectors = self.vectors(qpos, goal, points)
+        weights = (1.0, *(t.weight for t in self.task.reward.terms))
+        return float(sum(w * self.features.distances(*self.features.pair(self.task, a, b, positions, vectors))[0]
+                         for w, (a, b) in zip(weights, self.task.reward.distances)))
+
+
 class ScriptedCorrector:
-    """``expert`` and ``distance`` (``task_rule``): the task's; default pusher_reach's;
-    ``success_within``: the task's success threshold on that distance."""
+    """``expert`` and ``distance`` (progress; ``task_rule``, ``for_task``): the task's; default
+    pusher_reach's; ``success_distance`` (default ``distance``) and ``success_within``: the
+    task's success threshold on it; ``latch``: success latches for the episode (else it is
+    each state's)."""
 
     def __init__(self, params: CorrectorParams | None = None, expert: Expert = pusher_expert,
-                 distance: Distance = pusher_distance, success_within: float = SUCCESS_TOL):
+                 distance: Distance = pusher_distance, success_within: float = SUCCESS_TOL,
+                 success_distance: Distance | None = None, latch: bool = True):
         self.p = params or CorrectorParams()
         self.expert, self.distance, self.success_within = expert, distance, float(success_within)
+        self.success_distance = success_distance or distance
+        self.latch = latch
         self.rng = np.random.default_rng(self.p.seed)
         self.takeovers = 0
         self.corrections = 0  # states answered with a correction
         self.target: np.ndarray | None = None
         self.new_episode(None)
+
+    @classmethod
+    def for_task(cls, task: TaskSpec | str | None, params: CorrectorParams | None = None) -> "ScriptedCorrector":
+        """The corrector of ``task``: pusher_reach's is the chapter's; another task's judges its
+        reward distances and acts with its scripted expert (``task.envs.task_expert``)."""
+        task = load_task(task)
+        if task.digest == load_task(DEFAULT_TASK).digest:
+            return cls(params)
+        from .envs import task_expert
+
+        measure = TaskDistances(task)
+        return cls(params, task_expert(task), measure.progress, task.reward.success_within, measure.success,
+                   latch=task.reward.success_at != "end")
 
     def new_episode(self, goal) -> None:
         self.target = None if goal is None else np.array(goal, np.float64).reshape(-1)
@@ -109,20 +161,24 @@ class ScriptedCorrector:
         goal = np.asarray(goal, np.float64).reshape(-1)
         return self.target is None or goal.shape != self.target.shape or not np.allclose(self.target, goal, atol=1e-9)
 
-    def decide(self, qpos, qvel, goal) -> np.ndarray | None:
-        """Decide the correction for this state (``goal``: pusher_reach's target xy), or
-        None. Call once per state, in order."""
+    def decide(self, qpos, qvel, goal, points=None) -> np.ndarray | None:
+        """Decide the correction for this state (``goal``: the task's goal vector, pusher_reach's
+        the target's x, y; ``points``: the tracked points' vectors, for a task that tracks any),
+        or None. Call once per state, in order."""
         if self.is_new_episode(goal):
             self.new_episode(goal)
         self.step += 1
-        dist = self.distance(qpos, self.target)
-        if dist < self.success_within:
-            self.succeeded = True  # latched for the episode, as the env's success is
+        tracked = () if points is None else (points,)
+        dist = self.distance(qpos, self.target, *tracked)
+        at_goal = (dist if self.success_distance is self.distance else
+                   self.success_distance(qpos, self.target, *tracked)) < self.success_within
+        # latched for the episode, as the env's success is; or this state's, as the task's
+        self.succeeded = (self.succeeded or at_goal) if self.latch else at_goal
         if self.intervening:
             if self.succeeded or self.held >= self.p.hold_steps:
                 self.hand_back(dist)
                 return None
-            return self.act(qpos, qvel)
+            return self.act(qpos, qvel, points)
         if self.succeeded:
             return None
         if self.step < self.p.grace_steps:
@@ -142,10 +198,11 @@ class ScriptedCorrector:
         self.delay_left = -1
         self.intervening = True
         self.takeovers += 1
-        return self.act(qpos, qvel)
+        return self.act(qpos, qvel, points)
 
-    def act(self, qpos, qvel) -> np.ndarray:
-        action = np.asarray(self.expert(qpos, qvel, self.target), np.float64)
+    def act(self, qpos, qvel, points=None) -> np.ndarray:
+        tracked = () if points is None else (points,)
+        action = np.asarray(self.expert(qpos, qvel, self.target, *tracked), np.float64)
         if self.p.noise > 0:
             action = action + self.rng.normal(0.0, self.p.noise, size=action.shape)
         self.held += 1

@@ -1,11 +1,13 @@
 """The env, model and scripted expert of any task that a sim can host (a ``sim`` section).
 
 - ``make_env(task)``: ``sim: {env: pusher_reach}`` is the chapter's ``PusherReachEnv``
-  (its bytes); ``sim: {model: ...}`` is a ``MujocoTaskEnv`` of that model.
+  (its bytes); ``sim: {model: ...}`` is a ``MujocoTaskEnv`` of that model; ``sim: {env:
+  pusher_push, model: ...}`` a ``PushEnv`` (the model's puck placed at every reset too).
 - ``task_model(task)``: the MuJoCo model the task's kinematics need (``site:`` / ``body:``
   points), or None for a task without a model.
-- ``task_expert(task)``: the task's scripted expert as one function of the joint state and
-  the goal, ``expert(positions, velocities, goal) -> action`` (float32, in [-1, 1]), so
+- ``task_expert(task)``: the task's scripted expert as one function of what a robot
+  publishes, ``expert(positions, velocities, goal, points) -> action`` (float32, in [-1, 1];
+  ``points``: the tracked points' vectors, in their axes, e.g. the puck a tracker sees), so
   ``collect``, ``eval --expert`` and a corrector that only hears topics act alike;
   ``expert_action(env)`` asks it about an env's current state.
 
@@ -27,25 +29,28 @@ import numpy as np
 from ..common.errors import UserError
 from .spec import TaskSpec, load_task
 
-Expert = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
-SIM_ENVS = ("pusher_reach",)
+Expert = Callable[..., np.ndarray]  # (positions, velocities, goal, points=None) -> action
+SIM_ENVS = ("pusher_reach", "pusher_push")
 
 _models: dict = {}
 _experts: dict = {}
 
 
 def _kind(task: TaskSpec) -> str:
-    """'pusher_reach', 'model', or a UserError saying why no sim can host the task."""
+    """'pusher_reach', 'pusher_push', 'model', or a UserError saying why no sim can host the task."""
     sim = task.sim or {}
     if not sim:
         raise UserError(f"{task.source_file()}: task {task.name} has no sim section: no simulator hosts it "
                         "(give sim: {model: FILE} to host it in MuJoCo)")
-    if "env" in sim:
-        if sim["env"] not in SIM_ENVS or len(sim) != 1:
-            raise UserError(f"{task.source_file()}: field sim.env: expected one of {', '.join(SIM_ENVS)} "
-                            f"(and no other sim field), got {sim!r}")
-        return "pusher_reach"
-    return "model"
+    env = sim.get("env")
+    if env == "pusher_reach" and len(sim) != 1:
+        raise UserError(f"{task.source_file()}: field sim.env: pusher_reach is the chapter's env and takes no other "
+                        f"sim field, got {sim!r}")
+    if env is not None and env not in SIM_ENVS:
+        raise UserError(f"{task.source_file()}: field sim.env: expected one of {', '.join(SIM_ENVS)}, got {env!r}")
+    if "push" in sim and env != "pusher_push":
+        raise UserError(f"{task.source_file()}: field sim.push: only with sim.env: pusher_push")
+    return env or "model"
 
 
 def _key(task: TaskSpec) -> tuple:
@@ -75,10 +80,15 @@ def make_env(task: TaskSpec | str | os.PathLike | None, terminate_on_success: bo
     """A fresh env of the task (None: the task's ``reward.terminate_on_success``)."""
     task = load_task(task)
     terminate = task.reward.terminate_on_success if terminate_on_success is None else bool(terminate_on_success)
-    if _kind(task) == "pusher_reach":
+    kind = _kind(task)
+    if kind == "pusher_reach":
         from .pusher_reach import PusherReachEnv
 
         return PusherReachEnv(terminate_on_success=terminate)
+    if kind == "pusher_push":
+        from .pusher_push import PushEnv
+
+        return PushEnv(task, terminate, model=task_model(task))
     from .mujoco_task import MujocoTaskEnv
 
     return MujocoTaskEnv(task, terminate, model=task_model(task))
@@ -89,10 +99,15 @@ def task_expert(task: TaskSpec | str | os.PathLike | None) -> Expert:
     task = load_task(task)
     key = _key(task)
     if key not in _experts:
-        if _kind(task) == "pusher_reach":
+        kind = _kind(task)
+        if kind == "pusher_reach":
             from .expert import expert_action
 
-            _experts[key] = expert_action  # its goal vector is the target's x, y
+            _experts[key] = lambda q, qdot, goal, points=None: expert_action(q, qdot, goal)  # goal: the target's x, y
+        elif kind == "pusher_push":
+            from .push_expert import PushExpert
+
+            _experts[key] = PushExpert(task, task_model(task))
         else:
             from .jacobian_expert import ReachExpert
 
@@ -100,6 +115,15 @@ def task_expert(task: TaskSpec | str | os.PathLike | None) -> Expert:
     return _experts[key]
 
 
+def point_vectors(task: TaskSpec, points: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Tracked points' x, y, z (``env.point_positions()``) as the task's vectors (their axes)."""
+    from .spec import AXES
+
+    return {p.name: np.asarray(points[p.name], np.float64)[[AXES.index(a) for a in p.axes]]
+            for p in task.points if p.name in points}
+
+
 def expert_action(env) -> np.ndarray:
     """The task's expert's action for an env's current state."""
-    return task_expert(env.task)(env.joint_positions, env.joint_velocities, env.goal)
+    return task_expert(env.task)(env.joint_positions, env.joint_velocities, env.goal,
+                                 point_vectors(env.task, env.point_positions()))

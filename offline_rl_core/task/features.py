@@ -78,6 +78,32 @@ def observe(spec: TaskSpec, positions, velocities, vectors: dict[str, np.ndarray
     return np.concatenate(parts, axis=1).astype(np.float32)
 
 
+def feature_widths(spec: TaskSpec) -> list[int]:
+    """How many observation values each feature of ``spec.observation`` gives, in order."""
+    widths = []
+    for f in spec.observation:
+        if f.kind == "cos_sin":
+            widths.append(2 * len(f.args))
+        elif f.kind in ("positions", "velocities"):
+            widths.append(len(f.args))
+        elif f.kind == "vector":
+            widths.append(spec.vector_size(f.args[0]))
+        else:
+            widths.append(spec.vector_size(f.args[0], f.args[1]))
+    return widths
+
+
+def success_columns(spec: TaskSpec) -> slice | None:
+    """The observation's columns that hold the success distance's difference (``reward.distance``,
+    either way round), or None where the observation has no such feature."""
+    start = 0
+    for f, width in zip(spec.observation, feature_widths(spec)):
+        if f.kind == "difference" and set(f.args) == set(spec.reward.distance):
+            return slice(start, start + width)
+        start += width
+    return None
+
+
 def distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """|a - b| for N rows, float64 (N,). Elementwise rather than ``np.linalg.norm``: a norm
     goes through BLAS, whose kernel (fused multiply-add or not) depends on the machine."""
@@ -91,23 +117,36 @@ def distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 class StepScore(NamedTuple):
     """The outcome of one control step for N envs, as arrays of length N."""
 
-    reward: np.ndarray  # float64: -distance, plus the success bonus on the latching step
-    dist: np.ndarray  # float64: the reward's distance
-    success: np.ndarray  # bool: latched success after this step
+    reward: np.ndarray  # float64: -distance (and the further terms), plus the success bonus
+    dist: np.ndarray  # float64: the reward's (success) distance
+    success: np.ndarray  # bool: success after this step (latched, or this state's: reward.success_at)
     terminated: np.ndarray  # bool: success latched and terminate_on_success
     truncated: np.ndarray  # bool: the step count reached max_steps
 
 
 def score(spec: TaskSpec, positions, vectors: dict[str, np.ndarray], steps, success_before,
-          terminate_on_success: bool | None = None) -> StepScore:
-    """Reward, success latch and episode end for N states reached by their ``steps``-th step;
-    ``success_before``: each one's latch before this step."""
+          terminate_on_success: bool | None = None, success_now=None) -> StepScore:
+    """Reward, success and episode end for N states reached by their ``steps``-th step;
+    ``success_before``: each one's success before this step.
+
+    ``success_now`` (bool (N,)): whether each state is a success, as something other than the
+    success distance judges it (a person's label, a learned classifier); default: the
+    distance under ``success_within``. ``reward.success_at`` latch: success latches the first
+    time, with the bonus on that step; end: success is this state's, with the bonus on every
+    successful state."""
     dist = distances(*pair(spec, *spec.reward.distance, positions, vectors))
     success_before = np.asarray(success_before, dtype=bool)
+    within = dist < spec.reward.success_within if success_now is None else np.asarray(success_now, dtype=bool)
     reward = -dist
-    newly = ~success_before & (dist < spec.reward.success_within)
-    reward[newly] += spec.reward.success_bonus  # a masked add: -dist + 0.0 would turn -0.0 into +0.0
-    success = success_before | newly
+    for term in spec.reward.terms:
+        reward = reward - term.weight * distances(*pair(spec, *term.distance, positions, vectors))
+    if spec.reward.success_at == "end":
+        success = within
+        reward[success] += spec.reward.success_bonus
+    else:
+        newly = ~success_before & within
+        reward[newly] += spec.reward.success_bonus  # a masked add: -dist + 0.0 would turn -0.0 into +0.0
+        success = success_before | newly
     terminate = spec.reward.terminate_on_success if terminate_on_success is None else terminate_on_success
     terminated = success & bool(terminate)
     truncated = np.asarray(steps) >= spec.episodes.max_steps

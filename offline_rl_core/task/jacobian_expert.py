@@ -32,7 +32,8 @@ LIMIT_MARGIN = 0.01  # IK solutions stay this far inside the joints' ranges (rad
 
 
 class ReachExpert:
-    """``expert(positions, velocities, goal) -> action`` (float32, in [-1, 1])."""
+    """``expert(positions, velocities, goal, points=None) -> action`` (float32, in [-1, 1]);
+    a reach needs no tracked point beyond the arm's own (``points`` is not read)."""
 
     def __init__(self, task: TaskSpec, model: mujoco.MjModel, settings: SimSettings | None = None):
         self.task, self.model = task, model
@@ -63,7 +64,7 @@ class ReachExpert:
                                     for j in task.goal.joints]
         self._mass = np.zeros((model.nv, model.nv))
 
-    def __call__(self, positions, velocities, goal) -> np.ndarray:
+    def __call__(self, positions, velocities, goal, points=None) -> np.ndarray:
         positions = np.asarray(positions, np.float64)
         velocities = np.asarray(velocities, np.float64)
         q = np.where(self.command_in_state >= 0, positions[self.command_in_state], 0.0)

@@ -37,7 +37,10 @@ from ..common.errors import UserError
 from . import features
 from .spec import AXES, JOINT_STATE, FieldReader, TaskSpec
 
-SIM_FIELDS = ("model", "frame_skip", "sites", "reset", "goal", "gains", "expert")
+SIM_FIELDS = ("model", "frame_skip", "sites", "points", "reset", "goal", "gains", "expert",
+              # read by the env that sim.env names (task.envs), not here
+              "env", "push")
+POINT_SOURCES = ("site", "body")
 GOAL_SAMPLERS = ("reachable", "box")
 # Tries of a rejection sampler before the settings are called impossible.
 MAX_TRIES = 10_000
@@ -60,6 +63,7 @@ class SimSettings:
     model: str
     frame_skip: int | None  # None: control_period / the model's timestep
     sites: tuple[tuple[str, str, tuple[float, float, float]], ...]  # (name, body, pos)
+    points: dict  # tracked point -> "site:NAME" / "body:NAME": where the sim reads it (sim.points)
     collision_free: bool
     joint_range: tuple[float, float]  # for joints without a range of their own
     goal_sampler: str
@@ -88,6 +92,11 @@ class SimSettings:
             if body is None:
                 raise r.error(f"sim.sites.{name}.body", "the body the site is fixed to", None)
             sites.append((name, body, _vector(r, f"sim.sites.{name}.pos", site.get("pos"), 3, (0.0, 0.0, 0.0))))
+        points = r.mapping("sim.points", doc.get("points"), tuple(p.name for p in task.points))
+        for name, where in points.items():
+            if not (isinstance(where, str) and where.count(":") == 1 and where.split(":")[0] in POINT_SOURCES
+                    and where.split(":")[1]):
+                raise r.error(f"sim.points.{name}", "site:NAME or body:NAME of the model", where)
         reset = r.mapping("sim.reset", doc.get("reset"), ("collision_free", "joint_range"))
         joint_range = _vector(r, "sim.reset.joint_range", reset.get("joint_range"), 2, (-math.pi, math.pi))
         if not joint_range[0] < joint_range[1]:
@@ -116,7 +125,7 @@ class SimSettings:
                                 r.number("sim.expert.kd", ex.get("kd"), default.kd, 0.0),
                                 r.number("sim.expert.damping", ex.get("damping"), default.damping, 0.0, True),
                                 _whole(r, "sim.expert.restarts", ex.get("restarts"), default.restarts))
-        return cls(model, frame_skip, tuple(sites),
+        return cls(model, frame_skip, tuple(sites), dict(points),
                    r.flag("sim.reset.collision_free", reset.get("collision_free"), True), joint_range, sampler, point,
                    low, high, r.number("sim.goal.min_distance", goal.get("min_distance"), 0.0, 0.0), kp, kd, expert)
 
@@ -217,15 +226,18 @@ class ArmIndex:
         self.arm_bodies = np.array(sorted(moved), np.int64)
         self.points = {}  # name -> ("site" | "body", id)
         for p in task.points:
-            if p.kinematics is None or p.kinematics == "planar_two_link":
+            # sim.points: where the sim finds a point that is no forward kinematics of the arm
+            # (an object a tracker follows), or that it reads from the model all the same
+            where, label = (settings.points[p.name], f"sim.points.{p.name}") if p.name in settings.points else \
+                (p.kinematics, f"points.{p.name}.kinematics")
+            if where is None or where == "planar_two_link":
                 raise UserError(f"{task.source_file()}: field points.{p.name}.kinematics: the sim reads tracked "
-                                "points from its model: give site:NAME or body:NAME")
-            kind, name = p.kinematics.split(":", 1)
+                                f"points from its model: give site:NAME or body:NAME (or sim.points.{p.name})")
+            kind, name = where.split(":", 1)
             obj = mujoco.mjtObj.mjOBJ_SITE if kind == "site" else mujoco.mjtObj.mjOBJ_BODY
             pid = mujoco.mj_name2id(model, obj, name)
             if pid < 0:
-                raise UserError(f"{task.source_file()}: field points.{p.name}.kinematics: the sim's model has no "
-                                f"{kind} {name!r}")
+                raise UserError(f"{task.source_file()}: field {label}: the sim's model has no {kind} {name!r}")
             self.points[p.name] = (kind, int(pid))
         self.axes = {p.name: [AXES.index(a) for a in p.axes] for p in task.points}
         self.goal_axes = [AXES.index(a) for a in task.goal.axes]

@@ -216,6 +216,10 @@ class PusherReachEnv:
     def point_positions(self) -> dict[str, np.ndarray]:
         return {"fingertip": self.fingertip}
 
+    def vectors(self) -> dict[str, np.ndarray]:
+        """The goal and the fingertip in the task's axes: what its features read."""
+        return {"goal": self.target[:2].copy(), "fingertip": self.fingertip[:2].copy()}
+
     def distance(self) -> float:
         return float(planar_distances(self.target[None, :2], self.fingertip[None, :2])[0])
 

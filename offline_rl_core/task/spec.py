@@ -108,12 +108,38 @@ class Feature:
     args: tuple[str, ...]  # joint names, or vector names
 
 
+SUCCESS_RULES = ("latch", "end")
+
+
+@dataclass(frozen=True)
+class DistanceTerm:
+    """A further reward term: ``-weight * |a - b|`` every step (e.g. fingertip to puck)."""
+
+    distance: tuple[str, str]
+    weight: float = 1.0
+
+
 @dataclass(frozen=True)
 class RewardSpec:
-    distance: tuple[str, str] = ("goal", "fingertip")  # reward = -|a - b| each step
+    distance: tuple[str, str] = ("goal", "fingertip")  # reward = -|a - b| each step; success is judged on it
     success_within: float = 0.02
     success_bonus: float = 1.0
     terminate_on_success: bool = False
+    # latch: success latches the first step the distance is under success_within (the bonus
+    # once, then); end: success is whether it is under it now (the bonus every such step), so
+    # an episode's last step says whether the episode ended at the goal
+    success_at: str = "latch"
+    terms: tuple[DistanceTerm, ...] = ()  # further -weight * |a - b| terms, added every step
+
+    @property
+    def distances(self) -> tuple[tuple[str, str], ...]:
+        """Every pair of vectors the reward measures: the success distance first."""
+        return (self.distance, *(t.distance for t in self.terms))
+
+
+# Fields added after the first task files: left out of ``describe()`` at their defaults, so
+# the digests that bags and checkpoints of those tasks record stay what they were.
+_LATER_REWARD_DEFAULTS = {"success_at": "latch", "terms": []}
 
 
 @dataclass(frozen=True)
@@ -247,6 +273,9 @@ class TaskSpec:
         out.pop("path")
         if self.safety == SafetySpec():  # a task without a safety section keeps the digest it had
             out.pop("safety")
+        for key, default in _LATER_REWARD_DEFAULTS.items():
+            if out["reward"][key] == default or out["reward"][key] == tuple(default):
+                out["reward"].pop(key)
         return json.loads(json.dumps(out))
 
     @cached_property  # a frozen spec: computed once (every env step of a task asks for its expert by it)
@@ -559,22 +588,40 @@ class _Reader:
             raise self.error(label, "a vector: " + ", ".join(known), name)
 
     def check_vectors(self, spec: TaskSpec) -> None:
-        a, b = spec.reward.distance
-        for v in (a, b):
-            self.vector_name("reward.distance", v, spec)
-        if spec.vector_size(a, b) != spec.vector_size(b, a):
-            raise UserError(f"{self.where}: field reward.distance: {a} has {spec.vector_size(a, b)} values, "
-                            f"{b} {spec.vector_size(b, a)}")
+        labels = ["reward.distance"] + [f"reward.terms[{i}].distance" for i in range(len(spec.reward.terms))]
+        for label, (a, b) in zip(labels, spec.reward.distances):
+            for v in (a, b):
+                self.vector_name(label, v, spec)
+            if spec.vector_size(a, b) != spec.vector_size(b, a):
+                raise UserError(f"{self.where}: field {label}: {a} has {spec.vector_size(a, b)} values, "
+                                f"{b} {spec.vector_size(b, a)}")
+
+    def pair(self, label, value, default=None) -> tuple[str, str]:
+        pair = self.names(label, value, default or ())
+        if len(pair) != 2:
+            raise self.error(label, "two vector names [a, b]", list(pair))
+        return pair
 
     def reward(self, doc) -> RewardSpec:
-        doc = self.mapping("reward", doc, ("distance", "success_within", "success_bonus", "terminate_on_success"))
-        distance = self.names("reward.distance", doc.get("distance"), RewardSpec.distance)
-        if len(distance) != 2:
-            raise self.error("reward.distance", "two vector names [a, b]", list(distance))
-        return RewardSpec(distance,
+        doc = self.mapping("reward", doc, ("distance", "success_within", "success_bonus", "terminate_on_success",
+                                           "success_at", "terms"))
+        terms = doc.get("terms")
+        if terms is not None and not isinstance(terms, list):
+            raise self.error("reward.terms", "a list of {distance: [a, b], weight: w}", terms)
+        checked = []
+        for i, term in enumerate(terms or []):
+            label = f"reward.terms[{i}]"
+            term = self.mapping(label, term, ("distance", "weight"))
+            if term.get("distance") is None:
+                raise self.error(f"{label}.distance", "two vector names [a, b]", None)
+            checked.append(DistanceTerm(self.pair(f"{label}.distance", term["distance"]),
+                                        self.number(f"{label}.weight", term.get("weight"), 1.0)))
+        return RewardSpec(self.pair("reward.distance", doc.get("distance"), RewardSpec.distance),
                           self.number("reward.success_within", doc.get("success_within"), 0.02, 0.0, True),
                           self.number("reward.success_bonus", doc.get("success_bonus"), 1.0),
-                          self.flag("reward.terminate_on_success", doc.get("terminate_on_success"), False))
+                          self.flag("reward.terminate_on_success", doc.get("terminate_on_success"), False),
+                          self.choice("reward.success_at", doc.get("success_at"), SUCCESS_RULES, "latch"),
+                          tuple(checked))
 
     def episodes(self, doc) -> EpisodeSpec:
         doc = self.mapping("episodes", doc, ("max_steps", "goal_change", "reset_topic", "max_gap"))

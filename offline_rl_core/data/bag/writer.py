@@ -16,6 +16,7 @@ from rosbags.rosbag2 import Writer
 
 from ...common.errors import UserError
 from ...task.spec import TaskSpec, load_task
+from ..episode_labels import LABEL_MSGTYPE, LABEL_TOPIC, encode_label_message
 from ..task_record import TASK_MSGTYPE, TASK_TOPIC, encode_task_message
 from ..transitions import PUSHER_LAYOUT, Layout, Transitions
 from .cdr import TRANSITION_MSGTYPE, TRANSITION_TOPIC, encode_transition_blob, message_size
@@ -40,6 +41,18 @@ def _check_rows(path, rows: np.ndarray, layout: Layout) -> None:
                         f"(first in field {layout.field_of_column(column)!r}); not writing them")
 
 
+def _label_rows(rows: np.ndarray, layout: Layout, labels: dict[int, bool] | None) -> dict[int, tuple[int, bool]]:
+    """{row of each labelled episode's last transition: (episode, success)}."""
+    if not labels:
+        return {}
+    episodes = rows[:, layout.slices["episode"]].reshape(-1).astype(np.int64)
+    last = {int(e): int(np.flatnonzero(episodes == e)[-1]) for e in np.unique(episodes)}
+    missing = sorted(set(map(int, labels)) - set(last))
+    if missing:
+        raise ValueError(f"labels of episodes the transitions do not hold: {missing[:5]}")
+    return {last[int(e)]: (int(e), bool(s)) for e, s in labels.items()}
+
+
 def _latched_qos() -> Qos:
     """The QoS the sim offers ``/task_description`` with (as robot_description): ``ros2 bag
     play`` then offers it to late subscribers too."""
@@ -54,6 +67,8 @@ def write_transitions(
     storage: str | None = None,
     custom_data: dict[str, str] | None = None,
     task: TaskSpec | None = None,
+    labels: dict[int, bool] | None = None,
+    label_episodes: bool = True,
 ) -> None:
     """Write transitions as a rosbag2 bag with one ``/pusher/transition`` message per row.
 
@@ -66,6 +81,9 @@ def write_transitions(
     nothing half-written remains. Stamps are TRANSITION_START_NS + i * 20 ms, or with
     ``task`` i * its control period, and the bag records the task on ``/task_description``
     (data.task_record) at TRANSITION_START_NS; without one the bag is pusher_reach's.
+    ``labels`` ({episode: success}): a label on ``/episode_label`` (data.episode_labels) 1 ns
+    after each labelled episode's last transition, as a person's key press is recorded, naming
+    its episode unless ``label_episodes`` is false (then the label is of the episode before it).
     """
     if isinstance(transitions, Transitions):
         rows, layout = transitions.to_rows(), transitions.layout
@@ -89,9 +107,16 @@ def write_transitions(
                                                offered_qos_profiles=[_latched_qos()])
                 writer.write(record, TRANSITION_START_NS, encode_task_message(task))
             conn = writer.add_connection(TRANSITION_TOPIC, TRANSITION_MSGTYPE, typestore=typestore())
+            label_after = _label_rows(rows, layout, labels)
+            label_conn = writer.add_connection(f"/{LABEL_TOPIC}", LABEL_MSGTYPE, typestore=typestore()) \
+                if label_after else None
             write = writer.write
             for i, offset in enumerate(range(0, len(blob), size)):
                 write(conn, TRANSITION_START_NS + i * period_ns, blob[offset : offset + size])
+                if i in label_after:
+                    episode, success = label_after[i]
+                    write(label_conn, TRANSITION_START_NS + i * period_ns + 1,
+                          encode_label_message(success, episode if label_episodes else None))
         staged.publish()
     except OSError as exc:
         raise UserError(f"{target.path}: cannot write the bag: {exc}") from exc
