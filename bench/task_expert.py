@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from offline_rl_core.benchmarks.harness import machine_info, utc_now
 from offline_rl_core.common.machine import cpu_model_and_flags
 from offline_rl_core.common.seeds import HELD_OUT
 from offline_rl_core.evaluation.rollouts import round6
@@ -70,6 +71,7 @@ def main(argv=None) -> int:
             "p95": float(np.percentile(stayed, 95)) if stayed else None,
             "max": int(max(stayed)) if stayed else None}} if task.reward.success_at == "end" else {}),
         "wall_s": round(wall, 1), "steps_per_s": round(args.episodes * task.episodes.max_steps / wall, 1),
+        "machine": machine_info(), "measured_at": utc_now(),  # for bench/results_page.py
         "cpu": model, "cpu_flags": sorted(f for f in flags if f in ("avx2", "avx512f", "avx512_bf16", "amx_tile")),
     }
     print(json.dumps(result, indent=1))

@@ -26,6 +26,7 @@ import velocity_arm as va  # noqa: E402
 
 from offline_rl_core.commands.cli import main as cli  # noqa: E402
 from offline_rl_core.common.atomic import write_json_atomic  # noqa: E402
+from offline_rl_core.benchmarks.harness import machine_info, utc_now  # noqa: E402
 from offline_rl_core.common.machine import cpu_model_and_flags  # noqa: E402
 from offline_rl_core.evaluation.stats import newcombe_diff_ci, wilson_ci  # noqa: E402
 from offline_rl_core.serving.checkpoint import load_checkpoint  # noqa: E402
@@ -45,6 +46,7 @@ def main() -> int:
     args = parser.parse_args()
     model, flags = cpu_model_and_flags()
     result = {"command": " ".join(["bench/velocity_arm.py", *sys.argv[1:]]),
+              "machine": machine_info(), "measured_at": utc_now(),  # for bench/results_page.py
               "cpu": {"model": model, "flags": sorted(f for f in flags if f in ("avx2", "avx512f", "avx512_bf16",
                                                                                   "amx_tile"))},
               "settings": {"episodes": args.episodes, "expert_frac": 0.3, "steps": args.steps, "seed": 0,

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from offline_rl_core.benchmarks.harness import machine_info, utc_now
 from offline_rl_core.common.machine import cpu_model_and_flags
 from offline_rl_core.pipelines.processes import RosProcess, isolated_ros_env
 from offline_rl_core.serving.checkpoint import save_checkpoint
@@ -101,6 +102,7 @@ def main() -> int:
     model, flags = cpu_model_and_flags()
     result = {
         "command": " ".join([".venv/bin/python", *sys.argv]),
+        "machine": machine_info(), "measured_at": utc_now(),  # for bench/results_page.py
         "cpu": {"model": model, "flags": sorted(f for f in flags if f in ("avx2", "avx512f", "avx512_bf16",
                                                                               "amx_tile"))},
         "cores": os.cpu_count(), "period_ms": task.control_period * 1000,
