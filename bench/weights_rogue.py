@@ -27,6 +27,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 from fuzz_messages import stride0_checkpoint  # noqa: E402
+from offline_rl_core.benchmarks.harness import machine_info, utc_now  # noqa: E402
 from offline_rl_core.common.machine import cpu_model_and_flags  # noqa: E402
 from offline_rl_core.pipelines.processes import RosProcess, isolated_ros_env  # noqa: E402
 from offline_rl_core.serving.checkpoint import save_checkpoint  # noqa: E402
@@ -185,6 +186,7 @@ def main() -> int:
     model, flags = cpu_model_and_flags()
     result = {
         "command": " ".join([".venv/bin/python", *sys.argv]),
+        "machine": machine_info(), "measured_at": utc_now(), "loadavg_end": list(os.getloadavg()),
         "cpu": {"model": model, "flags": sorted(f for f in flags if f in ("avx2", "avx512f", "avx512_bf16",
                                                                               "amx_tile"))},
         "cores": os.cpu_count(), "period_ms": PERIOD_S * 1000, "seconds_per_phase": args.seconds,
