@@ -189,13 +189,24 @@ def test_policy_answers_rejects_and_hot_reloads(spawn, data, tmp_path):
 def test_trainer_node_from_the_card_command_publishes_progress(spawn, data, tmp_path):
     # The type is given so the listener subscribes at once, and the run is long enough
     # (a few seconds of reports) that discovery has matched before it ends.
+    from diagnostic_msgs.msg import DiagnosticArray
+
     echo = spawn(ros2("topic", "echo", "/trainer/progress", "std_msgs/msg/String", "--once", "--full-length"), "echo")
     out = tmp_path / "run"
-    trainer = spawn(
-        ros2("run", "trainer", "--bag", data["bag"], "--algo", "awac", "--steps", 1500, "--hidden", 16,
-             "--batch-size", 32, "--log-every", 25, "--eval-episodes", 2, "--out", out),
-        "trainer",
-    )
+    with probe_node("trainer_diagnostics") as node:
+        seen = []  # the trainer's /diagnostics entries
+        node.create_subscription(DiagnosticArray, "/diagnostics",
+                                 lambda msg: seen.extend(s for s in msg.status if s.name == "/trainer"), 10)
+        trainer = spawn(
+            ros2("run", "trainer", "--bag", data["bag"], "--algo", "awac", "--steps", 1500, "--hidden", 16,
+                 "--batch-size", 32, "--log-every", 25, "--eval-episodes", 2, "--out", out),
+            "trainer",
+        )
+        assert node.spin_until(lambda: seen or trainer.poll() is not None, 150), trainer.output()
+    assert seen, trainer.output()
+    entry = seen[-1]
+    assert entry.level == b"\x00" and entry.message.startswith("training awac: step "), entry.message
+    assert {kv.key for kv in entry.values} >= {"step", "total", "steps_per_s", "scalars/critic_loss"}
     assert trainer.wait(timeout=150) == 0, trainer.output()
     assert (out / "policy.pt").is_file() and json.loads((out / "metrics.json").read_text())["algorithm"] == "awac"
     assert f"wrote {out / 'policy.pt'}" in trainer.output()

@@ -67,7 +67,7 @@ NODE_GRAPH: dict[str, NodeAccess] = {
                                "policy/action", "policy/provenance", "teleop/action", "corrections/intervening",
                                "effort_controller/commands", "learner/weights", "/tf", "/tf_static", ESTOP),
                            status=False),
-    "trainer": NodeAccess(publish=("~/progress",), status=False, diagnostics=False),
+    "trainer": NodeAccess(publish=("~/progress",), status=False),
     # the arm's markers from a real arm's joint states (ros2 run viz markers)
     "markers": NodeAccess(publish=("markers",), subscribe=("joint_states", "goal", "pusher/state", "pusher/target"),
                           status=False),

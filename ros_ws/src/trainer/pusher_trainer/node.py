@@ -10,7 +10,9 @@ given on the command line wins. Progress goes to the console and to ``~/progress
   {"step": 400, "total": 8000, "elapsed_s": 1.9, "steps_per_s": 210.5,
    "scalars": {"critic_loss": 0.12, ...}, "done": false}
 
-and a last one with ``"done": true, "out": DIR, "checkpoint": DIR/policy.pt``.
+and a last one with ``"done": true, "out": DIR, "checkpoint": DIR/policy.pt``. The same
+reports reach ``/diagnostics`` at most once a second (OK, "training awac: step 400 of 8000",
+the step, rate and losses as key-values).
 Exits 0 once the checkpoint is written, 2 on a bad bag or setting (one line), 130 when
 interrupted (Ctrl-C or SIGTERM) before the checkpoint is written.
 """
@@ -20,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
 
 import rclpy
 from rclpy.node import Node
@@ -27,9 +30,11 @@ from rclpy.qos import DurabilityPolicy, QoSProfile
 from std_msgs.msg import String
 
 from offline_rl_core.common.errors import UserError
+from offline_rl_core.nodes.diagnostics import StatusDiagnosis
 from offline_rl_core.runs.training_run import (
     add_train_arguments, console_progress, run_training_from_args, summary_line,
 )
+from pusher_common.diagnostics import NodeDiagnostics
 from pusher_common.node_main import run_node
 from pusher_common.params import Settings, params_from_parser
 
@@ -55,19 +60,27 @@ class Trainer(Node):
             raise UserError("no bag given: pass --bag PATH (repeat for several) or -p bag:=[PATH, ...]")
         self.progress_pub = self.create_publisher(String, "~/progress", PROGRESS_QOS)
         self.console = console_progress()
+        # the training loop holds the main thread (no executor): reports go out as they come,
+        # at most once a second
+        algo = self.settings.algo
+        self.diagnostics = NodeDiagnostics(self, status=dict, period_s=None, diagnosis=StatusDiagnosis(
+            idle=lambda st: f"training {algo}: step {st['step']} of {st['total']}"))
+        self.diagnosed_at = -float("inf")
 
     def report(self, p) -> None:
         self.console(p)
-        self.publish(
-            {
-                "step": int(p.step),
-                "total": int(p.total),
-                "elapsed_s": round(float(p.elapsed_s), 3),
-                "steps_per_s": round(p.step / p.elapsed_s, 1) if p.elapsed_s > 0 else 0.0,
-                "scalars": {k: float(v) for k, v in p.scalars.items()},
-                "done": False,
-            }
-        )
+        report = {
+            "step": int(p.step),
+            "total": int(p.total),
+            "elapsed_s": round(float(p.elapsed_s), 3),
+            "steps_per_s": round(p.step / p.elapsed_s, 1) if p.elapsed_s > 0 else 0.0,
+            "scalars": {k: float(v) for k, v in p.scalars.items()},
+            "done": False,
+        }
+        self.publish(report)
+        if time.monotonic() - self.diagnosed_at >= 1.0 or p.step >= p.total:
+            self.diagnosed_at = time.monotonic()
+            self.diagnostics.publish({k: v for k, v in report.items() if k != "done"})
 
     def publish(self, report: dict) -> None:
         self.progress_pub.publish(String(data=json.dumps(report)))
