@@ -204,7 +204,7 @@ class Mux(Node):
 
     # -------------------------------------------------------------- safety
     def on_state(self, msg: JointState) -> None:
-        """The arm's positions, for a safe command that holds them, and speeds, for the soft limits."""
+        """Keep the arm's positions (a safe command holds them) and speeds (the soft limits)."""
         joints, problem = joints_from_state(msg.name, msg.position, msg.velocity, self.task.state.joints,
                                             velocity_optional=True)
         if problem is None:
@@ -225,8 +225,10 @@ class Mux(Node):
         self.send_safe()
 
     def send_safe(self) -> None:
-        """Realtime: send the task's safe command (once: the sim and a forward controller hold it).
-        In lockstep the sim steps only on a command: forwarding nothing stops the arm."""
+        """Realtime: send the task's safe command (once: the sim and a controller hold it).
+
+        In lockstep the sim steps only on a command: forwarding nothing stops the arm.
+        """
         if self.mode != "realtime":
             return
         action = safe_action(self.task, self.position)

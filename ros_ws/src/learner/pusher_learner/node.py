@@ -17,9 +17,9 @@ recording). ``~/status`` (``std_msgs/String``, JSON, once a second; ``pusher_com
 counts, losses, rejections by reason. A transition with a non-finite value, an action
 outside [-1, 1], a value out of range or an unknown layout is dropped, counted and warned
 about (throttled), never trained on; so is every transition that comes while the e-stop is
-engaged (``estop``, released only by ``estop/reset``: ``pusher_common.estop``). The learner trains on the wall clock: with
-``use_sim_time`` its work still runs (the sim's clock waits for the policy, which waits
-for the learner's weights).
+engaged (``estop``, released only by ``estop/reset``: ``pusher_common.estop``). The
+learner trains on the wall clock: with ``use_sim_time`` its work still runs (the sim's
+clock waits for the policy, which waits for the learner's weights).
 
 ``--from-topics`` (``-p from_topics:=true``, with ``-p task:=NAME_OR_FILE``): a robot that
 publishes only standard topics. The learner subscribes to the task's raw topics (its
@@ -103,10 +103,10 @@ PARAMS = [
     Param("resume", False, "continue from OUT/learner_state.pt", read_only=True, flag="--resume"),
     Param("session_bag", None, "the session's recording, to read back transitions missed while down (with --resume)",
           read_only=True, flag="--session-bag", kind=str),
-    Param("from_topics", False, "build the live transitions from the task's raw topics (joint states, commands, goal) "
-          "instead of pusher/transition", read_only=True, flag="--from-topics"),
-    Param("lateness", _L.lateness, "raw topics: seconds of stamps a silent topic (a goal sent once an episode) is taken "
-          "complete behind the joint states", low=0.0, high=60.0, read_only=True, flag="--lateness"),
+    Param("from_topics", False, "build the live transitions from the task's raw topics (joint states, commands, "
+          "goal) instead of pusher/transition", read_only=True, flag="--from-topics"),
+    Param("lateness", _L.lateness, "raw topics: seconds of stamps a silent topic (a goal sent once an episode) is "
+          "taken complete behind the joint states", low=0.0, high=60.0, read_only=True, flag="--lateness"),
     Param("quiet", _L.quiet, "raw topics: seconds with nothing new, while idle, after which everything published is "
           "taken to have arrived (a lockstep arm waiting for the learner)", low=0.001, high=10.0, read_only=True,
           flag="--quiet"),
@@ -167,7 +167,7 @@ class Learner(Node):
             f"utd {s.utd}, new weights every {s.publish_every} environment steps")
 
     def subscribe_raw_topics(self) -> None:
-        """The task's topics: each with its message class (the reset topic's from the graph, once seen)."""
+        """Subscribe the task's topics, each with its type (the reset topic's from the graph)."""
         graph = None
         for role in self.service.live.topics():
             if role.topic in self.raw_subs:
@@ -191,8 +191,11 @@ class Learner(Node):
             self.status.warn(topic, rejection)
 
     def publish_first(self) -> None:
-        """The first weights: at once for pusher/transition; with raw topics once the
-        state and goal topics are heard (a paced actor acts on them: no step may be missed)."""
+        """Publish the first weights, once.
+
+        At once for pusher/transition; with raw topics once the state and goal topics are
+        heard (a paced actor acts on them: no step may be missed).
+        """
         if not self.first_published:
             self.first_published = True
             self.publish(self.service.weights)

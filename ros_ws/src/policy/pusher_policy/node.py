@@ -390,8 +390,10 @@ class PolicyServer(Node):
         self.send_safe()
 
     def send_safe(self) -> None:
-        """Send the controller the task's safe command (once: a forward controller holds it). Not
-        in lockstep: the sim steps only on an answer, so answering nothing stops the arm."""
+        """Send the controller the task's safe command (once: a forward controller holds it).
+
+        Not in lockstep: the sim steps only on an answer, so answering nothing stops the arm.
+        """
         action = safe_action(self.task, self.position)
         if self.settings.mode != "realtime" or self.command_pub is None or action is None or \
                 not self.command_pub.get_subscription_count():

@@ -1,5 +1,7 @@
-"""Message classes by type name ('pkg/msg/Name'), for nodes that subscribe to what a task or
-the graph names."""
+"""Message classes by type name ('pkg/msg/Name').
+
+For nodes that subscribe to what a task or the graph names.
+"""
 
 from __future__ import annotations
 
@@ -10,7 +12,7 @@ MESSAGE_TYPE = re.compile(r"[A-Za-z][A-Za-z0-9_]*/msg/[A-Za-z][A-Za-z0-9_]*")
 
 
 def message_class(msgtype: str):
-    """The Python class of 'pkg/msg/Name', or None when it is not one or its package is not installed."""
+    """Return the class of 'pkg/msg/Name', or None (not a type name, or not installed)."""
     if not MESSAGE_TYPE.fullmatch(msgtype):
         return None
     package, _, name = msgtype.split("/")

@@ -1,5 +1,6 @@
-"""``ros2 run recorder node``: record a rosbag2 bag; by default also drive the sim to record
-a pusher-reach dataset.
+"""``ros2 run recorder node``: record a rosbag2 bag (by default, drive the sim too).
+
+By default it drives the sim to record a pusher-reach dataset.
 
 Active (default): drives the sim with the scripted expert for the first
 ``round(expert_frac * episodes)`` episodes and uniform random actions after, exactly as
@@ -130,7 +131,7 @@ def _enum(enum, policy):
 
 
 def offered_qos(infos) -> list[Qos]:
-    """The publishers' QoS profiles, as the bag's metadata records them."""
+    """Return the publishers' QoS profiles, as the bag's metadata records them."""
     return [
         Qos(
             _enum(QosHistory, q.history), q.depth, _enum(QosReliability, q.reliability),
@@ -143,7 +144,7 @@ def offered_qos(infos) -> list[Qos]:
 
 
 def subscription_qos(infos, depth: int) -> QoSProfile:
-    """A QoS every publisher's offer matches: reliable / transient local only if all are."""
+    """Return a QoS every publisher's offer matches (reliable, transient local if all are)."""
     profiles = [info.qos_profile for info in infos]
     reliable = profiles and all(q.reliability == ReliabilityPolicy.RELIABLE for q in profiles)
     latched = profiles and all(q.durability == DurabilityPolicy.TRANSIENT_LOCAL for q in profiles)
@@ -230,7 +231,7 @@ class Recorder(Node):
         return self.resolve_topic_name(topic)
 
     def status(self) -> dict:
-        """What /diagnostics reports: counts, how far the disk lags, and what stops the recording."""
+        """Report for /diagnostics: counts, the disk's lag, and what stops the recording."""
         error = self.bag.error
         return {"messages": self.bag.message_count, "topics": len(self.bag_topics),
                 "transitions": self.driver.transitions, "episodes_done": self.driver.episodes_done,
@@ -410,7 +411,7 @@ class Recorder(Node):
 
     # -------------------------------------------------------------- the end
     def stop_for_space(self) -> None:
-        """The disk is nearly full: end the recording now, the bag whole (exit status 1)."""
+        """End the recording now, the bag whole, as the disk is nearly full (exit status 1)."""
         if self.finished.done():
             return
         print(f"recorder: error: only {self.bag.low_space >> 20} MiB free for {self.bag.path}, below "
@@ -438,7 +439,7 @@ class Recorder(Node):
             self.exit_code = 2
 
     def close(self) -> None:
-        """Called by run_node on every way out (done, Ctrl-C, SIGTERM, an error)."""
+        """Close the bag: run_node calls it on every way out (done, Ctrl-C, SIGTERM, an error)."""
         interrupted = not self.finished.done()
         self.close_bag()
         elapsed = time.monotonic() - self.start_time
@@ -453,8 +454,11 @@ class Recorder(Node):
 
 
 def spin_recorder(executor, node: Recorder) -> None:
-    """The fast spin when every subscription exists from the start; rclpy's own when
-    discovery adds subscriptions while recording."""
+    """Spin the recorder until it is done.
+
+    The fast spin when every subscription exists from the start; rclpy's own when
+    discovery adds subscriptions while recording.
+    """
     if node.dynamic:
         executor.spin_until_future_complete(node.finished)
     else:
@@ -462,8 +466,10 @@ def spin_recorder(executor, node: Recorder) -> None:
 
 
 def expand_topics(argv: list[str]) -> list[str]:
-    """``--topics a b c`` (as ``ros2 bag record`` takes it) -> ``--topics a --topics b ...``
-    (``--types`` likewise)."""
+    """Expand ``--topics a b c`` (as ``ros2 bag record`` takes it) to ``--topics a ...``.
+
+    ``--types`` likewise.
+    """
     out, i = [], 0
     while i < len(argv):
         out.append(argv[i])

@@ -349,8 +349,10 @@ class PusherSim(Node):
         return True
 
     def refused_for_state_limits(self, topic: str, action, stamped: bool = True) -> bool:
-        """An effort that pushes a joint further beyond the task's limits, where the arm is
-        now, is refused (counted as ``beyond limits``); one that brings it back is taken."""
+        """Refuse an effort that pushes a joint further beyond the task's limits.
+
+        Counted as ``beyond limits``; an effort that brings the joint back is taken.
+        """
         problem = self.loop.beyond_state_limits(action)
         if problem is None:
             return False
@@ -370,7 +372,8 @@ class PusherSim(Node):
         if self.finished.done():
             return
         action, problem = action_from_command(self.task, msg.data)
-        if problem is None and (self.refused_for_estop(topic) or self.refused_for_state_limits(topic, action, stamped=False)):
+        if problem is None and (self.refused_for_estop(topic)
+                                or self.refused_for_state_limits(topic, action, stamped=False)):
             return
         if problem is None:
             step, problem = self.loop.command_unstamped(action, SOURCE_POLICY, time.monotonic())
