@@ -220,8 +220,8 @@ def test_the_policy_node_drives_the_arm_over_ros(spawn, tmp_path):
 
 def test_the_online_stage_refuses_a_task_no_sim_hosts_in_one_line(tmp_path, capsys):
     """`offline-rl hil --online` scores its learning curve in the task's sim: a task without
-    one (this arm's) is one line, exit 2, before anything starts; so is `--in-process` (the
-    loop of pusher_reach's env) with another task."""
+    one (this arm's) is one line, exit 2, before anything starts; so is a bag of another
+    task's layout than the one given."""
     task_file, _, bag, _ = arm_files(tmp_path, 3, episodes=1, expert_frac=1.0)
     out = tmp_path / "hil"
     assert main(["hil", "--online", "--task", str(task_file), "--from-topics", "--bag", str(bag),
@@ -233,5 +233,5 @@ def test_the_online_stage_refuses_a_task_no_sim_hosts_in_one_line(tmp_path, caps
     assert main(["hil", "--online", "--in-process", "--task", "pusher7_reach", "--bag", str(mix),
                  "--out", str(out)]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "--in-process runs pusher_reach's env; task pusher7_reach runs over ROS" in err, err
+    assert err.count("\n") == 1 and "its transitions have obs 8, action 2; task pusher7_reach" in err, err
     assert not out.exists()

@@ -146,9 +146,12 @@ def run_hil_online(cfg: OnlineHilConfig, log: Callable[[str], None] = lambda s: 
     out = Path(cfg.out)
     from .hil import HilConfig, Loop, hil_session, resolve_prior, resolve_task
 
-    from ..runs.training_run import task_of_run
+    from ..runs.training_run import load_bags, task_of_run
 
-    cfg.check_task(task_of_run(cfg.bags, cfg.task))  # before anything is started or written
+    task = task_of_run(cfg.bags, cfg.task)
+    cfg.check_task(task)  # before anything is started or written
+    if not cfg.raw_topics:
+        load_bags(cfg.bags, task=task)  # bags of another layout than the task's: one line, before the prior
     loop = Loop(HilConfig(out=str(out), seed=cfg.seed, bags=cfg.bags), log, logger)
     t0 = time.monotonic()
     curves = None  # in process: logged as the stage runs; over ROS: the curve scored after the session

@@ -88,21 +88,29 @@ def open_logger(kind: str, run_dir: str | os.PathLike, name: str, resume: bool =
     if kind == "none":
         return Logger()
     run_dir = Path(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
     if kind == "tensorboard":
         return TensorBoardLogger(run_dir, resume)
+    run_dir.mkdir(parents=True, exist_ok=True)
     return WandbLogger(run_dir, name, config or {})
 
 
 class TensorBoardLogger(Logger):
     def __init__(self, run_dir: Path, resume: bool):
-        from torch.utils.tensorboard import SummaryWriter
-
         # a fresh run's predecessor: removed once this run is complete (its curves would be
         # drawn over this one's), kept when it fails
         self.previous = [] if resume else sorted(run_dir.glob(EVENT_FILE_PREFIX + "*"))
-        # flushed every second: a killed run keeps its curve up to the last second
-        self.writer = SummaryWriter(log_dir=str(run_dir), flush_secs=1)
+        self.run_dir = run_dir
+        self._writer = None  # made at the first value: a run refused before it writes nothing
+
+    @property
+    def writer(self):
+        if self._writer is None:
+            from torch.utils.tensorboard import SummaryWriter
+
+            self.run_dir.mkdir(parents=True, exist_ok=True)
+            # flushed every second: a killed run keeps its curve up to the last second
+            self._writer = SummaryWriter(log_dir=str(self.run_dir), flush_secs=1)
+        return self._writer
 
     def scalars(self, step: int, values: dict[str, float]) -> None:
         for tag, value in values.items():
@@ -123,7 +131,8 @@ class TensorBoardLogger(Logger):
         self.previous = []
 
     def close(self) -> None:
-        self.writer.close()
+        if self._writer is not None:
+            self._writer.close()
 
 
 class WandbLogger(Logger):
