@@ -65,7 +65,8 @@ def test_a_seven_joint_policy_is_served_on_its_tasks_topics(spawn, arm):
         action_pub = node.create_publisher(JointState, "/policy/action", 10)
         assert node.spin_until(lambda: goal_pub.get_subscription_count() and tip_pub.get_subscription_count()
                                and state_pub.get_subscription_count() and node.count_publishers("/policy/action") >= 2
-                               and node.count_publishers("/pusher/command/policy"), 60), \
+                               and node.count_publishers("/pusher/command/policy")
+                               and action_pub.get_subscription_count() >= 2, 60), \
             node_proc.output() + mux.output()
         sent: dict[int, np.ndarray] = {}
         stamp = [0]
