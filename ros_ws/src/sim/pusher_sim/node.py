@@ -314,15 +314,22 @@ class PusherSim(Node):
             self.finished.set_result(True)
 
     # -------------------------------------------------------------- callbacks
+    def stamp_problem(self, stamp):
+        """Check a stamped command's stamp; in lockstep, that it answers the current state.
+
+        Checked before parsing: a late duplicate costs no more than a count.
+        """
+        problem = check_stamp(stamp.sec, stamp.nanosec)
+        if problem is None and self.mode == "lockstep":
+            problem = check_answer_stamp(stamp_key(stamp), self.loop.current.stamp_ns)
+        return problem
+
     def on_command(self, msg: JointState, source: int | None, topic: str) -> None:
         self.status.took(topic)
         if self.finished.done():
             return
         stamp = msg.header.stamp
-        problem = check_stamp(stamp.sec, stamp.nanosec)
-        if problem is None and self.mode == "lockstep":
-            # checked before parsing: a late duplicate costs no more than a count
-            problem = check_answer_stamp(stamp_key(stamp), self.loop.current.stamp_ns)
+        problem = self.stamp_problem(stamp)
         if problem is None:
             action, problem = action_from_effort(msg.name, msg.effort, joints=self.task.command.joints)
         if problem:
@@ -388,9 +395,7 @@ class PusherSim(Node):
         if self.finished.done():
             return
         stamp = msg.header.stamp
-        problem = check_stamp(stamp.sec, stamp.nanosec)
-        if problem is None and self.mode == "lockstep":
-            problem = check_answer_stamp(stamp_key(stamp), self.loop.current.stamp_ns)
+        problem = self.stamp_problem(stamp)
         if problem is None:
             values = getattr(msg, FIELD_OF_INTERFACE[self.task.command.interface])
             action, problem = action_from_command(self.task, values, msg.name)
