@@ -102,12 +102,15 @@ def run_demo(out: Path, bag: Path, steps: int, record_episodes: int, seed: int) 
         with ExitStack() as running:
             for t in trainers.values():
                 running.enter_context(t)
-            last = time.perf_counter()
+            last, shown = time.perf_counter(), ""
             while any(t.running() for t in trainers.values()):
                 time.sleep(0.5)
                 if time.perf_counter() - last > 15:
                     last = time.perf_counter()
-                    say("      " + " | ".join(f"{algo}: {last_progress(t)}" for algo, t in trainers.items()))
+                    progress = " | ".join(f"{algo}: {last_progress(t)}" for algo, t in trainers.items())
+                    if progress != shown:  # a line only when a trainer moved on
+                        say("      " + progress)
+                        shown = progress
             for algo, t in trainers.items():
                 wait_for(t, 10, f"the trainer node ({algo})")
     metrics = {algo: json.loads((out / algo / "metrics.json").read_text()) for algo in ("bc", "awac", "auto")}
