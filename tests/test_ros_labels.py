@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 
@@ -14,6 +15,7 @@ import pytest
 from offline_rl_core.data.bag import read_transitions
 from offline_rl_core.data.episode_labels import episode_labels
 from offline_rl_core.data.transitions import Layout
+from offline_rl_core.task.spec import BUILTIN_DIR, load_task
 
 from ros_helpers import REPO, Diagnostics, probe_node, ros2, ros_env, spawn  # noqa: F401 - fixtures
 
@@ -23,8 +25,8 @@ LAYOUT = Layout(8, 2)  # pusher_reach
 MAX_STEPS = 100
 
 
-def field(msg, name: str) -> float:
-    return float(np.asarray(msg.data, np.float32)[LAYOUT.slices[name]][0])
+def field(msg, name: str, layout: Layout = LAYOUT) -> float:
+    return float(np.asarray(msg.data, np.float32)[layout.slices[name]][0])
 
 
 def episode_ends(data, episode: int) -> tuple[int, bool, bool]:
@@ -50,13 +52,26 @@ def test_a_key_labels_the_episode_the_realtime_sim_ends_it_and_the_bag_keeps_it(
     from std_msgs.msg import Float32MultiArray, String
 
     bag = tmp_path / "session.db3"
-    sim = spawn(ros2("run", "sim", "node"), "sim")  # realtime: it steps on its own (the safe command held)
+    # the push task with episodes no time limit ends within the test: only the label can end episode 0
+    task = tmp_path / "push_long.yaml"
+    task.write_text(re.sub(r"max_steps: *\d+", "max_steps: 50000", (BUILTIN_DIR / "pusher_push.yaml").read_text(), 1)
+                    .replace("name: pusher_push", "name: push_long", 1)
+                    .replace("model: pusher_push.xml", f"model: {BUILTIN_DIR / 'pusher_push.xml'}", 1))
+    spec = load_task(task)
+    assert spec.episodes.max_steps == 50000
+    layout = Layout(spec.obs_dim, spec.act_dim)
+
+    def at(msg, name):
+        return field(msg, name, layout)
+
+    # realtime: it steps on its own (the safe command held)
+    sim = spawn(ros2("run", "sim", "node", "--ros-args", "-p", f"task:={task}"), "sim")
     recorder = spawn(ros2("run", "recorder", "node", "--passive", "--out", bag), "recorder")  # every topic
     # the person: the keyboard corrector on a pseudo-terminal
     master, slave = os.openpty()
     log = open(tmp_path / "corrector.log", "w")
-    corrector = subprocess.Popen(ros2("run", "corrections", "corrector", "--mode", "keyboard"), stdin=slave,
-                                 stdout=log, stderr=subprocess.STDOUT, env=ros_env, cwd=REPO)
+    corrector = subprocess.Popen(ros2("run", "corrections", "corrector", "--mode", "keyboard", "--task", task),
+                                 stdin=slave, stdout=log, stderr=subprocess.STDOUT, env=ros_env, cwd=REPO)
     os.close(slave)
     try:
         with probe_node("label_probe") as node:
@@ -72,18 +87,17 @@ def test_a_key_labels_the_episode_the_realtime_sim_ends_it_and_the_bag_keeps_it(
             # the corrector's writers matched on its side is not the recorder's side matched: wait until the
             # recorder has heard the corrector (its answers in the bag on disk)
             assert node.spin_until(lambda: recorded(bag, "/teleop/action") > 0, 60), recorder.output()
-            # early in an episode, so the label cannot meet its time limit
-            assert node.spin_until(lambda: rows and 10 <= field(rows[-1], "step") <= 40, 30), sim.output()
-            episode = int(field(rows[-1], "episode"))
+            assert node.spin_until(lambda: rows, 30), sim.output()
+            episode = 0
             os.write(master, b"y")  # success
-            assert node.spin_until(lambda: labels and any(field(r, "terminated") for r in rows), 10), \
+            assert node.spin_until(lambda: labels and any(at(r, "terminated") for r in rows), 10), \
                 (labels, sim.output())
             assert labels == [{"label": "success"}]
-            (last,) = [r for r in rows if field(r, "terminated")]
-            assert int(field(last, "episode")) == episode and field(last, "step") < MAX_STEPS - 1
-            assert field(last, "success") == 1.0  # the person's word
+            (last,) = [r for r in rows if at(r, "terminated")]
+            assert int(at(last, "episode")) == episode
+            assert at(last, "success") == 1.0  # the person's word
             # the next episode follows at once
-            assert node.spin_until(lambda: int(field(rows[-1], "episode")) == episode + 1, 10)
+            assert node.spin_until(lambda: int(at(rows[-1], "episode")) == episode + 1, 10)
             assert f"episode {episode} labelled success: it ends at its next step" in sim.output()
     finally:
         os.write(master, b"q")  # the person quits: the terminal is restored
