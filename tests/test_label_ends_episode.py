@@ -101,3 +101,11 @@ def test_a_label_ends_a_realtime_episode_at_its_next_tick():
     nxt = loop.tick()
     assert int(Transitions.from_rows(nxt.transition[None], loop.layout).episode[0]) == 1 and not nxt.episode_over
     assert loop.summary()["labelled"] == 1
+
+
+def test_a_raw_topic_session_records_the_labels_with_the_tasks_topics():
+    from offline_rl_core.pipelines.hil_online import OnlineHilConfig, _record_topics
+
+    args = _record_topics(OnlineHilConfig(task="pusher_push", from_topics=True)).split()
+    topics = args[1:args.index("--types")]
+    assert args[0] == "--topics" and "episode_label" in topics and "task_description" in topics
