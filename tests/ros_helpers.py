@@ -116,6 +116,29 @@ def probe_node(name: str = "pytest_probe"):
         rclpy.try_shutdown(context=context)
 
 
+class Diagnostics:
+    """The latest /diagnostics entry of each node, as the probe hears them."""
+
+    def __init__(self, node):
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        self.latest: dict[str, object] = {}
+        self.seen: list[tuple[str, int, str]] = []
+        node.create_subscription(DiagnosticArray, "/diagnostics", self.on_array, 10)
+
+    def on_array(self, msg) -> None:
+        for status in msg.status:
+            self.latest[status.name] = status
+            self.seen.append((status.name, level(status), status.message))
+
+    def values(self, name: str) -> dict[str, str]:
+        return {kv.key: kv.value for kv in self.latest[name].values}
+
+
+def level(status) -> int:
+    return status.level[0] if isinstance(status.level, (bytes, bytearray)) else int(status.level)
+
+
 def _spin_for(executor, seconds: float) -> None:
     deadline = time.monotonic() + seconds
     while time.monotonic() < deadline:

@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 
-from ros_helpers import probe_node, require_ros, ros2, ros_env, spawn  # noqa: F401 - fixtures
+from ros_helpers import Diagnostics, level, probe_node, require_ros, ros2, ros_env, spawn  # noqa: F401 - fixtures
 
 pytestmark = pytest.mark.ros
 
@@ -24,29 +24,6 @@ def checkpoint(tmp_path_factory):
 
     result = train(collect_transitions(2, 1.0, 0), TrainConfig(algo="bc", steps=20, hidden=16, batch_size=16), 0)
     return save_checkpoint(tmp_path_factory.mktemp("ckpt") / "policy.pt", result.checkpoint)
-
-
-class Diagnostics:
-    """The latest /diagnostics entry of each node, as the probe hears them."""
-
-    def __init__(self, node):
-        from diagnostic_msgs.msg import DiagnosticArray
-
-        self.latest: dict[str, object] = {}
-        self.seen: list[tuple[str, int, str]] = []
-        node.create_subscription(DiagnosticArray, "/diagnostics", self.on_array, 10)
-
-    def on_array(self, msg) -> None:
-        for status in msg.status:
-            self.latest[status.name] = status
-            self.seen.append((status.name, level(status), status.message))
-
-    def values(self, name: str) -> dict[str, str]:
-        return {kv.key: kv.value for kv in self.latest[name].values}
-
-
-def level(status) -> int:
-    return status.level[0] if isinstance(status.level, (bytes, bytearray)) else int(status.level)
 
 
 def test_sim_and_policy_report_on_diagnostics_and_warn_on_refused_states(spawn, checkpoint):

@@ -35,6 +35,7 @@ REASONS = (
     "policy error",     # the policy raised on a state (a bug or a checkpoint no check caught): no answer sent
     "beyond limits",    # a command outside the controller's range or the task's joint limits: refused, not clipped
     "estop",            # a command or row that came while the e-stop is engaged: not acted on, not trained on
+    "bad label",        # an episode label that is not one, or names no episode that can end (data.episode_labels)
 )
 
 

@@ -26,6 +26,16 @@ physics steps. The node publishes it on /clock and stamps every message with it.
 Every state handed out is one a command applies to: the state after an episode's last
 step is not (it is the ``next_obs`` of the final transition); the next episode's first
 state follows the final transition.
+
+A person's label (``label(success, episode)``, from ``episode_label``: data.episode_labels)
+of the current episode ends it at its next step, in either mode, as its time limit would:
+that transition is the episode's last, scored by the task's rule with the label as the
+state's success (a success: ``terminated``, with the task's bonus; a failure: ``truncated``,
+the person stopped it), and the next episode's first state follows. A label without an
+episode is of the episode of the last transition handed out, as the bag's reader attributes
+it: one pressed just after an episode ended labels that one and ends nothing. The episode's
+result (``summary``) stays the simulator's success; ``labelled`` counts the episodes a label
+ended, ``labels_against_simulator`` those whose label the simulator contradicts.
 """
 
 from __future__ import annotations
@@ -36,6 +46,7 @@ import numpy as np
 
 from ..common.rejections import Rejection
 from ..data.transitions import Layout, SOURCE_POLICY
+from ..task import features
 from ..task.envs import make_env
 from ..task.pusher_reach import CONTROL_HZ, MAX_STEPS
 from ..task.spec import JOINT_STATE, TaskSpec, load_task
@@ -109,6 +120,10 @@ class SimLoop:
         self.safe_steps = 0  # realtime ticks that applied the safe command
         self.state_limits = StateLimits(self.task)  # effort interface: soft limits on the measured state
         self.limit_steps = 0  # realtime ticks whose held command pushed a joint further out: the safe one applied
+        self.label_of_current: bool | None = None  # a person's label of the current episode: its next step ends it
+        self.last_stepped: int | None = None  # the episode of the last transition handed out
+        self.labelled = 0  # episodes a label ended
+        self.labels_against_simulator = 0  # ... of them, those whose label is not the simulator's success
 
     # ------------------------------------------------------------ episodes
     @property
@@ -119,7 +134,25 @@ class SimLoop:
         """Reset for the current episode; its first state."""
         self.obs = self.env.reset(seed=self.seed + self.episode)
         self.ep_return = 0.0
+        self.label_of_current = None
         return self._snapshot()
+
+    def label(self, success: bool, episode: int | None = None) -> tuple[int | None, Rejection | None]:
+        """A person's label of ``episode`` (None: of the episode of the last transition): the
+        episode it labels, and whether it ends it (it does when it is the current one); or
+        (None, why) for a label that names no episode there is or was."""
+        if self.finished:
+            return None, None
+        target = self.last_stepped if episode is None else episode
+        if target is None:
+            return None, Rejection("bad label", "a label before any step: which episode it labels cannot be told "
+                                                "(give it an episode number)")
+        if target > self.episode:
+            return None, Rejection("bad label", f"a label of episode {target}, which has not started (the current "
+                                                f"one is {self.episode})")
+        if target == self.episode:
+            self.label_of_current = bool(success)  # a later label replaces it: the person changed their mind
+        return target, None
 
     def reset(self) -> ArmState:
         """Abandon the episode and start the next (the reset service): the abandoned one is
@@ -227,8 +260,12 @@ class SimLoop:
         self.watchdog.disarm()
 
     def _step(self, action: np.ndarray, source: int) -> Step:
-        obs, step_index = self.obs, self.env.steps
+        obs, step_index, success_before = self.obs, self.env.steps, bool(self.env.success)
         next_obs, reward, done, info = self.env.step(action)
+        simulator_success = bool(info["success"])
+        if self.label_of_current is not None:
+            reward, info = self._scored_by_label(success_before, self.label_of_current)
+            done = True
         at = self.layout.slices
         row = np.empty(self.layout.width, np.float32)
         row[at["obs"]] = obs
@@ -243,23 +280,41 @@ class SimLoop:
         row[at["source"]] = source
         self.ep_return += reward
         self.obs = next_obs
+        self.last_stepped = self.episode
         if not done:
             return Step(row, self._snapshot(), False)
-        self.results.append((bool(info["success"]), float(info["dist"]), self.ep_return))
+        if self.label_of_current is not None:
+            self.labelled += 1
+            self.labels_against_simulator += self.label_of_current != simulator_success
+        self.results.append((simulator_success, float(info["dist"]), self.ep_return))
         self.episode += 1
         return Step(row, None, True, None if self.finished else self.start_episode())
+
+    def _scored_by_label(self, success_before: bool, success: bool) -> tuple[float, dict]:
+        """The step just taken, scored by the task's rule with the label as its success, and
+        ending the episode: (reward, info)."""
+        env = self.env
+        vectors = {name: v[None] for name, v in env.vectors().items()}
+        # a failure label overrides a success the simulator latched before: the person's word is the episode's
+        score = features.score(self.task, env.joint_positions[None], vectors, [env.steps], [success_before and success],
+                               terminate_on_success=True, success_now=[success])
+        terminated = bool(score.terminated[0])
+        return float(score.reward[0]), {"terminated": terminated, "truncated": not terminated,
+                                        "success": bool(score.success[0]), "dist": float(score.dist[0])}
 
     # ------------------------------------------------------------ results
     def summary(self) -> dict:
         """Episodes run to their end, and ``abandoned`` ones (reset before it); the success rate
         is over both, the distance and return over those that ended."""
         n = len(self.results)
-        abandoned = {"abandoned": self.abandoned} if self.abandoned else {}
+        extra = {"abandoned": self.abandoned} if self.abandoned else {}
+        if self.labelled:
+            extra.update(labelled=self.labelled, labels_against_simulator=self.labels_against_simulator)
         if n == 0:
-            return {"episodes": 0, "success_rate": 0.0, "mean_final_dist": None, "mean_return": None, **abandoned}
+            return {"episodes": 0, "success_rate": 0.0, "mean_final_dist": None, "mean_return": None, **extra}
         success, dist, ret = (np.array(col, np.float64) for col in zip(*self.results))
         return {"episodes": n, "success_rate": float(success.sum() / (n + self.abandoned)),
-                "mean_final_dist": float(dist.mean()), "mean_return": float(ret.mean()), **abandoned}
+                "mean_final_dist": float(dist.mean()), "mean_return": float(ret.mean()), **extra}
 
 
 class TickTiming:

@@ -51,7 +51,8 @@ class NodeAccess:
 
 NODE_GRAPH: dict[str, NodeAccess] = {
     "sim": NodeAccess(publish=SIM_OUT + ("markers",),
-                      subscribe=("pusher/command",) + COMMANDS + ("effort_controller/commands", ESTOP),
+                      subscribe=("pusher/command",) + COMMANDS + ("effort_controller/commands", ESTOP,
+                                                                   "episode_label"),
                       reply=("pusher/reset", ESTOP_RESET)),
     "policy": NodeAccess(publish=("policy/action", "policy/provenance", "effort_controller/commands"),
                          subscribe=("pusher/state", "pusher/target", "pusher/fingertip", "learner/weights", ESTOP),
@@ -65,7 +66,8 @@ NODE_GRAPH: dict[str, NodeAccess] = {
     "recorder": NodeAccess(publish=("pusher/command/expert", "pusher/command/random"),
                            subscribe=SIM_OUT[1:] + COMMANDS + (
                                "policy/action", "policy/provenance", "teleop/action", "corrections/intervening",
-                               "effort_controller/commands", "learner/weights", "/tf", "/tf_static", ESTOP),
+                               "effort_controller/commands", "learner/weights", "/tf", "/tf_static", ESTOP,
+                               "episode_label"),
                            status=False),
     "trainer": NodeAccess(publish=("~/progress",), status=False),
     # the arm's markers from a real arm's joint states (ros2 run viz markers)

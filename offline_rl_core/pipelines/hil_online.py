@@ -320,14 +320,15 @@ def session_transitions(cfg: OnlineHilConfig, bag: Path):
 
 def _record_topics(cfg: OnlineHilConfig) -> str:
     """The recorder's --topics for a raw-topic session: the task's topics (those of a known
-    type subscribed from the start: the session's first states are in the bag) and its
-    description."""
+    type subscribed from the start: the session's first states are in the bag), its
+    description and a person's episode labels."""
+    from ..data.episode_labels import LABEL_TOPIC
     from ..data.raw_topics import plan_for
     from ..data.task_record import TASK_TOPIC
     from ..task.spec import load_task
 
     roles = plan_for(load_task(cfg.task)).roles
-    return (f"--topics {' '.join([*(r.given for r in roles), TASK_TOPIC.lstrip('/')])} "
+    return (f"--topics {' '.join([*(r.given for r in roles), TASK_TOPIC.lstrip('/'), LABEL_TOPIC])} "
             f"--types {' '.join(f'{r.given}:{r.types[0]}' for r in roles if r.types and len(r.types) == 1)}")
 
 
@@ -408,7 +409,8 @@ def _keyboard_corrector(loop, log):
 
     from ros2_shim.ament_index import ros2_run
 
-    log("hil online: you are the corrector: take over with the keys below, space hands back, q quits")
+    log("hil online: you are the corrector: take over with the keys below, space hands back, y / n label the "
+        "episode a success / failure (and end it), q quits")
     return subprocess.Popen(ros2_run("corrections", "corrector", "--mode", "keyboard", "--ros-args", "-r",
                                      "__node:=corrector"), env=loop.env)
 

@@ -22,7 +22,11 @@ has not got closer to the target for ``patience`` steps, hands back after
   a / d  shoulder torque -1 / +1      j / l  elbow torque -1 / +1
   s      shoulder torque 0            k      elbow torque 0
   space  hand back to the policy      q      quit (Ctrl-C too)
-Any torque key takes over; the held torques are sent with every state until space.
+  y      label the episode a success  n      label the episode a failure
+Any torque key takes over; the held torques are sent with every state until space. A label
+(``y`` / ``n``) is published on ``episode_label`` as the gamepad's buttons publish it
+(std_msgs/String, ``{"label": "success"}``): the sim ends the episode at its next step and
+a recorder keeps the label in the bag (``offline_rl_core.data.episode_labels``).
 
 ``--mode gamepad``: a person with a gamepad, read from ``joy`` (sensor_msgs/Joy, as the
 standard ``joy`` node publishes it): while the dead-man button is held the sticks' action
@@ -71,6 +75,7 @@ KEYS = {
     "a": (0, -1.0), "d": (0, 1.0), "s": (0, 0.0),
     "j": (1, -1.0), "l": (1, 1.0), "k": (1, 0.0),
 }
+LABEL_KEYS = {"y": "success", "n": "failure"}
 
 
 class KeyboardTeleop:
@@ -82,14 +87,16 @@ class KeyboardTeleop:
         self.stream = stream
         self.torque = np.zeros(act_dim, np.float32)
         self.active = False
+        self.labels: list[str] = []  # pressed, not yet published (the node's thread publishes them)
+        self.labels_sent = {label: 0 for label in LABEL_KEYS.values()}
         self.quit = threading.Event()
         self.lock = threading.Lock()
         self.saved = termios.tcgetattr(stream.fileno())
         tty.setcbreak(stream.fileno())  # keys arrive one by one, unechoed; Ctrl-C still signals
         self.thread = threading.Thread(target=self.read_keys, daemon=True)
         self.thread.start()
-        print("keyboard teleop: a/d shoulder -/+, j/l elbow -/+, s/k zero, space hand back, q quit",
-              file=sys.stderr, flush=True)
+        print("keyboard teleop: a/d shoulder -/+, j/l elbow -/+, s/k zero, space hand back, "
+              "y/n label the episode success/failure, q quit", file=sys.stderr, flush=True)
 
     def read_keys(self) -> None:
         fd = self.stream.fileno()
@@ -108,6 +115,15 @@ class KeyboardTeleop:
                     joint, value = KEYS[key]
                     self.torque[joint] = value
                     self.active = True
+                elif key in LABEL_KEYS:
+                    self.labels.append(LABEL_KEYS[key])
+                    self.labels_sent[LABEL_KEYS[key]] += 1
+
+    def take_labels(self) -> list[str]:
+        """Return the labels pressed since the last call, in order."""
+        with self.lock:
+            labels, self.labels = self.labels, []
+        return labels
 
     def decide(self, qpos, qvel, target_xy) -> np.ndarray | None:
         with self.lock:
@@ -164,7 +180,7 @@ class Corrector(Node):
                 raise UserError(f"--mode keyboard drives a two-joint arm; task {task.name} has {task.act_dim} "
                                 "command joints")
             self.teleop = KeyboardTeleop(task.act_dim)
-            self.create_timer(0.1, self.check_quit, clock=Clock(clock_type=ClockType.STEADY_TIME))
+            self.create_timer(0.1, self.check_keys, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.pairing = StatePairing(points=())  # the rule computes its tracked points
         self.answers: dict[int, JointState] = {}
         self.states = 0
@@ -177,6 +193,7 @@ class Corrector(Node):
         self.rejected = RejectionCounter()
         if self.mode == "gamepad":
             self.create_subscription(Joy, "joy", self.on_joy, 10)
+        if self.mode in ("gamepad", "keyboard"):  # a person labels episodes
             self.label_pub = self.create_publisher(String, LABEL_TOPIC, 10)
         self.diagnostics = NodeDiagnostics(self, self.status, StatusDiagnosis(idle=lambda st: (
             f"{st['mode']}: {'taking over' if st['correcting'] else 'watching'}")), hardware_id=task.name)
@@ -193,8 +210,10 @@ class Corrector(Node):
             out["takeovers"] = self.teleop.takeovers
         if self.mode == "gamepad":
             out["deadman_held"] = self.teleop.active
-            out["labels"] = dict(self.teleop.labels_sent)
             out["rejected"] = dict(self.rejected.counts)
+        if self.mode in ("gamepad", "keyboard"):
+            out["labels"] = dict(self.teleop.labels_sent)
+            out["label_readers"] = self.label_pub.get_subscription_count()  # the sim and a recorder, when heard
         return out
 
     def on_joy(self, msg: Joy) -> None:
@@ -206,8 +225,11 @@ class Corrector(Node):
                 self.get_logger().warning(line)
             return
         for label in events.labels:
-            self.label_pub.publish(String(data=label_json(label)))
-            self.get_logger().info(f"episode labelled {label}")
+            self.publish_label(label)
+
+    def publish_label(self, label: str) -> None:
+        self.label_pub.publish(String(data=label_json(label)))
+        self.get_logger().info(f"episode labelled {label}")
 
     def check_parameter(self, name: str, value) -> str | None:
         if self.mode != "scripted":
@@ -221,7 +243,9 @@ class Corrector(Node):
     def on_parameter_change(self, name: str, value) -> None:
         self.teleop.p = replace(self.teleop.p, **{name: value})  # from the next state on
 
-    def check_quit(self) -> None:
+    def check_keys(self) -> None:
+        for label in self.teleop.take_labels():  # pressed on the key thread, published on this one
+            self.publish_label(label)
         if self.teleop.quit.is_set() and not self.finished.done():
             self.finished.set_result(True)
 

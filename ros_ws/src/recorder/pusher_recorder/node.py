@@ -15,7 +15,9 @@ transitions equal ``offline-rl collect``'s bit for bit.
 ``--passive`` records what flows (a policy or a person driving): the ``topics`` given,
 or every topic as it appears (like ``ros2 bag record -a``; but ``/diagnostics`` and the
 markers, views derived from what the bag holds, only when named), until Ctrl-C, or until
-``episodes`` episodes have ended when given. Each topic is subscribed with a QoS its
+``episodes`` episodes have ended when given. ``pusher/transition`` and ``episode_label`` (a
+person's labels of episodes, ``offline_rl_core.data.episode_labels``) are subscribed from the
+start, before discovery finds their publishers. Each topic is subscribed with a QoS its
 publishers offer (reliable only when they all are, transient local likewise), and the
 bag keeps their offered QoS, as ``ros2 bag record`` does. Topic names are relative:
 ``--ros-args -r __ns:=/arm2`` records that namespace's pipeline.
@@ -51,11 +53,12 @@ from rclpy.serialization import deserialize_message, serialize_message
 from rclpy.task import Future
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float32MultiArray
+from std_msgs.msg import Float32MultiArray, String
 
 from offline_rl_core.data.bag import BagWriter, transition_ends_episode, typestore
 from offline_rl_core.data.bag.recording import MIN_SQLITE_SPLIT_SIZE, OutOfSpace
 from offline_rl_core.data.collect import EpisodePlan
+from offline_rl_core.data.episode_labels import LABEL_MSGTYPE, LABEL_TOPIC
 from offline_rl_core.nodes.collect_driver import CollectDriver, Command
 from offline_rl_core.task.pusher_reach import JOINT_NAMES
 from offline_rl_core.common.errors import UserError
@@ -202,6 +205,9 @@ class Recorder(Node):
             loop = (TRANSITION,) if self.record_all or self.transition_topic in self.wanted else ()
         for topic in loop:
             self.subscribe(self.resolve(topic), *LOOP_TYPES[topic], TRANSITION_QOS if topic == TRANSITION else 10)
+        if self.active is False and (self.record_all or self.resolve(LABEL_TOPIC) in self.wanted):
+            # a person's episode labels from the start too: one pressed before discovery finds its publisher is kept
+            self.subscribe(self.resolve(LABEL_TOPIC), LABEL_MSGTYPE, String, 10)
         for pair in s.types or ():
             topic, _, msgtype = pair.partition(":")
             msg_class = message_class(msgtype)

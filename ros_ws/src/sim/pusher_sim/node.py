@@ -32,7 +32,13 @@ and takes commands on
   older publishers, the source named in ``header.frame_id``, deprecated: frame_id names a
   TF frame).
 
-It serves ``pusher/reset`` (std_srvs/Trigger).
+It serves ``pusher/reset`` (std_srvs/Trigger), and ends an episode on a person's label:
+``episode_label`` (std_msgs/String, ``{"label": "success"}``, optionally with ``"episode"``,
+as the corrector's keys and gamepad buttons send it: ``offline_rl_core.data.episode_labels``)
+of the current episode makes its next step its last, marked as the label says (see
+``offline_rl_core.nodes.sim_loop``); a label of a past episode ends nothing (the bag records
+it); one that is no label, or of an episode not yet begun, is refused and counted
+(``bad label``).
 
 Safety (``offline_rl_core.nodes.watchdog``, ``.estop``): in realtime, when no valid command
 came within the task's ``safety.command_timeout`` (three control periods unless the task
@@ -83,6 +89,7 @@ from std_srvs.srv import Trigger
 
 from offline_rl_core.common.atomic import atomic_path
 from offline_rl_core.data.bag.cdr import encode_transition_rows
+from offline_rl_core.data.episode_labels import LABEL_TOPIC, parse_label
 from offline_rl_core.data.task_record import task_json
 from offline_rl_core.nodes.joint_messages import action_from_command, action_from_effort
 from offline_rl_core.nodes.pairing import check_answer_stamp, check_stamp
@@ -121,9 +128,10 @@ PARAMS = (
     Param("seed", 0, "episode e resets with reset seed seed + e", low=0, read_only=True),
     Param("episodes", 0, "episodes to run before exiting (0: run until stopped)", low=0),
     Param("summary", "", "JSON file written on exit: episodes, success_rate, mean_final_dist, mean_return, "
-          "abandoned (episodes cut short by pusher/reset, failures in the success rate; absent when none) "
-          "(empty: none); checked at start, missing directories made on writing; fixed at start, so no one "
-          "on the domain can point it at another file", read_only=True),
+          "abandoned (episodes cut short by pusher/reset, failures in the success rate; absent when none), "
+          "labelled and labels_against_simulator (episodes a person's label ended, and of them those the "
+          "simulator judged otherwise; absent when none) (empty: none); checked at start, missing directories "
+          "made on writing; fixed at start, so no one on the domain can point it at another file", read_only=True),
     Param("terminate_on_success", False, "end an episode as soon as it succeeds (also where the task's "
           "reward.terminate_on_success says so)"),
     Param("republish_period", 0.1, "lockstep: seconds before a state whose command has not come is published again",
@@ -163,7 +171,8 @@ class PusherSim(Node):
                                                        "faults": self.loop.faults(),
                                                        "estop": self.loop.estop.as_dict(),
                                                        "safe_steps": self.loop.safe_steps,
-                                                       "limit_steps": self.loop.limit_steps},
+                                                       "limit_steps": self.loop.limit_steps,
+                                                       "labelled": self.loop.labelled},
                                  diagnosis=StatusDiagnosis(idle=lambda st: f"{s.mode}, episode {st['episode']}, "
                                                                            f"{st['episodes_done']} done"),
                                  hardware_id=task.name)
@@ -208,6 +217,7 @@ class PusherSim(Node):
                 self.create_subscription(JointState, topic, lambda m, t=topic: self.on_controller_state(m, t), 10)
             else:
                 self.create_subscription(Float64MultiArray, topic, lambda m, t=topic: self.on_controller(m, t), 10)
+        self.create_subscription(String, LABEL_TOPIC, self.on_label, 10)
         self.create_service(Trigger, "pusher/reset", self.on_reset)
         self.state_msg = JointState(name=list(task.state.joints))
 
@@ -435,6 +445,23 @@ class PusherSim(Node):
         period_s = self.republish_timer.timer_period_ns / 1e9
         if not self.finished.done() and time.monotonic() - self.last_publish >= period_s:
             self.publish_state(new=False)
+
+    def on_label(self, msg: String) -> None:
+        """Take a person's label: one of the current episode makes its next step its last."""
+        self.status.took(LABEL_TOPIC)
+        try:
+            success, episode = parse_label(msg.data, self.resolve(LABEL_TOPIC))
+        except UserError as exc:
+            self.status.reject(LABEL_TOPIC, Rejection("bad label", str(exc)))
+            return
+        current = self.loop.episode
+        labelled, problem = self.loop.label(success, episode)
+        if problem:
+            self.status.reject(LABEL_TOPIC, problem)
+        elif labelled is not None:
+            verdict = "success" if success else "failure"
+            self.get_logger().info(f"episode {labelled} labelled {verdict}"
+                                   + (": it ends at its next step" if labelled == current else " (already over)"))
 
     def on_reset(self, request, response):
         if self.finished.done():
