@@ -153,8 +153,7 @@ def test_a_passive_recording_of_every_topic_keeps_markers_and_diagnostics_and_ev
     bags = {"db3": tmp_path / "session.db3", "mcap": tmp_path / "session.mcap", "lean": tmp_path / "lean.db3"}
     sim = spawn(ros2("run", "sim", "node", "--ros-args", "-p", "mode:=realtime", "-p", "episodes:=1",
                      "-p", "wait_for_subscribers:=3"), "sim")
-    excluded = ["--exclude-topic-types", "visualization_msgs/msg/MarkerArray",
-                "--exclude-topic-types", "diagnostic_msgs/msg/DiagnosticArray"]
+    excluded = ["--exclude-topic-types", "visualization_msgs/msg/MarkerArray", "diagnostic_msgs/msg/DiagnosticArray"]
     recorders = [spawn(ros2("run", "recorder", "node", "--passive", "--episodes", "1", "--out", bag,
                             *(excluded if name == "lean" else ()), "--ros-args", "-r", f"__node:=rec_{name}"),
                        f"recorder_{name}") for name, bag in bags.items()]

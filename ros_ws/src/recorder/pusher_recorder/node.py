@@ -15,8 +15,8 @@ transitions equal ``offline-rl collect``'s bit for bit.
 ``--passive`` records what flows (a policy or a person driving): the ``topics`` given,
 or every topic as it appears (like ``ros2 bag record -a``: ``/diagnostics`` and the arm's
 ``markers`` too, so a bag replayed into Foxglove or RViz shows the arm and the nodes' health;
-``--exclude-topic-types visualization_msgs/msg/MarkerArray`` leaves a type out, once per
-type, as ``ros2 bag record``'s flag does), until Ctrl-C, or until
+``--exclude-topic-types visualization_msgs/msg/MarkerArray diagnostic_msgs/msg/DiagnosticArray``
+leaves them out, as ``ros2 bag record``'s flag does), until Ctrl-C, or until
 ``episodes`` episodes have ended when given. Each topic is subscribed with a QoS its
 publishers offer (reliable only when they all are, transient local likewise), and the
 bag keeps their offered QoS, as ``ros2 bag record`` does. Topic names are relative:
@@ -475,7 +475,7 @@ def spin_recorder(executor, node: Recorder) -> None:
 def expand_topics(argv: list[str]) -> list[str]:
     """Expand ``--topics a b c`` (as ``ros2 bag record`` takes it) to ``--topics a ...``.
 
-    ``--types`` likewise.
+    ``--types`` and ``--exclude-topic-types`` likewise.
     """
     out, i = [], 0
     while i < len(argv):
@@ -483,7 +483,7 @@ def expand_topics(argv: list[str]) -> list[str]:
         if argv[i] == "--ros-args":
             return out + argv[i + 1 :]
         flag = argv[i]
-        if flag in ("--topics", "--types"):
+        if flag in ("--topics", "--types", "--exclude-topic-types"):
             i += 1
             names = []
             while i < len(argv) and not argv[i].startswith("-"):
