@@ -11,7 +11,10 @@ from offline_rl_core.common.errors import UserError
 from offline_rl_core.nodes.gamepad import GamepadMapping, GamepadTeleop, label_json, load_mapping
 from ros_helpers import REPO
 
-XBOX_YAML = REPO / "ros_ws" / "src" / "corrections" / "config" / "gamepad_xbox.yaml"
+CONFIG = REPO / "ros_ws" / "src" / "corrections" / "config"
+XBOX_YAML = CONFIG / "gamepad_xbox.yaml"
+PS_YAML = CONFIG / "gamepad_ps.yaml"
+CARTESIAN_YAML = CONFIG / "gamepad_xbox_cartesian.yaml"
 
 
 def joy(axes=None, pressed=()):
@@ -85,6 +88,9 @@ def test_a_custom_mapping_file(tmp_path):
     ("axes: [{axs: 0}]\n", r"axes\[0\]: expected \{axis: INDEX, scale: S\}"),
     ("deadzone: 2\n", r"deadzone: expected a number in \[0, 1\)"),
     ("buttons: 3\n", "unknown field 'buttons'"),
+    ("mode: polar\n", "mode: expected one of joint, cartesian"),
+    ("point: fingertip\n", "point: expected the name of a tracked point, with mode: cartesian"),
+    ("mode: cartesian\n", "axes: mode: cartesian needs its axes"),
     ("[1, 2\n", "not YAML"),
 ])
 def test_a_bad_mapping_file_is_one_line_naming_the_field(tmp_path, text, error):
@@ -93,3 +99,74 @@ def test_a_bad_mapping_file_is_one_line_naming_the_field(tmp_path, text, error):
     with pytest.raises(UserError, match=error) as info:
         load_mapping(path)
     assert str(info.value).startswith(str(path)) and "\n" not in str(info.value)
+
+
+def test_the_playstation_file_has_joy_linux_layout_where_it_differs_from_the_xbox_one():
+    xbox, ps = load_mapping(XBOX_YAML), load_mapping(PS_YAML)
+    assert (ps.mode, ps.success, ps.failure, ps.deadzone) == (xbox.mode, 0, 1, xbox.deadzone)  # cross / circle
+    assert (xbox.deadman, ps.deadman) == (9, 4)  # LB under joy (SDL), L1 under joy_linux (the kernel's order)
+    assert ps.axes[0] == xbox.axes[0] == (0, -1.0) and ps.axes[2] == xbox.axes[2] == (1, 1.0)  # the left stick
+    assert (xbox.axes[1], ps.axes[1]) == ((2, -1.0), (3, -1.0)) and (xbox.axes[3], ps.axes[3]) == ((3, 1.0), (4, 1.0))
+    # a DualShock 4 under joy_linux: 8 axes, 13 buttons; L1 held, right stick right
+    pad = GamepadTeleop(ps, act_dim=2)
+    axes, buttons = [0.0] * 8, [0] * 13
+    axes[3], buttons[4] = -0.5, 1
+    _, problem = pad.on_joy(axes, buttons)
+    assert problem is None
+    np.testing.assert_array_equal(pad.decide(), np.array([0.0, 0.5], np.float32))
+
+
+def fingertip_after(task_name: str, axes: dict, steps: int = 10, seed: int = 3):
+    """Where the fingertip moves in ``steps`` real MuJoCo steps of the shipped Cartesian mapping
+    with the dead-man held and the sticks at ``axes``, and the actions taken."""
+    from offline_rl_core.task.envs import make_env
+    from offline_rl_core.task.spec import load_task
+
+    task = load_task(task_name)
+    pad = GamepadTeleop.for_task(load_mapping(CARTESIAN_YAML), task)
+    env = make_env(task)
+    env.reset(seed)
+    pad.on_joy(*joy(axes, pressed={9}))
+    start = env.point_positions()["fingertip"].copy()
+    actions = []
+    for _ in range(steps):
+        actions.append(pad.decide(env.joint_positions, env.joint_velocities, env.goal))
+        env.step(actions[-1])
+    return env.point_positions()["fingertip"] - start, np.array(actions)
+
+
+@pytest.mark.parametrize("task, axes, direction", [
+    ("pusher_reach", {0: -1.0}, [1, 0, 0]),  # left stick right: +x
+    ("pusher_reach", {1: -1.0}, [0, -1, 0]),  # left stick down: -y
+    ("pusher7_reach", {0: -1.0}, [1, 0, 0]),
+    ("pusher7_reach", {3: 1.0}, [0, 0, 1]),  # right stick up: +z
+])
+def test_cartesian_mode_moves_the_fingertip_in_the_sticks_direction(task, axes, direction):
+    moved, actions = fingertip_after(task, axes)
+    direction = np.array(direction, np.float64)
+    along = moved @ direction
+    assert along > 0.005, moved  # metres, in ten steps
+    assert np.linalg.norm(moved - along * direction) < 0.5 * along, moved  # mostly that way
+    assert actions.dtype == np.float32 and np.all(np.abs(actions) <= 1.0)
+
+
+def test_cartesian_mode_stays_finite_and_in_range_at_a_singular_pose_and_on_bad_states():
+    from offline_rl_core.task.spec import load_task
+
+    pad = GamepadTeleop.for_task(load_mapping(CARTESIAN_YAML), load_task("pusher_reach"))
+    pad.on_joy(*joy({0: -1.0}, pressed={9}))  # outward, beyond the arm's reach, from the stretched arm
+    action = pad.decide([0.0, 0.0], [0.0, 0.0], [0.1, 0.1])
+    assert np.all(np.isfinite(action)) and np.all(np.abs(action) <= 1.0)
+    action = pad.decide([float("nan"), 0.0], [0.0, 0.0], [0.1, 0.1])
+    np.testing.assert_array_equal(action, np.zeros(2, np.float32))  # never NaN: no torque
+    pad.on_joy(*joy({0: -1.0}))  # released
+    assert pad.decide([0.0, 0.0], [0.0, 0.0], [0.1, 0.1]) is None
+
+
+def test_cartesian_mode_names_a_point_the_task_lacks(tmp_path):
+    from offline_rl_core.task.spec import load_task
+
+    path = tmp_path / "pad.yaml"
+    path.write_text("mode: cartesian\npoint: elbow\naxes: [{axis: 0, scale: 0.01}]\n")
+    with pytest.raises(UserError, match="has no tracked point 'elbow'"):
+        GamepadTeleop.for_task(load_mapping(path), load_task("pusher_reach"))

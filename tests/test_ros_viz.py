@@ -1,6 +1,6 @@
 """Where ROS engineers look, over real DDS: /diagnostics from running nodes, the arm's markers
-(the sim's and ``viz markers``' from joint states), a recording that leaves them out, the
-gamepad corrector through the mux, and the Foxglove live view on loopback."""
+(the sim's and ``viz markers``' from joint states), a recording that keeps them, the
+gamepad corrector through the mux (joint and Cartesian mode), and the Foxglove live view on loopback."""
 
 from __future__ import annotations
 
@@ -116,26 +116,55 @@ def test_viz_markers_of_a_real_arm_from_joint_states_alone(spawn):
         np.testing.assert_allclose((tip.x, tip.y, tip.z), expected["points/fingertip"].position, atol=1e-12)
 
 
-def test_a_passive_recording_of_every_topic_leaves_markers_and_diagnostics_out(spawn, tmp_path):
-    from visualization_msgs.msg import MarkerArray
+def test_a_passive_recording_of_every_topic_keeps_markers_and_diagnostics_and_every_reader_reads_it(
+        spawn, tmp_path):
+    """Recordings keep the arm's markers and /diagnostics (sqlite3 and MCAP), the bag's readers
+    read such a bag as any other, and --exclude-topic-types leaves them out."""
+    from sensor_msgs.msg import JointState
 
     from offline_rl_core.data.bag import read_transitions
+    from offline_rl_core.data.bag.info import bag_info
+    from offline_rl_core.data.raw_topics import transitions_from_topics
     from rosbags.highlevel import AnyReader
 
-    bag = tmp_path / "session.db3"
-    sim = spawn(ros2("run", "sim", "node", "--ros-args", "-p", "mode:=realtime", "-p", "episodes:=2",
-                     "-p", "wait_for_subscribers:=1"), "sim")
+    bags = {"db3": tmp_path / "session.db3", "mcap": tmp_path / "session.mcap", "lean": tmp_path / "lean.db3"}
+    sim = spawn(ros2("run", "sim", "node", "--ros-args", "-p", "mode:=realtime", "-p", "episodes:=1",
+                     "-p", "wait_for_subscribers:=3"), "sim")
+    excluded = ["--exclude-topic-types", "visualization_msgs/msg/MarkerArray", "diagnostic_msgs/msg/DiagnosticArray"]
+    recorders = [spawn(ros2("run", "recorder", "node", "--passive", "--episodes", "1", "--out", bag,
+                            *(excluded if name == "lean" else ()), "--ros-args", "-r", f"__node:=rec_{name}"),
+                       f"recorder_{name}") for name, bag in bags.items()]
     with probe_node("rec_probe") as node:
-        node.create_subscription(MarkerArray, "/markers", lambda m: None, 10)  # the sim publishes them
-        recorder = spawn(ros2("run", "recorder", "node", "--passive", "--episodes", "2", "--out", bag), "recorder")
-        assert node.spin_until(lambda: recorder.poll() is not None, 120), recorder.output()
-    assert recorder.poll() == 0, recorder.output()
+        commands = node.create_publisher(JointState, "/pusher/command/policy", 10)
+
+        def answer(state):  # a policy, so the raw topics join into transitions
+            out = JointState(name=["shoulder", "elbow"], effort=[0.3, -0.2])
+            out.header.stamp = state.header.stamp
+            commands.publish(out)
+        node.create_subscription(JointState, "/pusher/state", answer, 10)
+        assert node.spin_until(lambda: all(r.poll() is not None for r in recorders), 120), \
+            [r.output() for r in recorders]
+    assert [r.poll() for r in recorders] == [0, 0, 0], [r.output() for r in recorders]
     assert sim.wait(timeout=30) == 0
-    with AnyReader([bag]) as reader:
+
+    for name in ("db3", "mcap"):
+        bag = bags[name]
+        with AnyReader([bag]) as reader:
+            topics = {c.topic: c for c in reader.connections}
+            assert {"/pusher/transition", "/markers", "/diagnostics"} <= set(topics), (name, sorted(topics))
+            markers = [reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages([topics["/markers"]])]
+        assert markers and {m.ns for m in markers[-1].markers} >= {"links", "joints", "goal"}, name
+        assert len(read_transitions(bag)) == 100, name
+        info = {t.name: t for t in bag_info(bag).topics}
+        assert info["/markers"].msgtype == "visualization_msgs/msg/MarkerArray"
+        assert info["/markers"].count == len(markers)
+        data, report = transitions_from_topics(bag, "pusher_reach")
+        assert len(data) > 0 and report.episodes >= 1, (name, report.format())
+    with AnyReader([bags["lean"]]) as reader:
         topics = {c.topic for c in reader.connections}
     assert "/pusher/transition" in topics and "/sim/status" in topics, topics
     assert "/markers" not in topics and "/diagnostics" not in topics, topics
-    assert len(read_transitions(bag)) == 200
+    assert len(read_transitions(bags["lean"])) == 100
 
 
 def test_gamepad_takes_over_through_the_mux_and_labels_episodes(spawn):
@@ -197,6 +226,46 @@ def test_gamepad_takes_over_through_the_mux_and_labels_episodes(spawn):
         assert node.spin_until(lambda: "/corrector" in diag.latest, 10)
         values = diag.values("/corrector")
         assert values["mode"] == "gamepad" and values["labels/success"] == "1" and values["labels/failure"] == "1"
+
+
+def test_gamepad_in_cartesian_mode_moves_the_fingertip_the_sticks_way_through_the_mux(spawn):
+    from geometry_msgs.msg import PointStamped
+    from sensor_msgs.msg import JointState, Joy
+
+    from ros_helpers import REPO
+
+    mapping = REPO / "ros_ws" / "src" / "corrections" / "config" / "gamepad_xbox_cartesian.yaml"
+    lock = ["-p", "mode:=lockstep"]
+    sim = spawn(ros2("run", "sim", "node", "--ros-args", *lock), "sim")
+    mux = spawn(ros2("run", "corrections", "mux", "--ros-args", *lock, "-p", "require_teleop:=true"), "mux")
+    corrector = spawn(ros2("run", "corrections", "corrector", "--mode", "gamepad", "--gamepad", mapping), "corrector")
+    with probe_node("cartesian_probe") as node:
+        human, tips = [], []
+        node.create_subscription(JointState, "/pusher/command/human", human.append, 50)
+        node.create_subscription(PointStamped, "/pusher/fingertip", lambda m: tips.append((m.point.x, m.point.y)), 50)
+        joy_pub = node.create_publisher(Joy, "/joy", 10)
+        action_pub = node.create_publisher(JointState, "/policy/action", 10)
+
+        def answer(state):  # the probe is the policy: no torque
+            out = JointState(name=["shoulder", "elbow"], effort=[0.0, 0.0])
+            out.header.stamp = state.header.stamp
+            action_pub.publish(out)
+        node.create_subscription(JointState, "/pusher/state", answer, 10)
+
+        def pad(axes, buttons):
+            joy_pub.publish(Joy(axes=[float(a) for a in axes], buttons=list(buttons)))
+
+        assert node.spin_until(lambda: joy_pub.get_subscription_count() > 0 and len(tips) >= 5, 60), \
+            (sim.output(), mux.output(), corrector.output())
+        # LB held, left stick right: the fingertip goes +x
+        axes, held = [-1.0, 0.0, 0.0, 0.0, 0.0, 0.0], [0] * 9 + [1, 0]
+        assert node.spin_until(lambda: (pad(axes, held), len(human) >= 1)[1], 30), corrector.output()
+        start = np.array(tips[-1])
+        assert node.spin_until(lambda: (pad(axes, held), len(human) >= 20)[1], 30), corrector.output()
+        moved = np.array(tips[-1]) - start
+    assert moved[0] > 0.01 and abs(moved[1]) < 0.5 * moved[0], moved
+    efforts = np.array([m.effort for m in human])
+    assert np.all(np.isfinite(efforts)) and np.all(np.abs(efforts) <= 1.0)
 
 
 def test_live_view_streams_markers_and_state_to_a_websocket_client_on_loopback(spawn):

@@ -4,10 +4,16 @@ The mapping (a YAML file, :func:`load_mapping`; the defaults: an Xbox pad under 
 node, ``ros_ws/src/corrections/config/gamepad_xbox.yaml`` documents them):
 
 - ``deadman``: the button that takes over while held; released, the policy has the arm;
-- ``axes``: one entry per command joint, in ``robot.command.joints`` order: the axis index
-  and a scale (negative flips it); the action is ``scale * axis`` clipped to the task's
-  action range [-1, 1] (efforts or velocities, as the task's command interface is); joints
-  past the list, or given ``null``, are held at 0; ``deadzone``: smaller readings are 0;
+- ``mode``: ``joint`` (default) or ``cartesian``;
+- ``axes``: joint mode: one entry per command joint, in ``robot.command.joints`` order: the
+  axis index and a scale (negative flips it); the action is ``scale * axis`` clipped to the
+  task's action range [-1, 1] (efforts or velocities, as the task's command interface is);
+  joints past the list, or given ``null``, are held at 0. Cartesian mode: one entry per axis
+  of the tracked point ``point`` (default: the task's first, pusher_reach's fingertip: x, y;
+  pusher7_reach's: x, y, z), the scale in metres the point is asked to move per state at
+  full stick; the action moving it there comes from damped least squares on the task's
+  Jacobian (``offline_rl_core.task.envs.task_jog``), clipped to [-1, 1]; a stick at rest
+  asks the point to stay, so the arm brakes; ``deadzone``: smaller readings are 0;
 - ``success`` / ``failure``: buttons that label the current episode (pressed: one label per
   press, on ``episode_label`` as ``{"label": "success"}``).
 
@@ -26,6 +32,7 @@ import numpy as np
 
 from ..common.errors import UserError
 from ..common.rejections import Rejection
+from ..task.spec import TaskSpec
 
 LABEL_TOPIC = "episode_label"  # std_msgs/String, JSON {"label": "success" | "failure"}
 LABELS = ("success", "failure")
@@ -36,6 +43,8 @@ XBOX_DEADMAN = 9  # LB
 XBOX_SUCCESS = 0  # A
 XBOX_FAILURE = 1  # B
 XBOX_AXES = ((0, -1.0), (2, -1.0), (1, 1.0), (3, 1.0))  # stick right -> positive action
+MODES = ("joint", "cartesian")
+FIELDS = ("deadman", "mode", "point", "axes", "deadzone", "success", "failure")
 
 
 @dataclass(frozen=True)
@@ -45,6 +54,8 @@ class GamepadMapping:
     deadzone: float = 0.05
     success: int | None = XBOX_SUCCESS
     failure: int | None = XBOX_FAILURE
+    mode: str = "joint"
+    point: str | None = None  # cartesian: the tracked point the sticks move (None: the task's first)
     source: str = "built-in Xbox defaults"
 
     @property
@@ -70,11 +81,17 @@ def load_mapping(path: str | Path | None) -> GamepadMapping:
     except yaml.YAMLError as exc:
         raise UserError(f"{path}: not YAML: {str(exc).splitlines()[0]}") from None
     if not isinstance(doc, dict):
-        raise UserError(f"{path}: expected a mapping of deadman, axes, deadzone, success, failure")
-    unknown = sorted(set(doc) - {"deadman", "axes", "deadzone", "success", "failure"})
+        raise UserError(f"{path}: expected a mapping of {', '.join(FIELDS)}")
+    unknown = sorted(set(doc) - set(FIELDS))
     if unknown:
-        raise UserError(f"{path}: unknown field {unknown[0]!r} (known: deadman, axes, deadzone, success, failure)")
+        raise UserError(f"{path}: unknown field {unknown[0]!r} (known: {', '.join(FIELDS)})")
     defaults = GamepadMapping()
+    mode = doc.get("mode", defaults.mode)
+    if mode not in MODES:
+        raise UserError(f"{path}: mode: expected one of {', '.join(MODES)}, got {mode!r}")
+    point = doc.get("point")
+    if point is not None and (mode != "cartesian" or not isinstance(point, str) or not point):
+        raise UserError(f"{path}: point: expected the name of a tracked point, with mode: cartesian, got {point!r}")
 
     def button(name, optional=True):
         value = doc.get(name, getattr(defaults, name))
@@ -105,8 +122,12 @@ def load_mapping(path: str | Path | None) -> GamepadMapping:
     deadzone = doc.get("deadzone", defaults.deadzone)
     if isinstance(deadzone, bool) or not isinstance(deadzone, (int, float)) or not 0 <= deadzone < 1:
         raise UserError(f"{path}: deadzone: expected a number in [0, 1), got {deadzone!r}")
+    if mode == "cartesian" and "axes" not in doc:
+        raise UserError(f"{path}: axes: mode: cartesian needs its axes, one {{axis: INDEX, scale: METRES}} per "
+                        "axis of the point")
     return GamepadMapping(deadman=button("deadman", optional=False), axes=tuple(parsed), deadzone=float(deadzone),
-                          success=button("success"), failure=button("failure"), source=str(path))
+                          success=button("success"), failure=button("failure"), mode=mode, point=point,
+                          source=str(path))
 
 
 @dataclass
@@ -117,12 +138,20 @@ class JoyEvents:
 
 
 class GamepadTeleop:
-    """The held action from the latest Joy message; ``decide`` answers a state as the corrector asks."""
+    """The held action from the latest Joy message; ``decide`` answers a state as the corrector asks.
 
-    def __init__(self, mapping: GamepadMapping, act_dim: int):
+    Cartesian mode: ``jog(positions, velocities, delta) -> action`` and ``dims`` (the point's
+    axes) turn the sticks' ``delta`` into each state's action (:meth:`for_task` builds them).
+    """
+
+    def __init__(self, mapping: GamepadMapping, act_dim: int, jog=None, dims: int = 0):
+        if (mapping.mode == "cartesian") != (jog is not None):
+            raise ValueError("a cartesian mapping needs a jog, a joint mapping none")
         self.mapping = mapping
         self.act_dim = act_dim
+        self.jog, self.dims = jog, dims
         self.action = np.zeros(act_dim, np.float32)
+        self.delta = np.zeros(dims, np.float64)  # cartesian: the step asked of the point
         self.active = False
         self.labels_sent = {label: 0 for label in LABELS}
         self._pressed: dict[str, bool] = {label: False for label in LABELS}
@@ -138,12 +167,15 @@ class GamepadTeleop:
                                                    f"reads button {m.buttons_needed - 1}")
         if not np.all(np.isfinite(axes)):
             return None, Rejection("non-finite", "a Joy axis is not finite")
-        action = np.zeros(self.act_dim, np.float64)
-        for joint, entry in enumerate(m.axes[: self.act_dim]):
+        values = np.zeros(self.dims if self.jog else self.act_dim, np.float64)
+        for k, entry in enumerate(m.axes[: len(values)]):
             if entry is not None:
                 value = float(axes[entry[0]])
-                action[joint] = 0.0 if abs(value) < m.deadzone else entry[1] * value
-        self.action = np.clip(action, -1.0, 1.0).astype(np.float32)
+                values[k] = 0.0 if abs(value) < m.deadzone else entry[1] * value
+        if self.jog:
+            self.delta = values
+        else:
+            self.action = np.clip(values, -1.0, 1.0).astype(np.float32)
         self.active = bool(buttons[m.deadman])
         events = JoyEvents()
         for label, index in (("success", m.success), ("failure", m.failure)):
@@ -154,9 +186,28 @@ class GamepadTeleop:
             self._pressed[label] = pressed
         return events, None
 
+    @classmethod
+    def for_task(cls, mapping: GamepadMapping, task: TaskSpec) -> "GamepadTeleop":
+        """The teleop of ``task``'s arm; cartesian: UserError when the task has no Jacobian for the point."""
+        if mapping.mode != "cartesian":
+            return cls(mapping, task.act_dim)
+        from ..task.envs import task_jog
+
+        jog, dims = task_jog(task, mapping.point)
+        return cls(mapping, task.act_dim, jog, dims)
+
     def decide(self, qpos=None, qvel=None, goal=None) -> np.ndarray | None:
-        """The action while the dead-man button is held, else None (the policy keeps the arm)."""
-        return self.action.copy() if self.active else None
+        """The action while the dead-man button is held, else None (the policy keeps the arm).
+        Cartesian: the action that moves the point by the sticks' step from this state
+        (zero where the state gives no finite answer: never NaN)."""
+        if not self.active:
+            return None
+        if not self.jog:
+            return self.action.copy()
+        action = np.asarray(self.jog(qpos, qvel, self.delta), np.float32)
+        if not np.all(np.isfinite(action)):
+            return np.zeros(self.act_dim, np.float32)
+        return np.clip(action, -1.0, 1.0)
 
 
 def label_json(label: str) -> str:

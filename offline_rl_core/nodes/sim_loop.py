@@ -92,7 +92,7 @@ class Step:
 
 class SimLoop:
     def __init__(self, mode: str = "realtime", seed: int = 0, episodes: int = 0, terminate_on_success: bool = False,
-                 start_ns: int = 0, task: TaskSpec | str | None = None):
+                 start_ns: int = 0, task: TaskSpec | str | None = None, estop: EStopLatch | None = None):
         if mode not in MODES:
             raise ValueError(f"mode must be one of {', '.join(MODES)}, got {mode!r}")
         self.mode = mode
@@ -116,7 +116,7 @@ class SimLoop:
         self.held_source = SOURCE_POLICY
         self.current: ArmState | None = None
         self.watchdog = CommandWatchdog(self.task.command_timeout)
-        self.estop = EStopLatch()
+        self.estop = estop if estop is not None else EStopLatch()  # a node's own latch, made before the env
         self.safe_steps = 0  # realtime ticks that applied the safe command
         self.state_limits = StateLimits(self.task)  # effort interface: soft limits on the measured state
         self.limit_steps = 0  # realtime ticks whose held command pushed a joint further out: the safe one applied

@@ -10,6 +10,8 @@
   ``points``: the tracked points' vectors, in their axes, e.g. the puck a tracker sees), so
   ``collect``, ``eval --expert`` and a corrector that only hears topics act alike;
   ``expert_action(env)`` asks it about an env's current state.
+- ``task_jog(task, point)``: the action that moves a tracked point by a small Cartesian step
+  (a gamepad's Cartesian mode), by damped least squares on the task's Jacobian.
 
 Every env has the same face: ``reset(seed) -> obs``; ``step(action) -> (obs, reward, done,
 info)``; ``observation()``; ``steps``, ``success``, ``terminate_on_success``, ``obs_dim``,
@@ -113,6 +115,33 @@ def task_expert(task: TaskSpec | str | os.PathLike | None) -> Expert:
 
             _experts[key] = ReachExpert(task, task_model(task))
     return _experts[key]
+
+
+def task_jog(task: TaskSpec | str | os.PathLike | None,
+             point: str | None = None) -> tuple[Callable[..., np.ndarray], int]:
+    """``(jog, dims)``: ``jog(positions, velocities, delta) -> action`` (float32, in [-1, 1]) moves
+    the tracked point ``point`` (default: the task's first) by ``delta``, ``dims`` values in its
+    axes (m), through damped least squares on the task's Jacobian: pusher_reach's two-link
+    chain, a MuJoCo task's model. UserError naming the point when the task has no such point."""
+    task = load_task(task)
+    names = [p.name for p in task.points]
+    name = point or (names[0] if names else None)
+    if name not in names:
+        raise UserError(f"{task.source_file()}: task {task.name} has no tracked point {name!r} to move "
+                        f"(its points: {', '.join(names) or 'none'})")
+    dims = len(task.point(name).axes)
+    kind = _kind(task)
+    if kind == "pusher_reach":
+        from .expert import jog_action
+
+        return (lambda q, qdot, delta: jog_action(q, qdot, delta)), dims
+    from .jacobian_expert import CartesianJog, ReachExpert
+
+    expert = ReachExpert(task, task_model(task))
+    if name not in expert.index.points or task.point(name).kinematics is None:
+        raise UserError(f"{task.source_file()}: point {name} of task {task.name} is no forward kinematics of the "
+                        "arm: a stick cannot move it")
+    return CartesianJog(expert, name), dims
 
 
 def point_vectors(task: TaskSpec, points: dict[str, np.ndarray]) -> dict[str, np.ndarray]:

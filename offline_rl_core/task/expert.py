@@ -6,10 +6,12 @@ import math
 
 import numpy as np
 
+from .kinematics import damped_least_squares, planar_two_link_jacobian
 from .pusher_reach import LINK_LEN, PusherReachEnv, wrap_angle
 
 KP = 25.0
 KD = 2.0
+JOG_DAMPING = 0.02  # m: the damped least squares' lambda, small beside the links' length
 
 
 def ik_joint_targets(target_xy) -> tuple[float, float]:
@@ -27,11 +29,23 @@ def expert_action(qpos, qvel, target_xy, kp: float = KP, kd: float = KD) -> np.n
 
     Works from joint states and the target alone, so the ROS corrector uses it too.
     """
-    q_star = np.array(ik_joint_targets(target_xy))
+    return pd_torques(np.array(ik_joint_targets(target_xy)), qpos, qvel, kp, kd)
+
+
+def pd_torques(q_star, qpos, qvel, kp: float = KP, kd: float = KD) -> np.ndarray:
+    """The expert's PD law toward the joint angles ``q_star``: torques clipped to [-1, 1], float32."""
     q = np.asarray(qpos, dtype=np.float64)[:2]
     qdot = np.asarray(qvel, dtype=np.float64)[:2]
     torque = kp * wrap_angle(q_star - q) - kd * qdot
     return np.clip(torque, -1.0, 1.0).astype(np.float32)
+
+
+def jog_action(qpos, qvel, delta_xy, damping: float = JOG_DAMPING) -> np.ndarray:
+    """Torques that move the fingertip by ``delta_xy`` (m): the expert's PD law toward the pose
+    one damped-least-squares step on the two-link Jacobian away (a gamepad's Cartesian mode)."""
+    q = np.asarray(qpos, dtype=np.float64)[:2]
+    jac = planar_two_link_jacobian(q[0], q[1], LINK_LEN, LINK_LEN)
+    return pd_torques(q + damped_least_squares(jac, np.asarray(delta_xy, np.float64)[:2], damping), qpos, qvel)
 
 
 def reach_action(env: PusherReachEnv) -> np.ndarray:

@@ -23,6 +23,7 @@ from __future__ import annotations
 import numpy as np
 import mujoco
 
+from .kinematics import damped_least_squares
 from .mujoco_task import ArmIndex, SimSettings
 from .spec import AXES, JOINT_STATE, TaskSpec
 
@@ -57,19 +58,27 @@ class ReachExpert:
             rng = np.random.Generator(np.random.PCG64(0))  # fixed: the same restarts everywhere
             middle = (self.low + self.high) / 2.0
             self.restarts = [middle] + [rng.uniform(self.low, self.high) for _ in range(self.gains.restarts)]
-            self._jacp = np.zeros((3, model.nv))
-            self._eye = np.eye(len(self.rows)) * self.gains.damping ** 2
         else:
             self.goal_in_command = [task.command.joints.index(j) if j in task.command.joints else -1
                                     for j in task.goal.joints]
+        self._jacp = np.zeros((3, model.nv))
         self._mass = np.zeros((model.nv, model.nv))
 
     def __call__(self, positions, velocities, goal, points=None) -> np.ndarray:
+        positions, velocities, q, qdot = self.command_joints(positions, velocities)
+        target = self.joint_goal(positions, q, np.asarray(goal, np.float64))
+        return self.action_toward(positions, velocities, q, qdot, target)
+
+    def command_joints(self, positions, velocities):
+        """The state as float64 arrays, with the command joints' positions and velocities."""
         positions = np.asarray(positions, np.float64)
         velocities = np.asarray(velocities, np.float64)
         q = np.where(self.command_in_state >= 0, positions[self.command_in_state], 0.0)
         qdot = np.where(self.command_in_state >= 0, velocities[self.command_in_state], 0.0)
-        target = self.joint_goal(positions, q, np.asarray(goal, np.float64))
+        return positions, velocities, q, qdot
+
+    def action_toward(self, positions, velocities, q, qdot, target) -> np.ndarray:
+        """The action (float32, in [-1, 1]) that moves the command joints toward ``target``."""
         command = self.command(positions, velocities, q, qdot, target)
         return np.clip((command - self.offset) / self.scale, -1.0, 1.0).astype(np.float32)
 
@@ -97,22 +106,32 @@ class ReachExpert:
         q = np.clip(start, self.low, self.high)
         err = np.inf
         for _ in range(IK_ITERATIONS):
-            d.qpos[idx.command_qpos] = q
-            mujoco.mj_kinematics(self.model, d)
-            mujoco.mj_comPos(self.model, d)
-            kind, pid = self.point
-            where = d.site_xpos[pid] if kind == "site" else d.xpos[pid]
-            delta = goal - where[self.rows]
+            delta = goal - self.point_at(q, self.point, self.rows)
             err = float(np.sqrt(delta @ delta))
             if err < IK_TOLERANCE:
                 break
-            if kind == "site":
-                mujoco.mj_jacSite(self.model, d, self._jacp, None, pid)
-            else:
-                mujoco.mj_jacBody(self.model, d, self._jacp, None, pid)
-            jac = self._jacp[self.rows][:, idx.command_dof]
-            q = np.clip(q + jac.T @ np.linalg.solve(jac @ jac.T + self._eye, delta), self.low, self.high)
+            jac = self.jacobian(self.point, self.rows)
+            q = np.clip(q + damped_least_squares(jac, delta, self.gains.damping), self.low, self.high)
         return q, err
+
+    def point_at(self, q: np.ndarray, point: tuple[str, int], rows: list[int]) -> np.ndarray:
+        """Pose the model's command joints at ``q`` (the others as ``self.data`` has them) and
+        return where ``point`` (``("site" | "body", id)``) is, its ``rows`` of x, y, z."""
+        d = self.data
+        d.qpos[self.index.command_qpos] = q
+        mujoco.mj_kinematics(self.model, d)
+        mujoco.mj_comPos(self.model, d)
+        kind, pid = point
+        return (d.site_xpos[pid] if kind == "site" else d.xpos[pid])[rows]
+
+    def jacobian(self, point: tuple[str, int], rows: list[int]) -> np.ndarray:
+        """MuJoCo's Jacobian of ``point`` at the pose :meth:`point_at` set: its ``rows`` by the command joints."""
+        kind, pid = point
+        if kind == "site":
+            mujoco.mj_jacSite(self.model, self.data, self._jacp, None, pid)
+        else:
+            mujoco.mj_jacBody(self.model, self.data, self._jacp, None, pid)
+        return self._jacp[rows][:, self.index.command_dof]
 
     # ------------------------------------------------------------ 2. how to get there
     def command(self, positions, velocities, q, qdot, target) -> np.ndarray:
@@ -130,3 +149,23 @@ class ReachExpert:
         mass = self._mass[np.ix_(dof, dof)]
         force = mass @ (g.kp * (target - q) - g.kd * qdot) + d.qfrc_bias[dof] + self.model.dof_damping[dof] * qdot
         return force / self.model.actuator_gear[idx.actuators, 0]  # in the actuators' units
+
+
+class CartesianJog:
+    """``jog(positions, velocities, delta) -> action``: the action that moves the tracked point
+    ``point`` by ``delta`` (its axes, in m): one damped-least-squares step on MuJoCo's Jacobian
+    (the expert's damping), kept inside the joints' ranges, then the expert's law toward that
+    pose in the task's interface. A person's stick, not a goal: no restarts, no convergence."""
+
+    def __init__(self, expert: ReachExpert, point: str):
+        self.expert = expert
+        self.point = expert.index.points[point]
+        self.rows = [AXES.index(a) for a in expert.task.point(point).axes]
+
+    def __call__(self, positions, velocities, delta) -> np.ndarray:
+        e = self.expert
+        positions, velocities, q, qdot = e.command_joints(positions, velocities)
+        e.data.qpos[e.index.qpos] = positions
+        e.point_at(q, self.point, self.rows)
+        step = damped_least_squares(e.jacobian(self.point, self.rows), np.asarray(delta, np.float64), e.gains.damping)
+        return e.action_toward(positions, velocities, q, qdot, np.clip(q + step, e.low, e.high))

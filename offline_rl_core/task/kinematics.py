@@ -22,6 +22,22 @@ def planar_two_link(q0: float, q1: float, l1: float, l2: float) -> tuple[float, 
     return l1 * math.cos(q0) + l2 * math.cos(q0 + q1), l1 * math.sin(q0) + l2 * math.sin(q0 + q1)
 
 
+def planar_two_link_jacobian(q0: float, q1: float, l1: float, l2: float) -> np.ndarray:
+    """d(x, y) / d(q0, q1) of :func:`planar_two_link`'s end, a 2 x 2 float64 array."""
+    s0, c0 = math.sin(q0), math.cos(q0)
+    s01, c01 = math.sin(q0 + q1), math.cos(q0 + q1)
+    return np.array([[-l1 * s0 - l2 * s01, -l2 * s01], [l1 * c0 + l2 * c01, l2 * c01]])
+
+
+def damped_least_squares(jac: np.ndarray, delta: np.ndarray, damping: float) -> np.ndarray:
+    """The joint step ``dq = Jᵀ (J Jᵀ + λ² I)⁻¹ delta`` that moves a point by ``delta``.
+
+    The damping ``λ`` (in the point's units) bounds the step near a singular pose, where the
+    plain pseudo-inverse would ask for unbounded joint motion; ``λ > 0`` keeps it finite.
+    """
+    return jac.T @ np.linalg.solve(jac @ jac.T + np.eye(len(jac)) * damping**2, delta)
+
+
 class PointKinematics:
     """``positions`` (in ``task.state.joints`` order) -> the points that have kinematics.
 

@@ -31,9 +31,12 @@ a recorder keeps the label in the bag (``offline_rl_core.data.episode_labels``).
 ``--mode gamepad``: a person with a gamepad, read from ``joy`` (sensor_msgs/Joy, as the
 standard ``joy`` node publishes it): while the dead-man button is held the sticks' action
 answers every state (scaled into [-1, 1], in the command joints' order); released, the
-policy keeps the arm. Two buttons label the episode a success or a failure on
+policy keeps the arm. With ``mode: cartesian`` in the mapping the sticks move the task's
+tracked point (the fingertip) instead, turned into joint actions by damped least squares on
+the task's Jacobian. Two buttons label the episode a success or a failure on
 ``episode_label`` (std_msgs/String, ``{"label": "success"}``). The mapping is ``gamepad``
-(a YAML file; empty: an Xbox pad, as ``config/gamepad_xbox.yaml`` documents;
+(a YAML file; empty: an Xbox pad, as ``config/gamepad_xbox.yaml`` documents; a PlayStation
+pad under ``joy_linux``: ``config/gamepad_ps.yaml``; Cartesian: ``config/gamepad_xbox_cartesian.yaml``;
 ``offline_rl_core.nodes.gamepad``). A Joy message the mapping cannot read is refused and
 counted on ``/diagnostics``.
 """
@@ -140,8 +143,8 @@ PARAMS = (
     Param("mode", "scripted", "scripted: the scripted expert takes over when progress stalls; keyboard: a person "
           "at this terminal; gamepad: a person with a gamepad on joy (sensor_msgs/Joy)",
           choices=("scripted", "keyboard", "gamepad"), read_only=True, flag="--mode"),
-    Param("gamepad", "", "gamepad mode: the mapping file (YAML: deadman, axes, deadzone, success, failure; empty: "
-          "an Xbox pad, as config/gamepad_xbox.yaml)", read_only=True, flag="--gamepad"),
+    Param("gamepad", "", "gamepad mode: the mapping file (YAML: deadman, mode, point, axes, deadzone, success, "
+          "failure; empty: an Xbox pad, as config/gamepad_xbox.yaml)", read_only=True, flag="--gamepad"),
     Param("patience", 8, "k: states without progress before taking over", low=1, flag="--patience"),
     Param("grace_steps", 20, "states at an episode's start before progress is judged", low=0, flag="--grace-steps"),
     Param("hold_steps", 25, "m: steps of a takeover before handing back", low=1, flag="--hold-steps"),
@@ -174,7 +177,7 @@ class Corrector(Node):
             except ValueError as exc:
                 raise UserError(str(exc)) from None
         elif self.mode == "gamepad":
-            self.teleop = GamepadTeleop(load_mapping(self.settings.gamepad), task.act_dim)
+            self.teleop = GamepadTeleop.for_task(load_mapping(self.settings.gamepad), task)
         else:
             if task.act_dim != 2:
                 raise UserError(f"--mode keyboard drives a two-joint arm; task {task.name} has {task.act_dim} "

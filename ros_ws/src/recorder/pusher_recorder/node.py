@@ -13,8 +13,10 @@ transitions equal ``offline-rl collect``'s bit for bit.
   ros2 run recorder node --out bags/mix.db3 --episodes 200 --expert-frac 0.3 --seed 0
 
 ``--passive`` records what flows (a policy or a person driving): the ``topics`` given,
-or every topic as it appears (like ``ros2 bag record -a``; but ``/diagnostics`` and the
-markers, views derived from what the bag holds, only when named), until Ctrl-C, or until
+or every topic as it appears (like ``ros2 bag record -a``: ``/diagnostics`` and the arm's
+``markers`` too, so a bag replayed into Foxglove or RViz shows the arm and the nodes' health;
+``--exclude-topic-types visualization_msgs/msg/MarkerArray diagnostic_msgs/msg/DiagnosticArray``
+leaves them out, as ``ros2 bag record``'s flag does), until Ctrl-C, or until
 ``episodes`` episodes have ended when given. ``pusher/transition`` and ``episode_label`` (a
 person's labels of episodes, ``offline_rl_core.data.episode_labels``) are subscribed from the
 start, before discovery finds their publishers. Each topic is subscribed with a QoS its
@@ -82,10 +84,6 @@ LOOP_TYPES = {
 }
 DISCOVERY_PERIOD_S = 0.5
 BEFORE_CLOCK_BYTES = 64 << 20  # what may wait for the first /clock under use_sim_time
-# Derived views of what the bag holds anyway (the arm as markers: from its joint states; the
-# nodes' health): recorded when named in `topics`, not by "every topic", so a session's
-# bag holds the same topics as before they were published.
-NOT_RECORDED_BY_DEFAULT = ("diagnostic_msgs/msg/DiagnosticArray", "visualization_msgs/msg/MarkerArray")
 
 PARAMS = (
     Param("out", "", "bag to write: x.db3 / x.mcap (one file) or a directory (metadata.yaml + x_0.db3, x_1.db3, ...)",
@@ -107,6 +105,10 @@ PARAMS = (
           "at start)", read_only=True, flag="--make-parents"),
     Param("topics", [], "topics to record (relative names resolve in the node's namespace); none: every topic when "
           "passive, the loop's when driving", read_only=True, flag="--topics", kind=list),
+    Param("exclude_topic_types", [], "message types left out when recording every topic (e.g. "
+          "visualization_msgs/msg/MarkerArray diagnostic_msgs/msg/DiagnosticArray: the arm's markers and the nodes' "
+          "health, which every topic includes); a topic named in topics is recorded whatever its type",
+          read_only=True, flag="--exclude-topic-types", kind=list),
     Param("types", [], "TOPIC:TYPE pairs (e.g. joint_states:sensor_msgs/msg/JointState) to record from the start, "
           "subscribed reliable at once rather than when discovery finds their publishers: a session's first messages "
           "are in the bag however slowly discovery goes", read_only=True, flag="--types", kind=list),
@@ -195,6 +197,11 @@ class Recorder(Node):
                              min_free_space=s.min_free_space)
         self.record_all = self.active is False and not s.topics
         self.wanted = {self.resolve(t) for t in s.topics or ()}
+        self.excluded_types = set(s.exclude_topic_types or ())
+        for msgtype in sorted(self.excluded_types):
+            if not MESSAGE_TYPE.fullmatch(msgtype):
+                raise UserError(f"--exclude-topic-types {msgtype}: expected a message type pkg/msg/Name, e.g. "
+                                "visualization_msgs/msg/MarkerArray")
         self.subs: dict[str, object] = {}  # resolved name -> subscription
         self.bag_topics: set[str] = set()  # added to the bag (at their first message)
         self.types: dict[str, str] = {}  # resolved name -> message type
@@ -280,7 +287,7 @@ class Recorder(Node):
                 continue
             if self.active and topic in (pub.topic_name for pub in self.command_pubs.values()):
                 continue  # written as sent (see send)
-            if topic not in self.wanted and set(types) & set(NOT_RECORDED_BY_DEFAULT):
+            if topic not in self.wanted and set(types) & self.excluded_types:
                 continue
             if len(types) != 1:
                 self.warn_once(topic, f"not recording {topic}: published with several types ({', '.join(types)})")
@@ -474,7 +481,7 @@ def spin_recorder(executor, node: Recorder) -> None:
 def expand_topics(argv: list[str]) -> list[str]:
     """Expand ``--topics a b c`` (as ``ros2 bag record`` takes it) to ``--topics a ...``.
 
-    ``--types`` likewise.
+    ``--types`` and ``--exclude-topic-types`` likewise.
     """
     out, i = [], 0
     while i < len(argv):
@@ -482,7 +489,7 @@ def expand_topics(argv: list[str]) -> list[str]:
         if argv[i] == "--ros-args":
             return out + argv[i + 1 :]
         flag = argv[i]
-        if flag in ("--topics", "--types"):
+        if flag in ("--topics", "--types", "--exclude-topic-types"):
             i += 1
             names = []
             while i < len(argv) and not argv[i].startswith("-"):

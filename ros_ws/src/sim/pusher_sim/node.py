@@ -160,7 +160,6 @@ class PusherSim(Node):
         self.task = task = load_task(s.task)
         apply_thread_priority(self.settings.thread_priority, self.get_logger())
         start_ns = int(s.start_time * NS_PER_S) if s.start_time > 0 else time.time_ns() // NS_PER_S * NS_PER_S
-        self.loop = SimLoop(s.mode, s.seed, s.episodes, s.terminate_on_success, start_ns, task=task)
         self.mode = s.mode
         self.wait_for_subscribers = s.wait_for_subscribers
         self.finished = Future()  # done when `episodes` episodes have run
@@ -176,8 +175,10 @@ class PusherSim(Node):
                                  diagnosis=StatusDiagnosis(idle=lambda st: f"{s.mode}, episode {st['episode']}, "
                                                                            f"{st['episodes_done']} done"),
                                  hardware_id=task.name)
-        self.estop = EStopInput(self, latch=self.loop.estop, on_engage=self.loop.estop_engaged,
-                                on_reset=self.loop.reset_faults)
+        # every endpoint before the env is built (below): what the node announces on
+        # ros_discovery_info is whole from the start, so `ros2 topic list` never sees half of it
+        self.estop = EStopInput(self, on_engage=lambda: self.loop.estop_engaged(),
+                                on_reset=lambda: self.loop.reset_faults())
         self.tripped = 0  # watchdog trips logged so far
 
         self.clock_pub = self.create_publisher(ClockMsg, "/clock", 10)
@@ -200,10 +201,8 @@ class PusherSim(Node):
             self.goal_msg.name = list(task.goal.joints)
         self.transition_pub = self.create_publisher(Float32MultiArray, "pusher/transition", TRANSITION_QOS)
         self.marker_pub = self.create_publisher(MarkerArray, MARKERS_TOPIC, 10)
-        self.arm_markers = ArmMarkers(task, task_model(task))
         self.last_markers = -float("inf")
         self.task_pub = self.create_publisher(String, "task_description", LATCHED_QOS)
-        self.task_pub.publish(String(data=task_json(task)))
         self.create_subscription(JointState, "pusher/command", lambda m: self.on_command(m, None, "pusher/command"), 10)
         for code, name in SOURCE_NAMES.items():
             topic = f"pusher/command/{name}"
@@ -220,6 +219,11 @@ class PusherSim(Node):
         self.create_subscription(String, LABEL_TOPIC, self.on_label, 10)
         self.create_service(Trigger, "pusher/reset", self.on_reset)
         self.state_msg = JointState(name=list(task.state.joints))
+
+        self.loop = SimLoop(s.mode, s.seed, s.episodes, s.terminate_on_success, start_ns, task=task,
+                            estop=self.estop.latch)
+        self.arm_markers = ArmMarkers(task, task_model(task))
+        self.task_pub.publish(String(data=task_json(task)))
 
         self.publish_state(self.loop.start_episode())
         # Wall-clock timers: the sim is the clock, so they must not wait for /clock.
