@@ -52,11 +52,11 @@ def test_sim_and_policy_report_on_diagnostics_and_warn_on_refused_states(spawn, 
             msg = JointState(name=["shoulder", "elbow"], position=[math.nan, 0.0], velocity=[0.0, 0.0])
             msg.header.stamp.sec = 1
             bad.publish(msg)
-        assert node.spin_until(lambda: level(diag.latest["/policy"]) == 1, 10), diag.seen[-5:]
+        assert node.spin_until(lambda: level(diag.latest["/policy"]) == 1, 30), diag.seen[-5:]
         warned = diag.latest["/policy"]
         assert "messages refused since the last report" in warned.message and "non-finite" in warned.message
         assert diag.values("/policy")["rejected/non-finite"] == "3"
-        assert node.spin_until(lambda: level(diag.latest["/policy"]) == 0, 10), diag.seen[-5:]
+        assert node.spin_until(lambda: level(diag.latest["/policy"]) == 0, 30), diag.seen[-5:]
         assert diag.values("/policy")["rejected/non-finite"] == "3"  # the count stays; the warning goes
 
 
