@@ -17,7 +17,8 @@ setup(
     zip_safe=True,
     maintainer="pusher-rl maintainers",
     maintainer_email="maintainers@pusher-rl.invalid",
-    description="Drives the sim with the scripted expert / random actions (or listens passively) and records a rosbag2 dataset.",
+    description="Drives the sim with the scripted expert / random actions (or listens passively) "
+                "and records a rosbag2 dataset.",
     license="Apache-2.0",
     # Kept a literal list: ros_ws/tools/ros_install.py reads it to generate lib/recorder/<exe>.
     entry_points={"console_scripts": ["node = pusher_recorder.node:main"]},

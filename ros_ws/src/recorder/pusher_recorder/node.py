@@ -487,7 +487,7 @@ def expand_topics(argv: list[str]) -> list[str]:
     while i < len(argv):
         out.append(argv[i])
         if argv[i] == "--ros-args":
-            return out + argv[i + 1 :]
+            return out + argv[i + 1:]
         flag = argv[i]
         if flag in ("--topics", "--types", "--exclude-topic-types"):
             i += 1
