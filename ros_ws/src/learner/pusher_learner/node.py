@@ -140,7 +140,7 @@ class Learner(Node):
         self.service = LearnerService(LearnerServiceConfig(
             bags=list(s.bag), out=s.out, prior=s.prior or None, task=s.task or None, seed=s.seed,
             save_every=s.save_every, resume=s.resume, session_bag=s.session_bag or None,
-            snapshot_every=s.snapshot_every, from_topics=s.from_topics, actors=tuple(s.actors),
+            snapshot_every=s.snapshot_every, from_topics=s.from_topics, actors=tuple(s.actors or ()),
             live=LiveSettings(lateness=s.lateness, quiet=s.quiet), settings=settings, train=train,
             logger=s.logger),
             log=self.get_logger().info)
