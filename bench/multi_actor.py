@@ -9,8 +9,9 @@ is nothing to time), with the same total of environment steps over its actors. T
 curve is the stage's own: the learner's snapshots every ``--eval-every`` steps, each scored
 without intervention on the held-out resets. For each arm: the learner's wall time (and
 environment steps, gradient updates) at the first snapshot at or past the threshold, the
-session's wall time, and the machine's load average sampled while it ran (the actors' nodes
-and the learner share this machine's cores with whatever else runs on it). A run whose
+session's wall time, the share of the learner's wall time spent in gradient steps, and the
+machine's load average sampled while it ran (the actors' nodes and the learner share this
+machine's cores with whatever else runs on it). A run whose
 ``summary.json`` exists is not run again. Writes the JSON and prints the table of
 bench/RESULTS.md's "Several actors, one learner" (``results_page.multi_actor_table``).
 """
@@ -64,9 +65,11 @@ def first_at(curve: list[dict], threshold: float) -> dict | None:
     return {k: point[k] for k in ("env_steps", "wall_s", "updates", "success", "ci")}
 
 
-def arm_row(actors: int, summary: dict, load: dict | None, threshold: float) -> dict:
+def arm_row(actors: int, summary: dict, load: dict | None, threshold: float, progress: dict) -> dict:
     final = summary["curve"][-1]
-    return {"actors": actors, "threshold": threshold, "reached": first_at(summary["curve"], threshold),
+    return {"actors": actors,
+            # the share of the learner's wall time spent in gradient steps: near 1, the learner bounds the session
+            "learner_train_s": progress["train_s"], "learner_wall_s": progress["wall_s"], "threshold": threshold, "reached": first_at(summary["curve"], threshold),
             "final": {k: final[k] for k in ("env_steps", "wall_s", "updates", "success", "ci")},
             "session_wall_s": summary["learner_wall_seconds"], "wall_seconds": summary["wall_seconds"],
             "counts": summary["counts"], "per_actor": summary.get("actors"), "load": load,
@@ -102,7 +105,8 @@ def main() -> int:
             print(f"  ({time.monotonic() - t0:.0f} s, load {load['mean']} mean)", file=sys.stderr, flush=True)
         elif (out / "load.json").exists():
             load = json.loads((out / "load.json").read_text())
-        rows.append(arm_row(n, json.loads((out / "summary.json").read_text()), load, args.threshold))
+        progress = json.loads((out / "learner" / "progress.jsonl").read_text().splitlines()[-1])
+        rows.append(arm_row(n, json.loads((out / "summary.json").read_text()), load, args.threshold, progress))
         write_json_atomic(args.json, {
             "title": "several actors, one learner", "arms": rows,
             "settings": {"env_steps": args.env_steps, "threshold": args.threshold, "eval_every": args.eval_every,

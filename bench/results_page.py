@@ -368,14 +368,14 @@ def hil_section(name: str, payload: dict) -> list[str]:
 def multi_actor_table(arms: list[dict]) -> str:
     """Several actors, one learner: one row per number of actors (bench/multi_actor.py prints it too)."""
     rows = ["| actors | success at the end [95 % Wilson] | env steps to the threshold | learner wall s to it "
-            "| updates by then | session wall s | updates in all | load average (mean / max) |",
-            "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+            "| updates by then | session wall s | updates in all | learner busy training | load average (mean / max) |",
+            "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for a in arms:
         f, r, load = a["final"], a["reached"], a.get("load") or {}
         reached = (f"{r['env_steps']} | {r['wall_s']:.0f} | {r['updates']}" if r else
                    f"not reached ({a['threshold']:g}) | - | -")
         rows.append(f"| {a['actors']} | {f['success']:.2f} [{f['ci'][0]:.2f}, {f['ci'][1]:.2f}] | {reached} "
-                    f"| {a['session_wall_s']:.0f} | {f['updates']} | "
+                    f"| {a['session_wall_s']:.0f} | {f['updates']} | {a['learner_train_s'] / a['learner_wall_s']:.0%} | "
                     f"{load.get('mean', '-')} / {load.get('max', '-')} |")
     return "\n".join(rows)
 
