@@ -86,6 +86,7 @@ def main() -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="runs/multi-actor")
     p.add_argument("--json", default="bench/multi_actor.json")
+    p.add_argument("--note", help="what bounded the measurement (a smaller budget or threshold), for the page")
     args = p.parse_args()
     facts = run_facts()
     rows = []
@@ -112,7 +113,7 @@ def main() -> int:
             "settings": {"env_steps": args.env_steps, "threshold": args.threshold, "eval_every": args.eval_every,
                          "eval_episodes": args.eval_episodes, "seed": args.seed, "prior": "none", "mode": "lockstep",
                          "corrector": "scripted", "task": "pusher_reach"},
-            **facts})
+            **({"note": args.note} if args.note else {}), **facts})
     print(multi_actor_table(rows))
     return 0
 
