@@ -365,6 +365,33 @@ def hil_section(name: str, payload: dict) -> list[str]:
         source_lines(name, payload) + ["", hil_table(payload["arms"]), "", "![success against environment steps](hil_online.png)", ""]
 
 
+def multi_actor_table(arms: list[dict]) -> str:
+    """Several actors, one learner: one row per number of actors (bench/multi_actor.py prints it too)."""
+    rows = ["| actors | success at the end [95 % Wilson] | env steps to the threshold | learner wall s to it "
+            "| updates by then | session wall s | updates in all | learner busy training | load average (mean / max) |",
+            "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for a in arms:
+        f, r, load = a["final"], a["reached"], a.get("load") or {}
+        reached = (f"{r['env_steps']} | {r['wall_s']:.0f} | {r['updates']}" if r else
+                   f"not reached ({a['threshold']:g}) | - | -")
+        rows.append(f"| {a['actors']} | {f['success']:.2f} [{f['ci'][0]:.2f}, {f['ci'][1]:.2f}] | {reached} "
+                    f"| {a['session_wall_s']:.0f} | {f['updates']} | {a['learner_train_s'] / a['learner_wall_s']:.0%} | "
+                    f"{load.get('mean', '-')} / {load.get('max', '-')} |")
+    return "\n".join(rows)
+
+
+def multi_actor_section(name: str, payload: dict) -> list[str]:
+    st = payload["settings"]
+    return ["## Several actors, one learner", "",
+            f"`offline-rl hil --online --actors N --no-prior` on {st['task']}, {st['mode']}, {st['corrector']} "
+            f"corrector, the learner from scratch, {st['env_steps']} environment steps in all over the actors; "
+            f"success without intervention on {st['eval_episodes']} held-out resets every {st['eval_every']} steps; "
+            f"threshold {st['threshold']:g}. Wall times are the learner's, on this machine's cores shared by every "
+            "node of every actor (and by whatever else ran, see the load).", ""] + \
+        source_lines(name, payload) + ([str(payload["note"]), ""] if payload.get("note") else [""]) + \
+        [multi_actor_table(payload["arms"]), ""]
+
+
 # ----------------------------------------------------------------------------- the best prior
 
 CHAPTER_8000 = {"BC": "0.03 / 0.07 / 0.05", "AWAC": "0.27 / 0.20 / 0.21"}  # the chapter's 8000-step runs
@@ -495,6 +522,7 @@ SECTIONS = {  # file -> its section, in the page's order (the speed sections fol
     "prior_report.json": prior_section,
     "prior_selection.json": selection_section,
     "hil_online.json": hil_section,
+    "multi_actor.json": multi_actor_section,
     "crash_safety.json": crash_section,
     "gpu_ensemble.json": gpu_ensemble_section,
 }

@@ -190,6 +190,20 @@ def test_hil_takes_its_defaults_by_mode_and_refuses_the_other_modes_flags(capsys
     assert online.out == "runs/hil-online"
 
 
+def test_bad_actor_counts_are_one_line_before_anything_starts(capsys, tmp_path):
+    out = tmp_path / "online"
+    for argv, words in (
+            (["--actors", "0"], ("--actors must be in [1, 16], got 0",)),
+            (["--actors", "2", "--in-process"], ("--actors 2 with --in-process",)),
+            (["--actors", "3", "--env-steps", "1000"], ("--env-steps is the total over the actors",
+                                                        "a multiple of 300", "got 1000"))):
+        assert cli.main(["hil", "--online", "--no-prior", "--out", str(out), *argv]) == 2, argv
+        _one_error_line(capsys, *words)
+        assert not out.exists()
+    assert cli.main(["hil", "--actors", "2"]) == 2
+    _one_error_line(capsys, "--actors: only with --online")
+
+
 def test_bag_repair_leaves_a_healthy_bag_alone(tmp_path, capsys):
     from rosbags.rosbag2 import Writer
     from rosbags.typesys import Stores, get_typestore

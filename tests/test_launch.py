@@ -111,3 +111,17 @@ def test_launched_processes_end_with_the_on_exit_node_and_stop_the_rest(tmp_path
         assert launched.wait(timeout=30) == 0
         assert launched["server"].running()  # ended by the worker, stopped on leaving the block
     assert not launched["server"].running() and "done" in (tmp_path / "worker.log").read_text()
+
+
+def test_online_launch_splits_into_one_learner_and_namespaced_actors():
+    """Several actors, one learner (hil --online --actors N): the learner alone, subscribed to
+    every actor's transitions; each actor without a learner, on the learner's weights."""
+    learner = by_label(load_launch(LAUNCH_DIR / "online.launch.yaml", {
+        "with_actor": "false", "with_corrector": "false", "actors": "/arm1, /arm2"}))
+    assert list(learner) == ["learner"] and learner["learner"].params["actors"] == ["/arm1", "/arm2"]
+    actor = load_launch(LAUNCH_DIR / "online.launch.yaml", {
+        "with_learner": "false", "namespace": "/arm2", "weights_topic": "/learner/weights"})
+    assert [n.label for n in actor] == ["policy", "mux", "corrector", "recorder", "sim"]
+    assert {n.namespace for n in actor} == {"/arm2"}
+    assert by_label(actor)["policy"].params["weights_topic"] == "/learner/weights"
+    assert by_label(load_launch(LAUNCH_DIR / "online.launch.yaml", {}))["learner"].params["actors"] == []

@@ -1,6 +1,8 @@
 """The online (HIL-SERL) learner: learning from a live stream on a schedule set by counts,
 resuming where it saved, and the in-process stage that the ROS stage is measured against."""
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -220,6 +222,34 @@ def test_a_killed_learner_resumes_from_its_state_and_the_session_bag(tmp_path, f
     _drain(resumed)
     assert resumed.learner.version == whole.learner.version == 4
     assert torch.equal(_flat(resumed.learner.weights()), _flat(whole.learner.weights()))
+
+
+def test_several_actors_feed_one_learner_counted_by_namespace(tmp_path, files):
+    """``actors``: each actor's transitions are trained on and counted under its namespace
+    (status and progress.jsonl); a namespace that is none, or one named twice, is one line."""
+    from offline_rl_core.common.errors import UserError
+    from offline_rl_core.data.bag.cdr import encode_transition_rows
+
+    d, stream = files
+    service = _service(tmp_path, d / "offline.db3", d / "prior.pt", "actors", actors=("/arm1", "/arm2"))
+    assert [topic for _, topic in service.transition_topics] == ["/arm1/pusher/transition", "/arm2/pusher/transition"]
+    payloads = encode_transition_rows(stream.to_rows())
+    for i, payload in enumerate(payloads[:30]):
+        assert service.receive(payload, "/arm1" if i % 3 else "/arm2") is None
+    versions = _drain(service)
+    assert service.learner.n_online == 30 and [v["weights_version"] for v in versions] == [1, 2, 3]
+    assert service.status()["received_from"] == {"/arm1": 20, "/arm2": 10}
+    last = json.loads((tmp_path / "actors" / "progress.jsonl").read_text().splitlines()[-1])
+    assert last["received_from"] == {"/arm1": 20, "/arm2": 10} and last["trained_through"] == 30
+    service.actor_estops["/arm2"].on_estop(True)  # one arm's own e-stop: only its steps are dropped
+    assert service.receive(payloads[30], "/arm2") == "a transition while the e-stop is engaged: not trained on"
+    assert service.receive(payloads[31], "/arm1") is None
+    assert service.status()["received_from"] == {"/arm1": 21, "/arm2": 10}
+    for actors, expected in ((("arm1",), "'arm1' is no namespace"), (("/arm1", "/arm1"), "names an actor twice")):
+        with pytest.raises(UserError, match=f"parameter actors: .*{expected}"):
+            _service(tmp_path, d / "offline.db3", d / "prior.pt", "bad_actors", actors=actors)
+    alone = _service(tmp_path, d / "offline.db3", d / "prior.pt", "alone")
+    assert alone.transition_topics == [(None, "pusher/transition")] and "received_from" not in alone.status()
 
 
 def test_a_paced_actor_waits_for_the_learners_own_weights(offline, prior):

@@ -109,6 +109,52 @@ def test_a_killed_learner_restarts_and_the_session_ends_as_if_it_never_died(ros_
     _assert_same_weights(out / "learner" / "policy.pt", reference)
 
 
+def _provenance_versions(bag) -> list[int]:
+    """The weights version of every answer a policy node recorded on policy/provenance."""
+    from rosbags.typesys import Stores, get_typestore
+
+    from offline_rl_core.data.bag.reader import open_bag, one_topic
+
+    typestore = get_typestore(Stores.ROS2_HUMBLE)
+    with open_bag(bag) as reader:
+        topic = one_topic(reader, "/policy/provenance")
+        connections = [c for c in reader.connections if c.topic == topic]
+        return [json.loads(typestore.deserialize_cdr(bytes(raw), "std_msgs/msg/String").data)["weights_version"]
+                for _, _, raw in reader.messages(connections=connections)]
+
+
+@pytest.mark.slow
+def test_two_actors_in_two_namespaces_feed_one_learner_and_act_on_its_weights(ros_env, tmp_path, prior):
+    """--actors 2: two sims (/arm1, /arm2), each with its policy node, mux and corrector, and one
+    learner. The learner trains on both actors' transitions, counted by namespace; each actor
+    records only its own; both policy nodes act on the learner's new weights, paced to the
+    version that holds about as many steps of each actor as they have taken."""
+    from offline_rl_core.data.bag import read_transitions
+
+    out = tmp_path / "online"
+    cmd = [sys.executable, "-m", "offline_rl_core", "hil", "--online", "--actors", "2", "--env-steps", "400",
+           "--publish-every", "25", "--eval-every", "100", "--eval-episodes", "2", "--prior", str(prior),
+           "--out", str(out), "--logger", "none"]
+    proc = subprocess.run(cmd, env=ros_env, cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    progress = [json.loads(line) for line in (out / "learner" / "progress.jsonl").read_text().splitlines()]
+    assert progress[-1]["trained_through"] == 400 and progress[-1]["weights_version"] == 16
+    assert progress[-1]["received_from"] == {"/arm1": 200, "/arm2": 200}  # the learner's replay: both actors
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["counts"]["steps"] == 400 and [p["env_steps"] for p in summary["curve"]] == [0, 100, 200, 300, 400]
+    assert {ns: a["trained_on"] for ns, a in summary["actors"].items()} == {"/arm1": 200, "/arm2": 200}
+    sessions = {ns: read_transitions(out / ns / "session.db3") for ns in ("arm1", "arm2")}
+    for ns, session in sessions.items():
+        assert len(session) == 200 and len(np.unique(session.episode)) == 2, ns  # its own steps only
+    # each its own block of the training resets: the arms start from other states
+    assert not np.array_equal(sessions["arm1"].obs[0], sessions["arm2"].obs[0])
+    for ns in ("arm1", "arm2"):
+        versions = _provenance_versions(out / ns / "session.db3")
+        assert versions == sorted(versions) and versions[-1] > versions[0], ns  # the learner's versions, newer on
+        # state n waits for version n // 13 (publish_every / 2 actors): the last of 200 states acts on 15 or newer
+        assert versions[-1] >= 15, (ns, versions[-20:])
+
+
 @pytest.mark.slow
 def test_on_raw_topics_the_learner_trains_on_the_batch_join_of_the_sessions_recording(ros_env, tmp_path, prior):
     """The stage against an arm that publishes only standard topics (--from-topics): the

@@ -17,7 +17,7 @@ from ..runs.loggers import DEFAULT_LOGGER, LOGGERS
 OFFLINE_ONLY = ("rounds", "episodes", "steps", "correction_ratio", "beta", "patience", "hold_steps", "grace_steps",
                 "noise", "reaction_delay")
 ONLINE_ONLY = ("env_steps", "corrector", "mode", "prior_algo", "no_prior", "utd", "publish_every", "eval_every",
-               "in_process", "from_topics", "success", "end_on_success")
+               "in_process", "from_topics", "success", "end_on_success", "actors")
 
 
 def _resolve_mode_flags(args) -> None:
@@ -61,7 +61,7 @@ def _run_online(args) -> int:
         bags=args.bag, task=args.task, corrector=args.corrector, mode=args.mode, utd=args.utd,
         publish_every=args.publish_every, eval_every=args.eval_every, eval_episodes=args.eval_episodes,
         eval_seed=args.eval_seed, in_process=args.in_process, from_topics=args.from_topics, success=args.success,
-        end_on_success=args.end_on_success)
+        end_on_success=args.end_on_success, actors=args.actors)
     summary = run_hil_online(cfg, logger=args.logger)
     print(json.dumps({k: summary[k] for k in ("prior_success", "final_success", "final_ci", "to", "intervention_rate",
                                               "wall_seconds")}))
@@ -136,6 +136,10 @@ def register(subparsers) -> None:
     o.add_argument("--from-topics", action="store_true", default=None,
                    help="the learner builds its transitions live from the task's raw topics (joint states, commands, "
                         "goal), as a robot that publishes only standard topics has them, instead of pusher/transition")
+    o.add_argument("--actors", type=int, metavar="N",
+                   help="N sims, each with its policy node, mux and corrector in namespace /arm1 ... /armN, feed the "
+                        "one learner over DDS and act on its weights; --env-steps is the total over them "
+                        f"(default: {od.actors})")
     o.add_argument("--success", metavar="CLASSIFIER", help="with --in-process: a success classifier (`offline-rl "
                    "classifier train`) judges each state's success for the learner's reward and the episode's end, "
                    "instead of the simulator (which is still counted beside it, never trained on)")

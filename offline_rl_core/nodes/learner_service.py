@@ -71,10 +71,24 @@ class LearnerServiceConfig:
     snapshot_every: int = 0  # live transitions between kept copies of the weights (0: none)
     task: str | None = None  # a built-in task or a task file; None: the prior's, else the bags'
     from_topics: bool = False  # build the live transitions from the task's raw topics
+    actors: tuple[str, ...] = ()  # the actors' namespaces, when several feed this learner (counted apart)
     live: LiveSettings = field(default_factory=LiveSettings)
     logger: str = DEFAULT_LOGGER  # where each version's losses and rates go besides progress.jsonl
     settings: OnlineSettings = field(default_factory=OnlineSettings)
     train: TrainConfig = field(default_factory=lambda: TrainConfig(algo="sac"))
+
+
+def actor_transition_topics(actors: tuple[str, ...] | list[str]) -> list[tuple[str | None, str]]:
+    """The (actor, topic) pairs a learner subscribes: each actor namespace's
+    ``pusher/transition``, or (no actors given) the one in the learner's own namespace."""
+    if not actors:
+        return [(None, "pusher/transition")]
+    bad = [ns for ns in actors if not ns.startswith("/") or ns == "/" or ns.endswith("/") or " " in ns]
+    if bad:
+        raise UserError(f"parameter actors: {bad[0]!r} is no namespace; expected absolute names such as /arm1")
+    if len(set(actors)) != len(actors):
+        raise UserError(f"parameter actors: {', '.join(actors)} names an actor twice")
+    return [(ns, f"{ns}/pusher/transition") for ns in actors]
 
 
 def check_row(row: np.ndarray, layout: Layout = PUSHER_LAYOUT) -> Rejection | None:
@@ -113,6 +127,10 @@ class LearnerService:
 
         self.cfg, self.log = cfg, log
         self.out = check_output_dir(cfg.out, "parameter out:")  # before the bags load: a bad path is refused at once
+        self.transition_topics = actor_transition_topics(cfg.actors)
+        if cfg.actors and cfg.from_topics:
+            raise UserError("parameter actors: several actors feed the learner on their pusher/transition; "
+                            "from_topics joins one robot's raw topics")
         check_logger(cfg.logger, "parameter logger:")
         self.out.mkdir(parents=True, exist_ok=True)
         prior = load_checkpoint(cfg.prior) if cfg.prior else None  # validated as the policy node validates it
@@ -139,7 +157,11 @@ class LearnerService:
             raise UserError(f"{cfg.prior}: {exc}") from None
         self.rejected = RejectionCounter()  # live transitions refused, by reason (never trained on)
         self.estop = EStopLatch()  # while engaged, every live transition is dropped (counted as estop)
+        # each actor's own e-stop: while engaged, that actor's transitions are dropped
+        self.actor_estops = {ns: EStopLatch() for ns in cfg.actors}
         self.received = 0  # live transitions accepted since this process started
+        # accepted transitions by actor namespace, when several actors feed this learner
+        self.received_from: dict[str, int] = {ns: 0 for ns in cfg.actors}
         self.started = time.monotonic()
         self.last_save = time.monotonic()
         if cfg.snapshot_every and cfg.snapshot_every % cfg.settings.publish_every:
@@ -181,9 +203,11 @@ class LearnerService:
         return Transitions.concatenate(parts), summaries
 
     # ---------------------------------------------------------------- input
-    def receive(self, raw: bytes) -> Rejection | None:
-        """One raw ``/pusher/transition``; returns why it was rejected (counted), or None."""
-        if self.estop.engaged:  # the arm applies the safe command: those steps say nothing of the policy
+    def receive(self, raw: bytes, actor: str | None = None) -> Rejection | None:
+        """One raw ``/pusher/transition`` (of the actor in namespace ``actor``, when several
+        feed the learner); returns why it was rejected (counted), or None."""
+        if self.estop.engaged or (actor is not None and self.actor_estops[actor].engaged):
+            # the arm applies the safe command: those steps say nothing of the policy
             rejection = Rejection("estop", "a transition while the e-stop is engaged: not trained on")
             self.rejected.add(rejection)
             return rejection
@@ -198,6 +222,8 @@ class LearnerService:
             return rejection
         self.learner.add(Transitions.from_rows(row[None], self.layout))
         self.received += 1
+        if actor is not None:
+            self.received_from[actor] += 1
         return None
 
     def receive_message(self, topic: str, msgtype: str, raw: bytes, recv_ns: int) -> Rejection | None:
@@ -273,6 +299,7 @@ class LearnerService:
         line = {"weights_version": weights["weights_version"], "trained_through": weights["trained_through"],
                 "updates": self.learner.updates, "received": self.learner.n_online, "human": self.learner.n_human,
                 "rejected": self.rejected.total, "train_s": round(self.learner.train_seconds, 3),
+                **({"received_from": dict(self.received_from)} if self.received_from else {}),
                 "wall_s": round(time.monotonic() - self.started, 3),
                 **{k: round(v, 6) for k, v in self.learner.losses.items() if math.isfinite(v)}}
         with open(self.out / "progress.jsonl", "a", encoding="utf-8") as f:
@@ -364,9 +391,13 @@ class LearnerService:
     def status(self) -> dict:
         learner = self.learner
         live = {"steps": learner.n_steps, "join": self.live.counts.as_dict()} if self.live is not None else {}
-        return {"received": learner.n_online, **live, "evicted": learner.n_evicted, "updates": learner.updates,
+        actors = {"received_from": dict(self.received_from)} if self.received_from else {}
+        return {"received": learner.n_online, **live, **actors, "evicted": learner.n_evicted,
+                "updates": learner.updates,
                 "owed": learner.updates_owed,
                 "weights_version": learner.version, "rejected": dict(self.rejected.counts),
                 "estop": self.estop.as_dict(),
+                **({"actor_estops": {ns: latch.as_dict() for ns, latch in self.actor_estops.items()}}
+                   if self.actor_estops else {}),
                 **({} if self.offline_estop_dropped is None else {"offline_estop_dropped": self.offline_estop_dropped}),
                 "train_s": round(learner.train_seconds, 2), **{k: round(v, 5) for k, v in learner.losses.items()}}

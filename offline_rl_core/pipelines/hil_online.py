@@ -50,6 +50,8 @@ from ..task.spec import DEFAULT_TASK, TaskSpec, load_task
 DEFAULT_BAG = "bags/mix.db3"
 THRESHOLDS = (0.5, 0.8, 0.9, 0.95)
 MAX_LEARNER_RESTARTS = 3
+MAX_ACTORS = 16
+ACTOR_SEED_STRIDE = 100  # actor i of several explores (and is corrected) with seed 100 * seed + i
 REALTIME_THREAD_PRIORITY = 50  # as ros2_control's controller manager
 RECORDER_GRACE_S = 20.0  # after the sim's last episode, for the recorder to write it and end
 
@@ -77,6 +79,12 @@ class OnlineHilConfig:
     from_topics: bool = False  # the learner joins the task's raw topics instead of pusher/transition
     success: str | None = None  # in process: a success classifier judges success, not the simulator
     end_on_success: bool = False  # in process: an episode ends where success is judged
+    actors: int = 1  # over ROS: sims (each with its policy node, mux and corrector) feeding the one learner
+
+    @property
+    def namespaces(self) -> list[str]:
+        """The actors' namespaces: the pipeline's own for one actor, /arm1 ... /armN for several."""
+        return [""] if self.actors == 1 else [f"/arm{i}" for i in range(1, self.actors + 1)]
 
     @property
     def raw_topics(self) -> bool:
@@ -122,6 +130,14 @@ class OnlineHilConfig:
         if self.raw_topics and self.in_process:
             raise UserError("--in-process runs the stage without ROS, on no topics; --from-topics joins "
                             "a robot's topics over ROS")
+        if not 1 <= self.actors <= MAX_ACTORS:
+            raise UserError(f"--actors must be in [1, {MAX_ACTORS}], got {self.actors}")
+        if self.actors > 1:
+            given = [flag for flag, value in (("--in-process", self.in_process), ("--from-topics", self.raw_topics),
+                                              ("--corrector keyboard", self.corrector == "keyboard")) if value]
+            if given:
+                raise UserError(f"--actors {self.actors} with {', '.join(given)}: several actors feed the learner "
+                                "over ROS on their pusher/transition, each with a scripted corrector or none")
 
     def check_task(self, task: TaskSpec) -> None:
         """What the run's task must allow: a sim that hosts it (the arm of the session and the
@@ -135,6 +151,9 @@ class OnlineHilConfig:
         if not early_ends and (self.env_steps < steps or self.env_steps % steps):
             raise UserError(f"--env-steps must be a positive multiple of {steps} (whole episodes of task "
                             f"{task.name}), got {self.env_steps}")
+        if self.env_steps % (steps * self.actors):
+            raise UserError(f"--env-steps is the total over the actors: with --actors {self.actors} a multiple of "
+                            f"{steps * self.actors} (whole episodes of task {task.name} each), got {self.env_steps}")
 
 
 def run_hil_online(cfg: OnlineHilConfig, log: Callable[[str], None] = lambda s: print(s, file=sys.stderr, flush=True),
@@ -234,40 +253,42 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
         raise UserError("--online takes one offline bag (merge several with offline-rl dataset first)")
     # this session's weights key pair: the policy node takes only weights the learner signed with it
     arguments["keys"] = make_session_keys(out / "keys").signing_key.parent
-    log(f"hil online: {cfg.env_steps} environment steps ({episodes} episodes, {cfg.mode}) with the "
+    over = f" over {cfg.actors} actors ({', '.join(cfg.namespaces)})" if cfg.actors > 1 else ""
+    log(f"hil online: {cfg.env_steps} environment steps ({episodes} episodes{over}, {cfg.mode}) with the "
         f"{cfg.corrector} corrector, learner utd {cfg.utd}, weights every {cfg.publish_every} steps -> {out} "
         f"(ROS_DOMAIN_ID {loop.env['ROS_DOMAIN_ID']})")
-    ready = {"learner": "learning from", "policy": "serving", "recorder": "recording"}
-    stopped_recorder = False
-    if lockstep:
-        ready["mux"] = "mux lockstep"
-    launched = loop.launch("online.launch.yaml", arguments, out / "logs", ready=ready, timeout=120.0)
+    launched = _launch(cfg, loop, arguments, out)
     person = _keyboard_corrector(loop, log) if cfg.corrector == "keyboard" else None
     started = time.monotonic()
-    shown, restarts, sim_done = 0, 0, 0.0
+    shown, restarts, sim_done = 0, 0, {}
+    stopped_recorder = False
+    actors = [ns.strip("/") + "/" if ns else "" for ns in cfg.namespaces]  # each actor's label prefix
     log(f"hil online: learner pid {launched['learner'].pid}")
     while launched.finished() is None:
         if time.monotonic() - started > cfg.timeout:
             raise UserError(f"the session did not finish within {cfg.timeout:.0f} s; see {out / 'logs'}")
-        if not launched["learner"].running() and restarts < MAX_LEARNER_RESTARTS:
+        if not launched["learner"].running() and restarts < MAX_LEARNER_RESTARTS and cfg.actors == 1:
             restarts += 1
             _restart_learner(cfg, loop, launched, learner_dir, out, restarts, log)
-        for name in ("learner", "policy", "sim"):
+        for name in ["learner"] + [actor + node for actor in actors for node in ("policy", "sim")]:
             proc = launched[name]
             if proc.running() or launched.finished() is not None:
                 continue
-            if name == "sim" and proc.poll() == 0 and cfg.raw_topics:
+            recorder = launched[name[:-len("sim")] + "recorder"] if name.endswith("sim") else None
+            if recorder is not None and proc.poll() == 0 and cfg.raw_topics:
                 # the sim ran its episodes: once the learner has every step, the recording ends
                 _wait_for_the_learner(cfg, launched, learner_dir, None, log)
                 stopped_recorder = launched["recorder"].stop(signal.SIGINT, timeout=60.0) is not None
                 break
-            if name == "sim" and proc.poll() == 0:
+            if recorder is not None and proc.poll() == 0:
+                if not recorder.running():
+                    continue  # this actor is done; the others still run
                 # the sim ran its episodes: the recorder ends once it has written the last one
-                sim_done = sim_done or time.monotonic()
-                if time.monotonic() - sim_done < RECORDER_GRACE_S:
+                done = sim_done.setdefault(name, time.monotonic())
+                if time.monotonic() - done < RECORDER_GRACE_S:
                     continue
-                raise UserError(f"the sim ran its {episodes} episodes but the recorder did not end within "
-                                f"{RECORDER_GRACE_S:.0f} s; see {out / 'logs' / 'recorder.log'}")
+                raise UserError(f"the sim ran its {episodes // cfg.actors} episodes but the recorder did not end "
+                                f"within {RECORDER_GRACE_S:.0f} s; see {recorder.log_path}")
             raise UserError(f"the {name} node stopped (exit {proc.poll()}); see {proc.log_path}:\n"
                             + "\n".join(proc.output().rstrip().splitlines()[-12:]))
         if person is not None and person.poll() is not None:
@@ -287,23 +308,77 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
     ended = launched.finished()
     rc = 0 if ended is None or stopped_recorder else ended.poll()
     wall = time.monotonic() - started
+    bags = [out / ns.strip("/") / "session.db3" for ns in cfg.namespaces]
     if ended is not None and rc == 0 and not cfg.raw_topics:
-        _wait_for_the_learner(cfg, launched, learner_dir, out / "session.db3", log)
+        _wait_for_the_learner(cfg, launched, learner_dir, bags, log)
     loop.stop_all()  # the learner saves its resume point and final weights on the way out
     if person is not None:
         _stop(person)
     if rc != 0:
-        raise UserError(f"the recorder failed (exit {rc}); see {out / 'logs' / 'recorder.log'}")
+        raise UserError(f"the recorder failed (exit {rc}); see {ended.log_path}")
     log(f"hil online: session done in {wall:.0f} s; scoring the learner's snapshots on {cfg.eval_episodes} "
         f"held-out resets each")
-    session = session_transitions(cfg, out / "session.db3")
-    curve = _score_snapshots(cfg, learner_dir, session)
-    human = session.source == SOURCE_HUMAN
-    counts = {"steps": len(session), "human": int(human.sum()),
-              "takeovers": int(np.sum(human[1:] & ~human[:-1] & (session.episode[1:] == session.episode[:-1]))),
-              "episodes": int(len(np.unique(session.episode)))}
+    sessions = [session_transitions(cfg, bag) for bag in bags]
+    curve = _score_snapshots(cfg, learner_dir, sessions)
+    per_actor = {ns: _session_counts(session) for ns, session in zip(cfg.namespaces, sessions)}
+    counts = {key: sum(c[key] for c in per_actor.values()) for key in ("steps", "human", "takeovers", "episodes")}
     counts["learner_restarts"] = restarts
-    return {"curve": curve, "counts": counts, "learner_seconds": round(wall, 2), "where": "over ROS"}
+    result = {"curve": curve, "counts": counts, "learner_seconds": round(wall, 2), "where": "over ROS"}
+    if cfg.actors > 1:
+        progress = _last_progress(learner_dir / "progress.jsonl") or {}
+        result["actors"] = {ns: {**c, "trained_on": progress.get("received_from", {}).get(ns, 0)}
+                            for ns, c in per_actor.items()}
+    return result
+
+
+def _session_counts(session) -> dict:
+    human = session.source == SOURCE_HUMAN
+    return {"steps": len(session), "human": int(human.sum()),
+            "takeovers": int(np.sum(human[1:] & ~human[:-1] & (session.episode[1:] == session.episode[:-1]))),
+            "episodes": int(len(np.unique(session.episode)))}
+
+
+def _launch(cfg: OnlineHilConfig, loop, arguments: dict, out: Path):
+    """Start the stage's nodes: one launch of online.launch.yaml for one actor; for several,
+    the learner alone (subscribed to every actor's transitions) and then each actor in its
+    namespace, its files under OUT/armN, its policy node on the learner's weights."""
+    from .processes import LaunchedProcesses
+
+    lockstep = cfg.mode == "lockstep"
+    ready = {"learner": "learning from", "policy": "serving", "recorder": "recording"}
+    if lockstep:
+        ready["mux"] = "mux lockstep"
+    if cfg.actors == 1:
+        return loop.launch("online.launch.yaml", arguments, out / "logs", ready=ready, timeout=120.0)
+    parts = {"": LaunchedProcesses.of("pusher_bringup", "online.launch.yaml", {
+        **arguments, "with_actor": "false", "with_corrector": "false", "actors": ", ".join(cfg.namespaces)},
+        loop.env, out / "logs")}
+    episodes = arguments["episodes"] // cfg.actors
+    for i, ns in enumerate(cfg.namespaces):
+        parts[ns.strip("/")] = LaunchedProcesses.of("pusher_bringup", "online.launch.yaml", {
+            **arguments, "namespace": ns, "out": out / ns.strip("/"), "with_learner": "false",
+            "weights_topic": "/learner/weights", "episodes": episodes,
+            # the actors share the single actor's training resets, a block each, and explore apart
+            "reset_seed": arguments["reset_seed"] + i * episodes, "seed": ACTOR_SEED_STRIDE * cfg.seed + i + 1,
+            # state n of an actor waits for the version that holds about n steps of every actor:
+            # no actor runs ahead of what the learner has trained on, and the slowest never waits
+            "paced_every": -(-cfg.publish_every // cfg.actors) if lockstep else 0,
+            # its own pipeline's topics (every topic would be every actor's)
+            "record_topics": _actor_record_topics()}, loop.env, out / ns.strip("/") / "logs")
+    launched = LaunchedProcesses.together(parts)
+    loop.procs.extend(launched.processes.values())  # stopped by stop_all, whatever happens
+    return launched.start(ready={f"{part}/{label}" if part else label: text for part in parts
+                                 for label, text in ready.items() if (label == "learner") == (part == "")},
+                          timeout=120.0)
+
+
+def _actor_record_topics() -> str:
+    """The recorder's --topics for one actor of several: the topics of its namespace's
+    pipeline (the sros2 policy's list for a recorder), not the learner's weights."""
+    from ..nodes.sros2_policy import NODE_GRAPH
+
+    return "--topics " + " ".join(t for t in NODE_GRAPH["recorder"].subscribe
+                                  if not t.startswith("/") and t != "learner/weights")
 
 
 def session_transitions(cfg: OnlineHilConfig, bag: Path):
@@ -332,13 +407,14 @@ def _record_topics(cfg: OnlineHilConfig) -> str:
             f"--types {' '.join(f'{r.given}:{r.types[0]}' for r in roles if r.types and len(r.types) == 1)}")
 
 
-def _wait_for_the_learner(cfg, launched, learner_dir: Path, session_bag: Path | None, log,
+def _wait_for_the_learner(cfg, launched, learner_dir: Path, session_bags: list[Path] | None, log,
                           timeout: float = 300.0) -> None:
     """The session is recorded: let the learner cut the version that holds its last whole
     ``publish_every`` environment steps before it is stopped (a restarted learner can be
     behind), so the final weights are those of a learner that never stopped. Raw topics:
-    every step but the session's last (which only a later state could close) is live."""
-    if session_bag is None:
+    every step but the session's last (which only a later state could close) is live.
+    ``session_bags``: the recordings of the session's actors (None: raw topics)."""
+    if session_bags is None:
         recorded = cfg.env_steps - 1
         deadline = time.monotonic() + timeout
         while launched["learner"].running() and time.monotonic() < deadline:
@@ -351,7 +427,7 @@ def _wait_for_the_learner(cfg, launched, learner_dir: Path, session_bag: Path | 
     else:
         from ..data.bag import read_transitions
 
-        recorded = len(read_transitions(session_bag))
+        recorded = sum(len(read_transitions(bag)) for bag in session_bags)
     last = recorded - recorded % cfg.publish_every
     deadline = time.monotonic() + timeout
     while launched["learner"].running() and time.monotonic() < deadline:
@@ -436,10 +512,10 @@ def _last_progress(path: Path) -> dict | None:
         return None
 
 
-def _score_snapshots(cfg: OnlineHilConfig, learner_dir: Path, session) -> list[dict]:
+def _score_snapshots(cfg: OnlineHilConfig, learner_dir: Path, sessions: list) -> list[dict]:
     """The learning curve: each kept snapshot scored on the held-out resets, with the
-    intervention rate of the ``session`` transitions (the recording) before it."""
-    human = session.source == SOURCE_HUMAN
+    intervention rate of the session's transitions (each actor's recording) before it."""
+    humans = [session.source == SOURCE_HUMAN for session in sessions]
     progress = {}
     for line in (learner_dir / "progress.jsonl").read_text().splitlines():
         row = json.loads(line)
@@ -455,7 +531,8 @@ def _score_snapshots(cfg: OnlineHilConfig, learner_dir: Path, session) -> list[d
         task = load_task(cfg.task)
         ev = evaluate_policy(load_policy(path, task), cfg.eval_episodes, cfg.eval_seed, task=task)
         lo, hi = wilson_ci(ev["successes"], ev["episodes"])
-        window = human[previous:n]
+        # paced, the actors keep in step: each had taken about its share of the learner's steps
+        window = np.concatenate([human[previous // len(humans):n // len(humans)] for human in humans])
         p = progress.get(n, {})
         curve.append({"env_steps": n, "wall_s": float(ckpt.get("wall_s", 0.0)), "updates": int(ckpt.get("updates", 0)),
                       "weights_version": int(ckpt.get("weights_version", 0)), "success": ev["success_rate"],
@@ -481,6 +558,7 @@ def _summary(cfg: OnlineHilConfig, result: dict, prior_path, prior_from: str, wa
         "prior_success": curve[0]["success"],
         "counts": result["counts"],
         "intervention_rate": round(result["counts"]["human"] / max(result["counts"]["steps"], 1), 4),
+        **({"actors": result["actors"]} if "actors" in result else {}),  # several actors: each one's counts
         "prior": None if prior_path is None else str(prior_path),
         "prior_from": prior_from,
         "config": asdict(cfg),

@@ -168,11 +168,30 @@ class LaunchedProcesses:
     def __init__(self, nodes: list, env: dict, log_dir: str | Path, cwd: str | Path | None = None):
         self.nodes = nodes
         self.processes: dict[str, RosProcess] = {}
+        self.labels = [node.label for node in nodes]  # each node's key in processes
+        self.end_with_all = False  # together: the launch ends when every part's on_exit node has
         for node in nodes:
             label = node.label
             if label in self.processes:
                 raise UserError(f"two nodes named {label!r} in one launch")
             self.processes[label] = RosProcess(node.command(), env, Path(log_dir) / f"{label}.log", cwd=cwd, name=label)
+
+    @classmethod
+    def together(cls, parts: dict[str, "LaunchedProcesses"]) -> "LaunchedProcesses":
+        """Several launches as one (not started yet), their nodes labelled ``PART/label`` (a
+        part named "" keeps its labels), started part by part; it ends when every
+        ``on_exit: shutdown`` node of them has ended (each part is one robot of several)."""
+        merged = cls([], {}, ".")
+        merged.end_with_all = True
+        for part, launched in parts.items():
+            for node, label in zip(launched.nodes, launched.labels):
+                key = f"{part}/{label}" if part else label
+                if key in merged.processes:
+                    raise UserError(f"two nodes named {key!r} in one launch")
+                merged.nodes.append(node)
+                merged.labels.append(key)
+                merged.processes[key] = launched.processes[label]
+        return merged
 
     @classmethod
     def of(cls, package: str, file_name: str, arguments: dict, env: dict, log_dir: str | Path) -> "LaunchedProcesses":
@@ -197,9 +216,14 @@ class LaunchedProcesses:
         return self
 
     def finished(self) -> RosProcess | None:
-        """The process that ended the launch: the first ``on_exit: shutdown`` node to exit,
-        or, where no node is marked, the last one once all have exited."""
-        marked = [self.processes[n.label] for n in self.nodes if n.shutdown_on_exit]
+        """The process that ended the launch: the first ``on_exit: shutdown`` node to exit
+        (together: once all have, the first that failed, else the last), or, where no node
+        is marked, the last one once all have exited."""
+        marked = [self.processes[label] for n, label in zip(self.nodes, self.labels) if n.shutdown_on_exit]
+        if marked and self.end_with_all:
+            if any(p.running() for p in marked):
+                return None
+            return next((p for p in marked if p.poll() != 0), marked[-1])
         if marked:
             return next((p for p in marked if not p.running()), None)
         procs = list(self.processes.values())

@@ -2,14 +2,14 @@
 
 ``ros2 run learner node --bag bags/mix.db3 --prior runs/demo/awac/policy.pt``. Subscribes
 to the live ``pusher/transition`` stream (every source: the policy's steps and a person's
-takeovers), keeps it in an online buffer beside the offline bag(s), trains
-continuously (``utd`` gradient steps per transition, half of each batch from the offline
-data), and every ``publish_every`` transitions publishes a new weights version on
-``~/weights`` (``std_msgs/UInt8MultiArray``, layout label ``pusher-rl/weights``: raw tensors
-with a JSON header, signed with the session's private key ``signing_key``, see
-``offline_rl_core.serving.weights``; reliable, transient local, so a policy node that starts
-late gets the latest). The policy node acts on them (``-p weights_topic:=/learner/weights``
-with ``-p weights_key:=`` the session's public key).
+takeovers; with ``-p actors:=[/arm1, /arm2]`` that of each actor namespace, counted apart),
+keeps it in an online buffer beside the offline bag(s), trains continuously (``utd`` gradient
+steps per transition, half of each batch from the offline data), and every ``publish_every``
+transitions publishes a new weights version on ``~/weights`` (``std_msgs/UInt8MultiArray``,
+layout label ``pusher-rl/weights``: raw tensors with a JSON header, signed with the session's
+private key ``signing_key``, see ``offline_rl_core.serving.weights``; reliable, transient
+local, so a policy node that starts late gets the latest). The policy node acts on them
+(``-p weights_topic:=/learner/weights`` with ``-p weights_key:=`` the session's public key).
 ``OUT/policy.pt`` always holds the latest version; ``OUT/learner_state.pt`` is a resume point
 (every ``save_every`` s and at exit); ``--resume`` continues from it, reading the
 transitions that arrived while it was down from ``--session-bag`` (the session's
@@ -17,7 +17,8 @@ recording). ``~/status`` (``std_msgs/String``, JSON, once a second; ``pusher_com
 counts, losses, rejections by reason. A transition with a non-finite value, an action
 outside [-1, 1], a value out of range or an unknown layout is dropped, counted and warned
 about (throttled), never trained on; so is every transition that comes while the e-stop is
-engaged (``estop``, released only by ``estop/reset``: ``pusher_common.estop``). The
+engaged (``estop``, released only by ``estop/reset``: ``pusher_common.estop``), and every
+transition of an actor while that actor's own e-stop (``/arm1/estop``) is engaged. The
 learner trains on the wall clock: with ``use_sim_time`` its work still runs (the sim's
 clock waits for the policy, which waits for the learner's weights).
 
@@ -103,6 +104,8 @@ PARAMS = [
     Param("resume", False, "continue from OUT/learner_state.pt", read_only=True, flag="--resume"),
     Param("session_bag", None, "the session's recording, to read back transitions missed while down (with --resume)",
           read_only=True, flag="--session-bag", kind=str),
+    Param("actors", [], "namespaces of the actors (sim and policy node each) whose pusher/transition the learner "
+          "trains on, e.g. [/arm1, /arm2]; none: its own namespace's", read_only=True, flag="--actors", kind=list),
     Param("from_topics", False, "build the live transitions from the task's raw topics (joint states, commands, "
           "goal) instead of pusher/transition", read_only=True, flag="--from-topics"),
     Param("lateness", _L.lateness, "raw topics: seconds of stamps a silent topic (a goal sent once an episode) is "
@@ -137,7 +140,7 @@ class Learner(Node):
         self.service = LearnerService(LearnerServiceConfig(
             bags=list(s.bag), out=s.out, prior=s.prior or None, task=s.task or None, seed=s.seed,
             save_every=s.save_every, resume=s.resume, session_bag=s.session_bag or None,
-            snapshot_every=s.snapshot_every, from_topics=s.from_topics,
+            snapshot_every=s.snapshot_every, from_topics=s.from_topics, actors=tuple(s.actors or ()),
             live=LiveSettings(lateness=s.lateness, quiet=s.quiet), settings=settings, train=train,
             logger=s.logger),
             log=self.get_logger().info)
@@ -146,6 +149,8 @@ class Learner(Node):
                                  diagnosis=StatusDiagnosis(checks=(learner_checks,), idle=lambda st: (
                                      f"weights version {st['weights_version']}, {st['updates']} updates")))
         self.estop = EStopInput(self, latch=self.service.estop)
+        self.actor_estops = [EStopInput(self, latch=latch, namespace=ns)
+                             for ns, latch in self.service.actor_estops.items()]
         self.raw_subs: dict[str, object] = {}  # topic -> subscription (raw topics)
         self.first_published = False
         # wall-clock timers, also under use_sim_time: a timer on sim time would wait for a
@@ -156,9 +161,10 @@ class Learner(Node):
             self.create_timer(DISCOVERY_PERIOD_S, self.subscribe_raw_topics, clock=steady)
             what = f"the raw topics of task {self.service.task.name}"
         else:
-            self.create_subscription(Float32MultiArray, "pusher/transition", self.on_transition, TRANSITION_QOS,
-                                     raw=True)
-            what = "live transitions"
+            for actor, topic in self.service.transition_topics:
+                self.create_subscription(Float32MultiArray, topic, lambda raw, a=actor, t=topic: self.on_transition(
+                    raw, a, t), TRANSITION_QOS, raw=True)
+            what = "live transitions" + (f" of {len(s.actors)} actors ({', '.join(s.actors)})" if s.actors else "")
             self.publish_first()
         self.create_timer(0.002, self.work, clock=steady)
         self.get_logger().info(
@@ -200,11 +206,11 @@ class Learner(Node):
             self.first_published = True
             self.publish(self.service.weights)
 
-    def on_transition(self, raw: bytes) -> None:
-        self.status.took("pusher/transition")
-        rejection = self.service.receive(raw)
+    def on_transition(self, raw: bytes, actor: str | None = None, topic: str = "pusher/transition") -> None:
+        self.status.took(topic)
+        rejection = self.service.receive(raw, actor)
         if rejection is not None:
-            self.status.warn("pusher/transition", rejection)
+            self.status.warn(topic, rejection)
 
     def work(self) -> None:
         if not self.first_published and self.service.live.heard_stream():

@@ -25,12 +25,15 @@ ESTOP_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durabili
 
 class EStopInput:
     def __init__(self, node, on_engage: Callable[[], None] = lambda: None,
-                 on_reset: Callable[[], None] = lambda: None, latch: EStopLatch | None = None):
+                 on_reset: Callable[[], None] = lambda: None, latch: EStopLatch | None = None,
+                 namespace: str = ""):
+        """``namespace`` (e.g. ``/arm1``): that namespace's e-stop instead of the node's own."""
         self.node = node
         self.latch = latch if latch is not None else EStopLatch()
         self.on_engage, self.on_reset = on_engage, on_reset
-        node.create_subscription(Bool, ESTOP_TOPIC, self.on_estop, ESTOP_QOS)
-        node.create_service(Trigger, ESTOP_RESET, self.on_reset_request)
+        prefix = f"{namespace}/" if namespace else ""
+        node.create_subscription(Bool, prefix + ESTOP_TOPIC, self.on_estop, ESTOP_QOS)
+        node.create_service(Trigger, prefix + ESTOP_RESET, self.on_reset_request)
 
     @property
     def engaged(self) -> bool:
