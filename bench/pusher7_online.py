@@ -1,6 +1,7 @@
 """The HIL-SERL stage on pusher7_reach (Gymnasium's 7-joint arm) over raw topics, per seed.
 
-    python bench/pusher7_online.py [--seeds 0 1 2] [--env-steps 20000] [--out runs/p7-online] [--json bench/pusher7_online.json]
+    python bench/pusher7_online.py [--seeds 0 1 2] [--env-steps 20000] [--out runs/p7-online]
+                                   [--json bench/pusher7_online.json] [--in-process]
 
 The stage as a user of a ros2_control arm runs it: ``offline-rl hil --online --from-topics
 --task pusher7_reach`` (lockstep, scripted corrector), the learner joining the arm's raw topics
