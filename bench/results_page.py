@@ -392,6 +392,19 @@ def multi_actor_section(name: str, payload: dict) -> list[str]:
         [multi_actor_table(payload["arms"]), ""]
 
 
+def pusher7_online_section(name: str, payload: dict) -> list[str]:
+    lines = ["## The HIL-SERL stage on pusher7_reach", "",
+             f"The online stage on the 7-joint arm (task `{payload['task']}`, digest `{payload['task_digest']}`), "
+             "lockstep, scripted corrector, from the `--algo auto` prior of its seed on the task's 200-episode mix "
+             "(30 % expert); success without intervention of the deterministic policy on the task's held-out resets "
+             "along the run. `online_raw_topics`: over ROS, the learner joining the arm's raw topics live "
+             "(`--from-topics`); `online_in_process`: the same stage in one process.", ""]
+    if payload.get("note"):
+        lines += [str(payload["note"]), ""]
+    return lines + source_lines(name, payload) + ["", hil_table(payload["arms"]), "",
+                                                  "![success against environment steps](pusher7_online.png)", ""]
+
+
 # ----------------------------------------------------------------------------- the best prior
 
 CHAPTER_8000 = {"BC": "0.03 / 0.07 / 0.05", "AWAC": "0.27 / 0.20 / 0.21"}  # the chapter's 8000-step runs
@@ -523,6 +536,7 @@ SECTIONS = {  # file -> its section, in the page's order (the speed sections fol
     "prior_selection.json": selection_section,
     "hil_online.json": hil_section,
     "multi_actor.json": multi_actor_section,
+    "pusher7_online.json": pusher7_online_section,
     "crash_safety.json": crash_section,
     "gpu_ensemble.json": gpu_ensemble_section,
 }

@@ -1,0 +1,100 @@
+"""The HIL-SERL stage on pusher7_reach (Gymnasium's 7-joint arm) over raw topics, per seed.
+
+    python bench/pusher7_online.py [--seeds 0 1 2] [--env-steps 20000] [--out runs/p7-online]
+                                   [--json bench/pusher7_online.json] [--in-process]
+
+The stage as a user of a ros2_control arm runs it: ``offline-rl hil --online --from-topics
+--task pusher7_reach`` (lockstep, scripted corrector), the learner joining the arm's raw topics
+(joint_states, the controller's commands, the goal) live, from the ``--algo auto`` prior the
+stage trains on the task's recorded mix of that seed (``offline-rl collect --task pusher7_reach
+--episodes 200 --expert-frac 0.3 --seed 0``, the same bag for every seed, as bench/hil_online.py
+uses bags/mix.db3). The curve: success without intervention of the deterministic policy on the
+task's 100 held-out resets every ``--eval-every`` environment steps, with the intervention rate
+of each window. ``--in-process`` runs the same stage without ROS (no topics: a quicker look).
+A seed whose ``summary.json`` exists is not run again, so the script can be resumed. Writes the
+JSON (each seed's summary, the command and the machine), the plot beside it, and prints the
+table of bench/RESULTS.md's section.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+from pathlib import Path
+
+from hil_online import curve_of, run
+from offline_rl_core.benchmarks.harness import run_facts
+from offline_rl_core.common.atomic import write_json_atomic
+from offline_rl_core.task.spec import load_task
+from results_page import hil_table
+
+TASK = "pusher7_reach"
+ARM = "online_raw_topics"
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    p.add_argument("--env-steps", type=int, default=20_000)
+    p.add_argument("--eval-every", type=int, default=2_500)
+    p.add_argument("--out", default="runs/p7-online")
+    p.add_argument("--json", default="bench/pusher7_online.json")
+    p.add_argument("--in-process", action="store_true", help="the same stage without ROS (no raw topics)")
+    p.add_argument("--eval-episodes", type=int, default=100, help="held-out resets per curve point")
+    p.add_argument("--task", default=TASK, help="pusher7_reach, or a task file of the same arm")
+    p.add_argument("--bag", help="the offline mix (default: OUT/pusher7.db3, collected if absent)")
+    p.add_argument("--prior", help="the prior checkpoint (default: the stage trains its --algo auto prior)")
+    args = p.parse_args()
+    facts = run_facts()
+    offline_rl = [sys.executable, "-m", "offline_rl_core"]
+    out = Path(args.out)
+    bag = Path(args.bag) if args.bag else out / "pusher7.db3"
+    if not bag.exists():  # the task's mix, as `make bag` is pusher_reach's
+        subprocess.run([*offline_rl, "collect", "--task", args.task, "--episodes", "200", "--expert-frac", "0.3",
+                        "--seed", "0", "--out", str(bag)], check=True)
+    arm = "online_in_process" if args.in_process else ARM
+    results: dict = {}
+    for seed in args.seeds:
+        run_dir = out / f"seed{seed}" / arm
+        cmd = [*offline_rl, "hil", "--online", "--task", args.task, "--bag", str(bag), "--seed", str(seed),
+               "--env-steps", str(args.env_steps), "--eval-every", str(args.eval_every),
+               "--eval-episodes", str(args.eval_episodes), "--logger", "none", "--out", str(run_dir)]
+        cmd += ["--prior", args.prior] if args.prior else []
+        cmd += ["--in-process"] if args.in_process else ["--from-topics"]
+        results.setdefault(arm, {})[str(seed)] = run(cmd, run_dir / "summary.json")
+        task = load_task(args.task)
+        write_json_atomic(args.json, {"task": task.name, "task_digest": task.digest, "arms": results, **facts})
+    print(hil_table(results))
+    plot(results, Path(args.json).with_suffix(".png"))
+    return 0
+
+
+def plot(results: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7.5, 4.5))
+    for arm, by_seed in results.items():
+        for i, (seed, summary) in enumerate(sorted(by_seed.items(), key=lambda kv: int(kv[0]))):
+            steps, success = curve_of(arm, summary)
+            ax.plot(steps, success, "o-", color=f"C{i}", lw=2, label=f"seed {seed}: success without intervention")
+            ax.plot(steps, [p["intervention_rate"] for p in summary["curve"]], "s--", color=f"C{i}", lw=1,
+                    alpha=0.6, label=f"seed {seed}: intervention rate (window)")
+    ax.axhline(0.95, color="grey", ls=":", lw=1)
+    period = load_task(TASK).control_period
+    ax.set_xlabel(f"environment steps ({1 / period:g} Hz: 20,000 = {20_000 * period:g} s of robot time)")
+    ax.set_ylabel("100 held-out resets / share of steps")
+    ax.set_ylim(0, 1.02)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc="center right")
+    ax.set_title(f"{TASK}: the online stage over raw topics (auto prior, scripted corrector, lockstep)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    print(f"wrote {path}", file=sys.stderr)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
