@@ -116,7 +116,7 @@ def test_the_playstation_file_has_joy_linux_layout_where_it_differs_from_the_xbo
     np.testing.assert_array_equal(pad.decide(), np.array([0.0, 0.5], np.float32))
 
 
-def fingertip_after(task_name: str, axes: dict, steps: int = 10, seed: int = 3):
+def fingertip_after(task_name: str, axes: dict, steps: int = 20, seed: int = 3):
     """Where the fingertip moves in ``steps`` real MuJoCo steps of the shipped Cartesian mapping
     with the dead-man held and the sticks at ``axes``, and the actions taken."""
     from offline_rl_core.task.envs import make_env
@@ -145,7 +145,7 @@ def test_cartesian_mode_moves_the_fingertip_in_the_sticks_direction(task, axes, 
     moved, actions = fingertip_after(task, axes)
     direction = np.array(direction, np.float64)
     along = moved @ direction
-    assert along > 0.005, moved  # metres, in ten steps
+    assert along > 0.005, moved  # metres, in twenty steps (the first few carry the joints' own lag)
     assert np.linalg.norm(moved - along * direction) < 0.5 * along, moved  # mostly that way
     assert actions.dtype == np.float32 and np.all(np.abs(actions) <= 1.0)
 
