@@ -1,5 +1,5 @@
 """The sim node hosting a task other than pusher-reach: Gymnasium's 7-joint Pusher as a
-ros2_control arm (joint_states, effort_controller/commands, the goal on a topic), over DDS."""
+ros2_control arm (joint_states, velocity_controller/commands, the goal on a topic), over DDS."""
 
 from __future__ import annotations
 
@@ -39,7 +39,7 @@ def test_pusher7_in_lockstep_takes_controller_commands_and_publishes_its_task(sp
         node.create_subscription(PointStamped, "/goal", goals.append, 10)
         node.create_subscription(Float32MultiArray, "/pusher/transition", transitions.append, 100)
         node.create_subscription(String, "/sim/status", lambda m: statuses.append(json.loads(m.data)), 10)
-        commands = node.create_publisher(Float64MultiArray, "/effort_controller/commands", 10)
+        commands = node.create_publisher(Float64MultiArray, "/velocity_controller/commands", 10)
         assert node.spin_until(lambda: states and goals and commands.get_subscription_count(), 60), sim.output()
 
         # the first state and goal are reset seed 3's, as the env in this process has them
@@ -64,27 +64,28 @@ def test_pusher7_in_lockstep_takes_controller_commands_and_publishes_its_task(sp
         assert node.spin_until(lambda: any(s["rejected"].get("wrong length") for s in statuses), 20), sim.output()
         assert not transitions
 
-        # beyond the controller's limits (-3 N·m, the motors' ctrlrange is [-2, 2]): refused, never clipped
+        # beyond the controller's limits (-3 rad/s, the task's are [-2, 2]): refused, never clipped
         commands.publish(Float64MultiArray(data=[2.0, -1.0, 0.5, -3.0, 0.0, 1.0, -0.25]))
         assert node.spin_until(lambda: any(s["rejected"].get("beyond limits") for s in statuses), 20), sim.output()
         assert not transitions
 
-        # torques in N·m in the controller's joint order
-        torques = [2.0, -1.0, 0.5, -1.5, 0.0, 1.0, -0.25]
-        commands.publish(Float64MultiArray(data=torques))
+        # joint velocities in rad/s in the controller's joint order
+        velocities = [2.0, -1.0, 0.5, -1.5, 0.0, 1.0, -0.25]
+        commands.publish(Float64MultiArray(data=velocities))
         assert node.spin_until(lambda: transitions and any(stamp_ns(s) == stamp_ns(first) + TICK for s in states),
                                20), sim.output()
         row = Transitions.from_rows(np.array([transitions[0].data], np.float32), Layout(task.obs_dim, 7))
-        action = np.clip(np.float32(torques) / np.float32(2.0), -1, 1)
+        action = np.clip(np.float32(velocities) / np.float32(2.0), -1, 1)
         obs = env.observation()
         next_obs, reward, _, _ = env.step(action)
         assert np.array_equal(row.action[0], action) and np.array_equal(row.obs[0], obs)
         assert np.array_equal(row.next_obs[0], next_obs) and row.reward[0] == np.float32(reward)
         moved = next(s for s in states if stamp_ns(s) == stamp_ns(first) + TICK)
         assert np.array_equal(moved.position, env.joint_positions)  # the arm moved, as in this process
-        assert np.allclose(moved.effort, np.clip(torques, -2, 2))  # what the motors applied, N·m
+        # the effort: what the motors applied (N·m) to follow the velocities, as in this process
+        assert np.allclose(moved.effort, env.joint_efforts) and np.all(np.abs(moved.effort) <= 2.0)
 
-        assert node.spin_until(lambda: statuses[-1]["messages"].get("effort_controller/commands") == 3, 20)
+        assert node.spin_until(lambda: statuses[-1]["messages"].get("velocity_controller/commands") == 3, 20)
         assert statuses[-1]["rejected"] == {"wrong length": 1, "beyond limits": 1}
     assert sim.stop() == 0
 

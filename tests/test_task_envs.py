@@ -31,11 +31,12 @@ def env7() -> MujocoTaskEnv:
 
 def test_pusher7_is_gymnasiums_seven_joint_pusher_as_a_ros2_control_arm(env7):
     assert (PUSHER7.obs_dim, PUSHER7.act_dim) == (17, 7)
-    assert PUSHER7.state.topic == "joint_states" and PUSHER7.command.topic == "effort_controller/commands"
+    assert PUSHER7.state.topic == "joint_states" and PUSHER7.command.topic == "velocity_controller/commands"
+    assert PUSHER7.command.interface == "velocity"  # the joints' own loop closed by the controller
     model = task_model(PUSHER7)
     assert model.nu == 7 and model.site("fingertip").bodyid == model.body("tips_arm").id
     assert env7.frame_skip * model.opt.timestep == pytest.approx(PUSHER7.control_period)
-    assert PUSHER7.command.limits == ((-2.0, 2.0),) * 7  # the motors' ctrlrange
+    assert PUSHER7.command.limits == ((-2.0, 2.0),) * 7  # rad/s
 
 
 def test_a_reset_is_its_seed_alone(env7):
