@@ -497,6 +497,35 @@ def gpu_ensemble_section(name: str, payload: dict) -> list[str]:
     return ["## AWAC on a GPU: one seed against three as one ensemble", "", *source_lines(name, payload), "", *rows, ""]
 
 
+def ros_pipeline_section(name: str, payload: dict) -> list[str]:
+    """bench/pusher7_ros.py: a task recorded over ROS from raw topics, learnt, served by the policy node."""
+    st, ds, rec = payload["settings"], payload["dataset"], payload["recording"]
+    rows = ["| policy | trained | in process | closed loop over ROS (policy node) | episodes agreeing |",
+            "| --- | --- | --- | --- | --- |"]
+
+    def rate(r: dict) -> str:
+        return f"{r['successes']}/{r['episodes']} = {r['success_rate']:.2f} [{r['wilson'][0]:.2f}, {r['wilson'][1]:.2f}]"
+
+    for algo, r in payload["learners"].items():
+        t = r["trained"]
+        plan = f", auto chose {t['algorithm']}" if algo == "auto" else ""
+        rows.append(f"| {algo} | {t['steps']} steps{plan}, {t['wall_s']:.0f} s | {rate(r['in_process'])} "
+                    f"| {rate(r['over_ros'])} | {r['episodes_agreeing']}/{r['over_ros']['episodes']} |")
+    rows.append(f"| expert (scripted) | - | {rate(payload['expert_in_process'])} | - | - |")
+    equal = ds["rows_equal_per_field"]
+    return [f"## {payload['task']} over ROS: recorded from raw topics, learnt, served", "",
+            f"{st['episodes']} episodes ({st['expert_frac']:.0%} by the scripted expert, then uniform random), "
+            f"{payload['mode']} sim driven through `{'`, `'.join(t for t in rec['bag_topics'] if 'command' in t)}` by a "
+            f"scripted controller and recorded by the passive recorder on sim time: "
+            f"`{'`, `'.join(rec['bag_topics'])}` (no `/pusher/transition`); `offline-rl dataset --from-topics` made "
+            f"{ds['rows_from_topics']} transitions of the {ds['rows_in_process']} `offline-rl collect` rolls out in "
+            f"process, {min(equal.values())} of them equal to those rows field by field (the others: each episode's "
+            f"last step, whose next state the topics never show). Success on the held-out resets "
+            f"{st['eval_seeds'][0]}..{st['eval_seeds'][1]} with Wilson 95 % intervals; over ROS the policy node "
+            "answers `joint_states` + `goal` on the controller's topic of a lockstep sim.", "",
+            *source_lines(name, payload), "", *rows, ""]
+
+
 def flat_value(value) -> str | None:
     """A scalar (or a short list of scalars) as a table cell; None for anything larger."""
     if isinstance(value, bool) or value is None:
@@ -539,6 +568,7 @@ SECTIONS = {  # file -> its section, in the page's order (the speed sections fol
     "pusher7_online.json": pusher7_online_section,
     "crash_safety.json": crash_section,
     "gpu_ensemble.json": gpu_ensemble_section,
+    "pusher7_ros.json": ros_pipeline_section,
 }
 
 

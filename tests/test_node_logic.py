@@ -163,3 +163,29 @@ def test_a_state_the_policy_fails_on_is_refused_and_the_next_one_answered():
     policy._b[2] = np.full(2, np.nan, np.float32)
     action, problem = actor.answer(obs, stamp=3)
     assert action is None and problem.reason == "non-finite action"
+
+
+def test_a_message_is_stamped_with_the_sim_time_of_its_publication_not_of_its_callback():
+    """A recorder on sim time that takes a command after the /clock of the step the command
+    caused (or gets it from DDS after that /clock) still stamps it in its own tick, ordered by
+    publication within it; a message waits until a later /clock says which tick it was in."""
+    from offline_rl_core.nodes.publication_clock import ORDER_SPAN_NS, PublicationClock
+
+    tick = 50_000_000
+    clock = PublicationClock(kept=3)
+    assert clock.add(1_000, "early") == [] and clock.stamp(1_000) is None  # before any /clock
+    assert clock.add_clock(10_000_000, 7 * tick) == [(7 * tick, "early")]  # released, stamped by the first
+    assert clock.add(13_000_500, "state 8") == []  # published after the newest /clock: waits
+    assert clock.add(12_000_000, "command 7") == []  # taken late, published before state 8's /clock
+    released = clock.add_clock(13_000_000, 8 * tick)  # the /clock the command caused
+    assert [item for _, item in released] == ["command 7"]
+    assert 7 * tick < released[0][0] < 7 * tick + ORDER_SPAN_NS  # in state 7's tick: the join pairs them
+    assert clock.stamp(10_002_000) == 7 * tick + 2  # a nanosecond per microsecond since that /clock
+    assert clock.stamp(13_000_000 + 10**12) == 8 * tick + ORDER_SPAN_NS  # never into the next tick
+    assert clock.flush() == [(8 * tick, "state 8")]  # the recording ends: by the newest /clock
+    clock.add_clock(20_000_000, 9 * tick)
+    clock.add_clock(30_000_000, 10 * tick)  # three kept: state 7's is gone
+    assert clock.stamp(11_000_000) == 8 * tick  # older than every /clock kept: the oldest
+    nothing = PublicationClock()
+    nothing.add(5, "a")
+    assert nothing.flush() == [(None, "a")]  # no /clock ever came: the recorder uses the wall clock

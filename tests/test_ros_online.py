@@ -303,13 +303,27 @@ def _read_all(fd, screen):
         screen.append(data.decode(errors="replace"))
 
 
+@pytest.fixture(scope="module")
+def pusher7(tmp_path_factory):
+    """A 4-episode pusher7_reach bag and a 50-step AWAC prior trained on it."""
+    require_ros()
+    from offline_rl_core.commands.cli import main
+
+    d = tmp_path_factory.mktemp("pusher7")
+    bag, prior = d / "p7.db3", d / "prior"
+    assert main(["collect", "--task", "pusher7_reach", "--episodes", "4", "--expert-frac", "0.5", "--seed", "0",
+                 "--out", str(bag)]) == 0
+    assert main(["train", "--bag", str(bag), "--algo", "awac", "--steps", "50", "--eval-episodes", "0",
+                 "--out", str(prior)]) == 0
+    return bag, prior / "policy.pt"
+
+
 @pytest.mark.slow
-def test_the_online_stage_runs_on_pusher7_reach(ros_env, tmp_path):
+def test_the_online_stage_runs_on_pusher7_reach(ros_env, tmp_path, pusher7):
     """`offline-rl hil --online --task pusher7_reach`: the sim hosts the 7-joint arm, the
     learner fine-tunes a prior of that task from the arm's steps over ROS (the transitions in
     the task's layout), and each point of the learning curve is scored on held-out rollouts
     of pusher7_reach's own env."""
-    from offline_rl_core.commands.cli import main
     from offline_rl_core.data.bag import read_transitions
     from offline_rl_core.evaluation.rollouts import evaluate_policy
     from offline_rl_core.runs.online_loop import EVAL_SEED
@@ -318,14 +332,10 @@ def test_the_online_stage_runs_on_pusher7_reach(ros_env, tmp_path):
     from offline_rl_core.task.spec import load_task
 
     task = load_task("pusher7_reach")
-    bag, prior = tmp_path / "p7.db3", tmp_path / "prior"
-    assert main(["collect", "--task", "pusher7_reach", "--episodes", "4", "--expert-frac", "0.5", "--seed", "0",
-                 "--out", str(bag)]) == 0
-    assert main(["train", "--bag", str(bag), "--algo", "awac", "--steps", "50", "--eval-episodes", "0",
-                 "--out", str(prior)]) == 0
+    bag, prior = pusher7
     out = tmp_path / "online"
     proc = subprocess.run([sys.executable, "-m", "offline_rl_core", "hil", "--online", "--task", "pusher7_reach",
-                           "--bag", str(bag), "--prior", str(prior / "policy.pt"), "--env-steps", "200",
+                           "--bag", str(bag), "--prior", str(prior), "--env-steps", "200",
                            "--publish-every", "25", "--eval-every", "100", "--eval-episodes", "2", "--out", str(out)],
                           env=ros_env, cwd=REPO, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]

@@ -20,6 +20,7 @@ import os
 import time
 
 from rclpy.executors import Executor, ExternalShutdownException
+from rclpy.subscription import Subscription
 from rclpy.task import Future
 
 from .shutdown import quiet_signals
@@ -43,8 +44,9 @@ def fast_path_available() -> bool:
 def spin_until_future_complete(executor: Executor, future: Future) -> None:
     """Spin until ``future`` completes, as the executor's method of that name, fast for messages.
 
-    For nodes whose subscriptions (with message-only callbacks), timers and services all
-    exist when it is called. Raises ExternalShutdownException when the context shuts down
+    For nodes whose subscriptions, timers and services all exist when it is called; a
+    callback that takes two arguments gets the message's info too (as the executor gives
+    it: source and received timestamps). Raises ExternalShutdownException when the context shuts down
     (Ctrl-C, SIGTERM), as the executor does.
     """
     if not fast_path_available():
@@ -77,7 +79,10 @@ def spin_until_future_complete(executor: Executor, future: Future) -> None:
                 if sub.handle.pointer in ready and not future.done():
                     taken = sub.handle.take_message(sub.msg_type, sub.raw)
                     if taken is not None:  # (message, info), or None if it was gone
-                        sub.callback(taken[0])
+                        if getattr(sub, "_callback_type", None) == Subscription.CallbackType.WithMessageInfo:
+                            sub.callback(*taken)
+                        else:
+                            sub.callback(taken[0])
             if future.done():
                 return
             now = time.monotonic()

@@ -25,7 +25,10 @@ bag keeps their offered QoS, as ``ros2 bag record`` does. Topic names are relati
 ``--ros-args -r __ns:=/arm2`` records that namespace's pipeline.
 
 Messages are stamped with the node's clock (sim time with ``-p use_sim_time:=true``),
-strictly increasing so the bag's order is the arrival order. Ctrl-C or SIGTERM close the
+strictly increasing so the bag's order is the arrival order. Under sim time a message gets
+the sim time current when it was published (``offline_rl_core.nodes.publication_clock``), not
+when the recorder got to it: a command is not stamped with the /clock of the step it caused;
+the bag's order is then the publication order. Ctrl-C or SIGTERM close the
 bag with every message received; a SIGKILL loses at most the last ``flush_interval``
 (at most 1 s) of messages (``offline_rl_core.data.bag.recording``). When the bag's file
 system has less than ``min_free_space`` left, the recorder stops: the bag is closed whole
@@ -52,6 +55,7 @@ from geometry_msgs.msg import PointStamped
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message, serialize_message
+from rosgraph_msgs.msg import Clock
 from rclpy.task import Future
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 from sensor_msgs.msg import JointState
@@ -61,6 +65,7 @@ from offline_rl_core.data.bag import BagWriter, transition_ends_episode, typesto
 from offline_rl_core.data.bag.recording import MIN_SQLITE_SPLIT_SIZE, OutOfSpace
 from offline_rl_core.data.collect import EpisodePlan
 from offline_rl_core.data.episode_labels import LABEL_MSGTYPE, LABEL_TOPIC
+from offline_rl_core.nodes.publication_clock import PublicationClock
 from offline_rl_core.nodes.collect_driver import CollectDriver, Command
 from offline_rl_core.task.pusher_reach import JOINT_NAMES
 from offline_rl_core.common.errors import UserError
@@ -160,6 +165,11 @@ def subscription_qos(infos, depth: int) -> QoSProfile:
     )
 
 
+def published_ns(info) -> int:
+    """When a message was published (the publisher's clock), else when it was received."""
+    return info["source_timestamp"] or info["received_timestamp"]
+
+
 def hidden(topic: str) -> bool:
     return any(part.startswith("_") for part in topic.split("/"))
 
@@ -188,6 +198,12 @@ class Recorder(Node):
         self.warned: set[str] = set()
 
         self.matched = False  # the active loop's topics have all matched (see connected)
+        # sim time by publication: this /clock subscription comes before every recorded topic's
+        self.publication_clock = None
+        if self.get_parameter("use_sim_time").value:
+            self.publication_clock = PublicationClock()
+            self.clock_sub = self.create_subscription(Clock, "/clock", self.on_clock, QoSProfile(
+                depth=100, reliability=ReliabilityPolicy.RELIABLE), raw=True)
 
         if s.make_parents:  # a launch file's new session directory; the bag itself is checked by BagWriter
             parent = check_output_dir(Path(s.out).parent, "--out")
@@ -310,9 +326,29 @@ class Recorder(Node):
         self.bag.add_topic(topic, msgtype, msgdef=msgdef, rihs01=rihs01, offered_qos_profiles=offered_qos(infos))
 
     # -------------------------------------------------------------- recording
+    def on_clock(self, raw: bytes, info) -> None:
+        clock = deserialize_message(raw, Clock).clock
+        released = self.publication_clock.add_clock(published_ns(info), clock.sec * 1_000_000_000 + clock.nanosec)
+        self.write_released(released)
+
+    def write_released(self, released) -> None:
+        for stamp, (topic, raw) in released:
+            if self.finished.done():
+                return
+            self.write_stamped(topic, stamp, raw, by_publication=True)
+
+    def take_clocks(self) -> None:
+        """Take every /clock already received, before a message is stamped.
+
+        A callback takes one message per subscription a turn: a recorder behind by two ticks
+        would else stamp a message by the older one.
+        """
+        while (taken := self.clock_sub.handle.take_message(Clock, True)) is not None:
+            self.on_clock(*taken)
+
     def make_callback(self, topic: str):
-        def on_raw(raw: bytes) -> None:
-            self.write(topic, raw)
+        def on_raw(raw: bytes, info) -> None:
+            self.write(topic, raw, published_ns(info))
             if topic == self.transition_topic:
                 self.on_transition(raw)
             elif self.active and topic == self.resolve(STATE):
@@ -322,7 +358,7 @@ class Recorder(Node):
 
         return on_raw
 
-    def write(self, topic: str, raw: bytes) -> None:
+    def write(self, topic: str, raw: bytes, published: int | None = None) -> None:
         if self.finished.done():
             return
         if self.bag.low_space is not None:
@@ -331,6 +367,10 @@ class Recorder(Node):
         if topic not in self.bag_topics:
             self.add_to_bag(topic, self.types[topic], self.get_publishers_info_by_topic(topic))
             self.bag_topics.add(topic)
+        if self.publication_clock is not None and published is not None:
+            self.take_clocks()
+            self.write_released(self.publication_clock.add(published, (topic, raw)))
+            return
         now_ns = self.get_clock().now().nanoseconds
         if now_ns == 0:
             # sim time before the first /clock: held until the clock starts, so no message
@@ -349,10 +389,11 @@ class Recorder(Node):
         self.before_clock_bytes = 0
         self.write_stamped(topic, now_ns, raw)
 
-    def write_stamped(self, topic: str, now_ns: int, raw: bytes) -> None:
+    def write_stamped(self, topic: str, now_ns: int, raw: bytes, by_publication: bool = False) -> None:
         # The node's clock (sim time when use_sim_time is set), strictly increasing so the
-        # bag's order is the arrival order.
-        stamp = max(now_ns, self.last_stamp_ns + 1)
+        # bag's order is the arrival order; a stamp by publication says that order itself
+        # (callbacks may run out of it).
+        stamp = now_ns if by_publication else max(now_ns, self.last_stamp_ns + 1)
         self.last_stamp_ns = stamp
         try:
             self.bag.write(topic, stamp, raw)
@@ -440,6 +481,13 @@ class Recorder(Node):
         self.close_bag()
 
     def close_bag(self) -> None:
+        if self.publication_clock is not None:  # what waits for a later /clock: by the last one
+            self.take_clocks()
+            for stamp, (topic, raw) in self.publication_clock.flush():
+                if stamp is None:
+                    self.before_clock.append((topic, raw))
+                else:
+                    self.write_stamped(topic, stamp, raw, by_publication=True)
         if self.before_clock:  # /clock never came: keep the messages, stamped with the wall clock
             self.get_logger().warn(f"no /clock came: {len(self.before_clock)} messages stamped with the wall clock")
             held, self.before_clock = self.before_clock, deque()

@@ -182,6 +182,7 @@ class PusherSim(Node):
         self.tripped = 0  # watchdog trips logged so far
 
         self.clock_pub = self.create_publisher(ClockMsg, "/clock", 10)
+        self.clock_ns: int | None = None  # the sim time last published on /clock
         self.state_pub = self.create_publisher(JointState, task.state.topic, 10)
         # robot_state_publisher reads joint_states: the state goes there too (when someone listens)
         self.joint_states_pub = None if self.resolve(task.state.topic) == self.resolve("joint_states") else \
@@ -269,9 +270,12 @@ class PusherSim(Node):
             return  # the republish timer tries again
         stamp = stamp_from_ns(state.stamp_ns)
         # /clock and joint_states only when someone listens: each publish costs the
-        # lockstep loop as much as a physics step
-        if new and self.clock_pub.get_subscription_count():
+        # lockstep loop as much as a physics step. A republished state brings the clock
+        # to a reader that came after it was first published (a recorder on sim time
+        # stamps what it hears by it).
+        if (new or self.clock_ns != state.stamp_ns) and self.clock_pub.get_subscription_count():
             self.clock_pub.publish(ClockMsg(clock=stamp))
+            self.clock_ns = state.stamp_ns
         self.fill_goal(state, stamp)
         for name, _, msg in self.point_pubs:
             msg.header.stamp = stamp

@@ -1,0 +1,85 @@
+"""Sim time at a message's publication, for a recorder on ``use_sim_time`` (no ROS).
+
+A recorder stamps each message with the node's clock when its callback runs. Under sim
+time that clock moves when the recorder takes a /clock message, and neither the order the
+callbacks run in nor the order DDS delivers messages of different publishers follows
+what caused what: a command answering state t, published before the sim stepped, can be
+taken after the /clock of state t + 1, which the sim published once that command had
+stepped it, and is then stamped in the next tick. A join by receive times (``join.stamps:
+receive``, for commands without a header, e.g. Float64MultiArray) pairs it with the wrong
+state.
+
+:class:`PublicationClock` stamps a message with the sim time current when it was
+*published* (``MessageInfo['source_timestamp']``: the publisher's wall clock; on one
+machine, or clocks kept in sync, publication order follows causality): the newest /clock
+published at or before it, plus a nanosecond per microsecond of wall time since (at most
+``ORDER_SPAN_NS``), so the stamps of one tick order its messages as they were published,
+far inside any join tolerance. A message waits until a /clock published after it has come
+(only then is the clock current at its publication known for sure), or until ``flush``.
+"""
+
+from __future__ import annotations
+
+import bisect
+import heapq
+from collections import deque
+from typing import Any
+
+KEPT = 4096  # /clock values kept: a message older than all of them gets the oldest
+ORDER_SPAN_NS = 999_999  # sim ns: the publication order within one tick, below a millisecond
+
+
+class PublicationClock:
+    def __init__(self, kept: int = KEPT):
+        self._published: deque[int] = deque(maxlen=kept)  # wall ns of each /clock, non-decreasing
+        self._sim: deque[int] = deque(maxlen=kept)  # its sim ns
+        self._waiting: list[tuple[int, int, Any]] = []  # (published ns, arrival number, item): a heap
+        self._arrivals = 0
+
+    def add_clock(self, published_ns: int, sim_ns: int) -> list[tuple[int, Any]]:
+        """A /clock message; returns the waiting items it releases, as ``(stamp, item)`` in
+        publication order."""
+        if self._published and published_ns < self._published[-1]:
+            published_ns = self._published[-1]
+        self._published.append(int(published_ns))
+        self._sim.append(int(sim_ns))
+        return self._release(lambda published: published < self._published[-1])
+
+    def add(self, published_ns: int, item: Any) -> list[tuple[int, Any]]:
+        """A message published at ``published_ns``; returns what is ready to write."""
+        self._arrivals += 1
+        heapq.heappush(self._waiting, (int(published_ns), self._arrivals, item))
+        if not self._published:
+            return []
+        return self._release(lambda published: published < self._published[-1])
+
+    def flush(self) -> list[tuple[int | None, Any]]:
+        """Every waiting item (the recording ends), stamped by the newest /clock; before
+        any /clock came, with stamp None."""
+        if not self._published:
+            items = [(None, item) for _, _, item in sorted(self._waiting)]
+            self._waiting.clear()
+            return items
+        return self._release(lambda published: True)
+
+    def stamp(self, published_ns: int) -> int | None:
+        """The stamp of a message published at ``published_ns`` (None before any /clock)."""
+        i = bisect.bisect_right(self._published, int(published_ns))
+        if i == 0:
+            if not self._published or len(self._published) < self._published.maxlen:
+                return None
+            i = 1  # older than every /clock kept: the oldest
+        since_ns = max(int(published_ns) - self._published[i - 1], 0)
+        return self._sim[i - 1] + min(since_ns // 1000, ORDER_SPAN_NS)
+
+    @property
+    def waiting(self) -> int:
+        return len(self._waiting)
+
+    def _release(self, ready) -> list[tuple[int, Any]]:
+        out = []
+        while self._waiting and ready(self._waiting[0][0]):
+            published, _, item = heapq.heappop(self._waiting)
+            stamp = self.stamp(published)
+            out.append((self._sim[0] if stamp is None else stamp, item))
+        return out
