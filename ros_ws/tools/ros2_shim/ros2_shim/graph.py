@@ -40,7 +40,9 @@ def spin_for_discovery(node, spin_time: float, snapshot, complete=lambda current
     - ``snapshot()`` has not changed for ``QUIET_S``, and for as long as discovery took
       until its last change (``quiet_enough``): a participant not discovered at all yet
       cannot announce anything, and a loaded machine that discovers slowly is waited for;
-    - ``complete(snapshot)``, when the caller asks for more.
+    - ``complete(snapshot)``, when the caller asks for more;
+    - ``ANNOUNCEMENT_FLOOR_S`` has passed: a participant whose first discovery exchange
+      with this call's was missed is announced again only by its periodic announcement.
     A lone graph (only this node) is waited on up to ``max(6 * spin_time, 3 s)``; while
     announced endpoints are missing, up to ``max(20 * spin_time, 10 s)``. With another rmw,
     where the announcements cannot be read, the quiet graph alone decides. A node whose
@@ -77,6 +79,8 @@ def spin_for_discovery(node, spin_time: float, snapshot, complete=lambda current
             if announcements is not None:
                 missing = undiscovered_endpoints(node, announcements, node.get_name())
                 settled = settled and last_change_age_s(node, announcements, node.get_name()) >= STABLE_S
+            if elapsed < ANNOUNCEMENT_FLOOR_S:
+                continue
             if (settled and missing == 0) or elapsed >= (announced_limit if missing else limit):
                 return current
     finally:
@@ -89,6 +93,11 @@ QUIET_S = 0.5  # the least time without a change before a graph counts as settle
 # being built adds endpoints in bursts, with its slow set-up (loading a model, a checkpoint)
 # between them
 STABLE_S = 1.0
+# Fast DDS repeats each participant's announcement every 3 s. A call's participant can miss
+# its first exchange with one that is already running: tried as a user would (a sim and a
+# policy node started, then `ros2 topic list`), 2 calls in 4 saw the policy node but none of
+# the sim, and every call that spun this long saw both.
+ANNOUNCEMENT_FLOOR_S = 3.5
 
 
 def quiet_enough(start: float, last_change: float, now: float) -> bool:
