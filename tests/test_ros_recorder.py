@@ -194,10 +194,10 @@ def test_on_sim_time_headerless_commands_are_stamped_in_the_tick_they_answer(spa
 
     task = load_task("pusher7_reach")
     bag = tmp_path / "raw.db3"
+    command = task.command.topic  # the controller's commands topic (velocity_controller/commands)
     recorder = spawn(ros2("run", "recorder", "node", "--passive", "--out", bag, "--topics", "joint_states", "goal",
-                          "effort_controller/commands", "--types", "joint_states:sensor_msgs/msg/JointState",
-                          "goal:geometry_msgs/msg/PointStamped",
-                          "effort_controller/commands:std_msgs/msg/Float64MultiArray",
+                          command, "--types", "joint_states:sensor_msgs/msg/JointState",
+                          "goal:geometry_msgs/msg/PointStamped", f"{command}:std_msgs/msg/Float64MultiArray",
                           "--ros-args", "-p", "use_sim_time:=true"), "recorder")
     assert recorder.wait_for_output("recording passively", 60), recorder.output()
     sim = spawn(ros2("run", "sim", "node", "--ros-args", "-p", "task:=pusher7_reach", "-p", "mode:=lockstep",
