@@ -343,9 +343,14 @@ def test_the_estop_engages_the_sim_and_policy_and_only_estop_reset_releases_them
 
         refused = call()  # the button is still down
         assert not refused.success and "still held" in refused.message
+        # the first answer came; both servers must have taken the request before the release
+        # (a node that took the release first would grant the reset: the topics are not ordered)
+        assert node.spin_until(lambda: sim_status[-1]["estop"]["resets_refused"]
+                               and policy_status[-1]["estop"]["resets_refused"], 10), (sim_status[-1], policy_status[-1])
         estop.publish(Bool(data=False))  # released on the topic: still engaged
-        node.spin_for(0.5)
-        assert sim_status[-1]["estop"]["engaged"] and not any(efforts[-1])
+        assert node.spin_until(lambda: not sim_status[-1]["estop"]["held"] and not policy_status[-1]["estop"]["held"],
+                               10), (sim_status[-1], policy_status[-1])
+        assert sim_status[-1]["estop"]["engaged"] and policy_status[-1]["estop"]["engaged"] and not any(efforts[-1])
         assert node.spin_until(lambda: call().success and not sim_status[-1]["estop"]["engaged"]
                                and not policy_status[-1]["estop"]["engaged"], 20), (sim_status[-1], policy_status[-1])
         # released: the policy drives again

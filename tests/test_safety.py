@@ -286,7 +286,7 @@ def test_the_estop_engages_on_true_and_only_a_reset_releases_it_once_the_button_
     assert not ok and "still held" in message and latch.engaged
     assert not latch.on_estop(False) and latch.engaged  # the topic never releases it
     assert latch.reset() == (True, "released") and not latch.engaged
-    assert latch.as_dict() == {"engaged": False, "held": False, "engagements": 1}
+    assert latch.as_dict() == {"engaged": False, "held": False, "engagements": 1, "resets_refused": 1}
 
 
 def test_a_sim_under_estop_applies_the_safe_command_and_does_not_resume_the_old_one_after_reset():

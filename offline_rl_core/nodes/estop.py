@@ -16,6 +16,7 @@ class EStopLatch:
         self.engaged = False
         self.held = False  # the latest estop word was true
         self.engagements = 0
+        self.resets_refused = 0  # resets asked for while held (status shows the node heard them)
 
     def on_estop(self, value: bool) -> bool:
         """Take an ``estop`` word; True where it engaged the latch just now."""
@@ -29,6 +30,7 @@ class EStopLatch:
     def reset(self) -> tuple[bool, str]:
         """Release (the reset service): (success, message)."""
         if self.held:
+            self.resets_refused += 1
             return False, "the e-stop is still held (the latest estop message is true): publish false, then reset"
         if not self.engaged:
             return True, "not engaged"
@@ -36,4 +38,5 @@ class EStopLatch:
         return True, "released"
 
     def as_dict(self) -> dict:
-        return {"engaged": self.engaged, "held": self.held, "engagements": self.engagements}
+        return {"engaged": self.engaged, "held": self.held, "engagements": self.engagements,
+                "resets_refused": self.resets_refused}
