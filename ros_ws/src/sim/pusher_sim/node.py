@@ -139,6 +139,10 @@ PARAMS = (
     # a passive recorder started beside the sim then gets every transition from the first on
     Param("wait_for_subscribers", 0, "hold the first state (lockstep) or the first tick (realtime) until this "
           "many pusher/transition readers are matched", low=0, read_only=True),
+    # raw topics (no pusher/transition): the readers of the state that must not miss a step,
+    # by node name, since other nodes (a policy, a mux) read it too
+    Param("wait_for_readers", [], "hold the first state (lockstep) or the first tick (realtime) until these nodes "
+          "(names, e.g. [learner, recorder]) read the task's state topic", read_only=True),
     Param("start_time", 0.0, "sim time of the first state, in seconds since the epoch (0: the wall clock at start, "
           "whole seconds); every stamp and /clock count one control period per tick from it (stamps are int32 seconds: "
           "at most a year before 2038)", low=0.0, high=float(MAX_START_TIME_S), read_only=True),
@@ -162,6 +166,7 @@ class PusherSim(Node):
         start_ns = int(s.start_time * NS_PER_S) if s.start_time > 0 else time.time_ns() // NS_PER_S * NS_PER_S
         self.mode = s.mode
         self.wait_for_subscribers = s.wait_for_subscribers
+        self.wait_for_readers = set(s.wait_for_readers or ())
         self.finished = Future()  # done when `episodes` episodes have run
         self.last_publish = 0.0
         self.timing = TickTiming(task.control_period)
@@ -425,11 +430,18 @@ class PusherSim(Node):
         self.publish_step(self.loop.command(stamp_key(stamp), action, SOURCE_POLICY, time.monotonic()))
 
     def readers_matched(self) -> bool:
-        """Whether the transition readers asked for are there (matched once: never hold again)."""
+        """Whether the readers asked for are there (matched once: never hold again)."""
         if self.wait_for_subscribers > 0:
             if self.transition_pub.get_subscription_count() < self.wait_for_subscribers:
                 return False
             self.wait_for_subscribers = 0
+        if self.wait_for_readers:
+            # a reader this node's graph lists is one its writer has matched (both come
+            # from the same endpoint discovery)
+            reading = {info.node_name for info in self.get_subscriptions_info_by_topic(self.state_pub.topic_name)}
+            if not self.wait_for_readers <= reading:
+                return False
+            self.wait_for_readers = set()
         return True
 
     def on_tick(self) -> None:
