@@ -91,7 +91,8 @@ def record(task, task_arg: str, episodes: int, expert_frac: float, seed: int, ba
     with bench_node([ros2_command(), "run", "recorder", "node", "--passive", "--out", str(bag),
                      "--topics", *raw_topics(task), "--types", *typed_topics(task), "--ros-args",
                      "-p", "use_sim_time:=true"], logs / "recorder.log") as rec, \
-            bench_node(sim_args(task_arg, seed, episodes, republish_s=0.2), logs / "record_sim.log") as sim:
+            bench_node(sim_args(task_arg, seed, episodes, "-p", "wait_for_readers:=[recorder]", republish_s=0.2),
+                       logs / "record_sim.log") as sim:  # its first state once the recorder reads the states
         if not rec.wait_for_output("recording passively", 60):
             raise RuntimeError(f"the recorder did not start: {rec.output()[-600:]}")
         # 2 readers of the commands (the sim, the recorder) before the first one is sent
