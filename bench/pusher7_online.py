@@ -51,6 +51,7 @@ def main() -> int:
     out = Path(args.out)
     bag = Path(args.bag) if args.bag else out / "pusher7.db3"
     if not bag.exists():  # the task's mix, as `make bag` is pusher_reach's
+        bag.parent.mkdir(parents=True, exist_ok=True)
         subprocess.run([*offline_rl, "collect", "--task", args.task, "--episodes", "200", "--expert-frac", "0.3",
                         "--seed", "0", "--out", str(bag)], check=True)
     arm = "online_in_process" if args.in_process else ARM
