@@ -350,3 +350,42 @@ def test_the_online_stage_runs_on_pusher7_reach(ros_env, tmp_path, pusher7):
                                                         summary["curve"][-1]["final_dist"])
     session = read_transitions(out / "session.db3")
     assert len(session) == 200 and session.layout.obs_dim == task.obs_dim and session.layout.act_dim == 7
+
+
+@pytest.mark.slow
+def test_on_pusher7_reach_raw_topics_the_learner_trains_on_the_arms_joined_topics(ros_env, tmp_path, pusher7):
+    """`hil --online --task pusher7_reach --from-topics`: the 7-joint arm as a ros2_control
+    arm has it (joint_states, velocity_controller/commands as Float64MultiArray without a
+    header, the goal; no pusher/transition in the session). Its commands are joined by
+    receive times, so the learner and the recorder stamp each message with the sim time of
+    its publication: in lockstep the session runs to its end (each paced weights version
+    needs the steps before it) and the learner's rows are pusher7_reach's, each command
+    joined with the state it answered."""
+    from offline_rl_core.data.bag.info import bag_info
+    from offline_rl_core.serving.checkpoint import load_checkpoint
+    from offline_rl_core.task.spec import load_task
+
+    task = load_task("pusher7_reach")
+    bag, prior = pusher7
+    out = tmp_path / "online"
+    proc = subprocess.run([sys.executable, "-m", "offline_rl_core", "hil", "--online", "--task", "pusher7_reach",
+                           "--from-topics", "--bag", str(bag), "--prior", str(prior), "--env-steps", "200",
+                           "--publish-every", "25", "--eval-every", "200", "--eval-episodes", "1", "--logger", "none",
+                           "--out", str(out)], env=ros_env, cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    topics = {t.name for t in bag_info(out / "session.db3").topics}
+    assert "/pusher/transition" not in topics
+    assert {"/" + task.state.topic, "/" + task.goal.topic, "/" + task.command.topic} <= topics, topics
+    state = torch.load(out / "learner" / "learner_state.pt", weights_only=True)
+    assert state["n_steps"] == 199  # every step but the session's last (no later state closes it)
+    assert state["n_online"] == 198  # two episodes, each but its last step
+    assert state["online_rows"]["obs"].shape == (198, task.obs_dim) and state["online_rows"]["action"].shape == (198, 7)
+    rows = state["online_rows"]
+    live = json.loads((out / "learner" / "live.json").read_text())
+    assert live["transitions"] == 198 and live["steps"] == 199, live
+    # each step's next state is the next step's state but at the episode's end (the sim
+    # resets): every command was joined with the state it answered, once
+    jumps = torch.nonzero((rows["next_obs"][:-1] != rows["obs"][1:]).any(dim=1)).flatten().tolist()
+    assert jumps == [98], jumps
+    final = load_checkpoint(out / "learner" / "policy.pt")
+    assert final["task"]["digest"] == task.digest and final["weights_version"] == 7

@@ -9,7 +9,12 @@ task's raw topics instead (a robot that publishes only standard topics): each me
 them goes to :meth:`LearnerService.receive_message`, and the live join
 (``data.raw_topics.LiveJoin``) hands over the environment steps, with their transitions,
 that no later message can change: the rows `offline-rl dataset` builds from the session's
-bag. Files under ``out``:
+bag. A task that joins by receive times (commands without a header) on a sim's clock
+(``sim_time``) has each message stamped by the sim time current at its *publication*
+(``publication_clock``, as the recorder on sim time stamps the session's bag): stamped when
+the learner got to it, a command answering state t taken after state t + 1's /clock would
+join the wrong state, and a lockstep arm, whose wall-clock periods are however long the
+policy takes, would join none. Files under ``out``:
 
 - ``policy.pt``: the latest weights version, a checkpoint any tool loads (atomic);
 - ``learner_state.pt``: everything needed to resume (networks, optimisers, generators,
@@ -46,6 +51,7 @@ from ..learners.config import TrainConfig
 from ..learners.online import OnlineLearner, OnlineSettings, PriorMismatch
 from .estop import EStopLatch
 from .joint_messages import VALUE_LIMIT
+from .publication_clock import PublicationClock
 from ..common.output_paths import check_output_dir
 from ..runs.loggers import DEFAULT_LOGGER, check_logger, online_scalars, open_logger
 from ..serving.checkpoint import checkpoint_task, load_checkpoint, save_checkpoint
@@ -73,6 +79,7 @@ class LearnerServiceConfig:
     from_topics: bool = False  # build the live transitions from the task's raw topics
     actors: tuple[str, ...] = ()  # the actors' namespaces, when several feed this learner (counted apart)
     live: LiveSettings = field(default_factory=LiveSettings)
+    sim_time: bool = False  # raw topics joined by receive times: stamped by the sim time of their publication
     logger: str = DEFAULT_LOGGER  # where each version's losses and rates go besides progress.jsonl
     settings: OnlineSettings = field(default_factory=OnlineSettings)
     train: TrainConfig = field(default_factory=lambda: TrainConfig(algo="sac"))
@@ -143,6 +150,11 @@ class LearnerService:
             log(f"offline half: left out {self.offline_estop_dropped} transitions recorded while the e-stop was engaged")
         # the live join of the task's raw topics (None: the transitions come on pusher/transition)
         self.live = LiveJoin(self.task, cfg.live) if cfg.from_topics else None
+        # raw topics joined by receive times, on a sim's /clock: each message waits for the
+        # /clock that says which tick it was published in (see receive_clock)
+        self.publication_clock = PublicationClock() if (
+            self.live is not None and cfg.sim_time and self.live.plan.receive_stamps) else None
+        self.last_arrival = -math.inf  # when a raw message or /clock last came (the quiet rule)
         self.idle_since = time.monotonic()  # when training last stopped (the live join's quiet rule)
         self.skip_steps = 0  # steps the live join hands over again after a resume (trained on already)
         self.last_poll = -math.inf
@@ -226,10 +238,35 @@ class LearnerService:
             self.received_from[actor] += 1
         return None
 
-    def receive_message(self, topic: str, msgtype: str, raw: bytes, recv_ns: int) -> Rejection | None:
+    def receive_message(self, topic: str, msgtype: str, raw: bytes, recv_ns: int,
+                        published_ns: int | None = None) -> Rejection | None:
         """One message of the task's raw topics (``topic`` as ``live.topics()`` names it),
-        received at ``recv_ns`` (the node's clock); returns why it was refused (counted), or None."""
-        rejection = self.live.add(topic, msgtype, raw, recv_ns, time.monotonic())
+        received at ``recv_ns`` (the node's clock) and published at ``published_ns`` (the
+        publisher's wall clock: its MessageInfo's source timestamp); returns why it, or a
+        message it let through, was refused (counted), or None. With a publication clock the
+        message waits for the /clock published after it (``receive_clock``)."""
+        if self.publication_clock is None or published_ns is None:
+            return self._join(topic, msgtype, raw, recv_ns)
+        self.last_arrival = time.monotonic()
+        return self._join_released(self.publication_clock.add(published_ns, (topic, msgtype, raw, recv_ns)))
+
+    def receive_clock(self, published_ns: int, sim_ns: int) -> Rejection | None:
+        """A /clock message (``sim_ns``, published at ``published_ns``): the messages published
+        before it go to the live join, stamped with the sim time of their publication."""
+        if self.publication_clock is None:
+            return None
+        self.last_arrival = time.monotonic()
+        return self._join_released(self.publication_clock.add_clock(published_ns, sim_ns))
+
+    def _join_released(self, released) -> Rejection | None:
+        first = None
+        for stamp, (topic, msgtype, raw, recv_ns) in released:
+            rejection = self._join(topic, msgtype, raw, recv_ns if stamp is None else stamp)
+            first = first or rejection
+        return first
+
+    def _join(self, topic: str, msgtype: str, raw: bytes, stamp_ns: int) -> Rejection | None:
+        rejection = self.live.add(topic, msgtype, raw, stamp_ns, time.monotonic())
         if rejection is not None:
             self.rejected.add(rejection)
         return rejection
@@ -244,6 +281,14 @@ class LearnerService:
         if now - self.last_poll < LIVE_POLL_PERIOD_S and not ended and quiet is None:
             return 0  # a join of the window costs milliseconds: at most once a control period
         self.last_poll = now
+        if self.publication_clock is not None:
+            # nothing came while idle (a lockstep arm waits for the learner): every /clock
+            # published has arrived, so the messages still waiting for a later one (the
+            # latest state, its goal) are stamped by the newest
+            if quiet is None:
+                quiet = now - max(self.last_arrival, self.idle_since) >= self.cfg.live.quiet
+            if (quiet or ended) and self.publication_clock.waiting:
+                self._join_released(self.publication_clock.flush())
         steps = self.live.poll(now, self.idle_since, ended=ended, quiet=quiet)
         if len(steps) == 0:
             return 0

@@ -29,6 +29,12 @@ KEPT = 4096  # /clock values kept: a message older than all of them gets the old
 ORDER_SPAN_NS = 999_999  # sim ns: the publication order within one tick, below a millisecond
 
 
+def published_ns(info) -> int:
+    """When a message was published (its MessageInfo's ``source_timestamp``: the
+    publisher's clock), else when it was received."""
+    return info["source_timestamp"] or info["received_timestamp"]
+
+
 class PublicationClock:
     def __init__(self, kept: int = KEPT):
         self._published: deque[int] = deque(maxlen=kept)  # wall ns of each /clock, non-decreasing

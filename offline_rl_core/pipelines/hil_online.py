@@ -246,6 +246,8 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
         "snapshot_every": cfg.eval_every, "corrector": cfg.corrector, "logger": logger,
         "from_topics": "true" if cfg.raw_topics else "false",
         "record_topics": _record_topics(cfg) if cfg.raw_topics else "",
+        # commands without a header are joined by the sim time of their publication
+        "sim_time": "true" if cfg.raw_topics and _joined_by_receive_times(cfg) else "false",
         # a person's corrector runs in the foreground, on this terminal (below)
         "with_corrector": "true" if cfg.corrector == "scripted" else "false",
     }
@@ -391,6 +393,12 @@ def session_transitions(cfg: OnlineHilConfig, bag: Path):
     from ..data.bag import read_transitions
 
     return read_transitions(bag)
+
+
+def _joined_by_receive_times(cfg: OnlineHilConfig) -> bool:
+    from ..data.raw_topics import plan_for
+
+    return plan_for(load_task(cfg.task)).receive_stamps
 
 
 def _record_topics(cfg: OnlineHilConfig) -> str:

@@ -27,7 +27,10 @@ publishes only standard topics. The learner subscribes to the task's raw topics 
 joint states, its controller's commands and the project's action topics, the goal, the
 tracked points, the reset topic) and builds the transitions live with the same join as
 ``offline-rl dataset`` (``offline_rl_core.data.raw_topics.LiveJoin``); its first weights
-wait until the state and goal topics are heard, so a paced actor never outruns it.
+wait until the state and goal topics are heard, so a paced actor never outruns it. A task
+joined by receive times (``join.stamps: receive``: commands without a header) on a sim
+(``-p use_sim_time:=true``) has each message stamped by the sim time of its publication
+(its source timestamp against the /clock's), as the recorder on sim time stamps the bag.
 
 The logic lives in ``offline_rl_core.nodes.learner_service``; this node only moves messages.
 """
@@ -41,12 +44,15 @@ import sys
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message
+from rosgraph_msgs.msg import Clock as ClockMsg
 from std_msgs.msg import Float32MultiArray, MultiArrayDimension, UInt8MultiArray
 
 from offline_rl_core.data.raw_topics.live import LiveSettings
 from offline_rl_core.learners.config import TrainConfig
 from offline_rl_core.learners.online import OnlineSettings
 from offline_rl_core.nodes.learner_service import LearnerService, LearnerServiceConfig
+from offline_rl_core.nodes.publication_clock import published_ns
 from offline_rl_core.runs.loggers import DEFAULT_LOGGER, LOGGERS
 from offline_rl_core.serving.signing import load_signer
 from offline_rl_core.serving.weights import WEIGHTS_LABEL, encode_weights
@@ -142,7 +148,7 @@ class Learner(Node):
             save_every=s.save_every, resume=s.resume, session_bag=s.session_bag or None,
             snapshot_every=s.snapshot_every, from_topics=s.from_topics, actors=tuple(s.actors or ()),
             live=LiveSettings(lateness=s.lateness, quiet=s.quiet), settings=settings, train=train,
-            logger=s.logger),
+            logger=s.logger, sim_time=bool(self.get_parameter("use_sim_time").value)),
             log=self.get_logger().info)
         self.weights_pub = self.create_publisher(UInt8MultiArray, "~/weights", WEIGHTS_QOS)
         self.status = NodeStatus(self, fields=self.service.status, counter=self.service.rejected,
@@ -157,6 +163,9 @@ class Learner(Node):
         # clock that waits for these weights
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         if s.from_topics:
+            if self.service.publication_clock is not None:  # before the raw topics' subscriptions
+                self.create_subscription(ClockMsg, "/clock", self.on_clock, QoSProfile(
+                    depth=100, reliability=ReliabilityPolicy.RELIABLE), raw=True)
             self.subscribe_raw_topics()
             self.create_timer(DISCOVERY_PERIOD_S, self.subscribe_raw_topics, clock=steady)
             what = f"the raw topics of task {self.service.task.name}"
@@ -187,14 +196,25 @@ class Learner(Node):
             if msg_class is None:
                 continue
             self.raw_subs[role.topic] = self.create_subscription(
-                msg_class, role.given, lambda raw, t=role.topic, m=msgtype: self.on_raw(t, m, raw), TRANSITION_QOS,
-                raw=True)
+                msg_class, role.given, self.raw_callback(role.topic, msgtype), TRANSITION_QOS, raw=True)
 
-    def on_raw(self, topic: str, msgtype: str, raw: bytes) -> None:
+    def raw_callback(self, topic: str, msgtype: str):
+        def on_raw(raw: bytes, info) -> None:  # with its MessageInfo: when it was published
+            self.on_raw(topic, msgtype, raw, published_ns(info))
+
+        return on_raw
+
+    def on_raw(self, topic: str, msgtype: str, raw: bytes, published: int | None = None) -> None:
         self.status.took(topic)
-        rejection = self.service.receive_message(topic, msgtype, raw, self.get_clock().now().nanoseconds)
+        rejection = self.service.receive_message(topic, msgtype, raw, self.get_clock().now().nanoseconds, published)
         if rejection is not None:
             self.status.warn(topic, rejection)
+
+    def on_clock(self, raw: bytes, info) -> None:
+        clock = deserialize_message(raw, ClockMsg).clock
+        rejection = self.service.receive_clock(published_ns(info), clock.sec * 1_000_000_000 + clock.nanosec)
+        if rejection is not None:
+            self.status.warn("/clock", rejection)
 
     def publish_first(self) -> None:
         """Publish the first weights, once.

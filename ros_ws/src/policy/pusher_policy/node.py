@@ -198,6 +198,7 @@ class PolicyServer(Node):
         self.command_joint_state = task.command.type == JOINT_STATE
         self.command_pub = self.create_publisher(JointState if self.command_joint_state else Float64MultiArray,
                                                  task.command.topic, 10) if self.settings.publish_command else None
+        self.commanded_stamp: int | None = None  # the state last answered on the controller's topic
         # Watching a file is wall-clock work, also under use_sim_time.
         self.poll_timer = self.create_timer(self.poll_period, self.check_checkpoint,
                                             clock=Clock(clock_type=ClockType.STEADY_TIME))
@@ -372,8 +373,12 @@ class PolicyServer(Node):
         self.action_pub.publish(out)
         if self.provenance_pub.get_subscription_count():  # formatting it costs the answer's latency
             self.publish_provenance(paired.stamp)
-        if self.command_pub is not None and self.command_pub.get_subscription_count():
+        # A command without a header goes once per state: a lockstep arm cannot tell the
+        # answer to a republished state from the answer to its next one, and would step twice
+        once = self.command_joint_state or paired.stamp != self.commanded_stamp
+        if self.command_pub is not None and self.command_pub.get_subscription_count() and once:
             self.publish_command(command_from_action(self.task.command, action), header_stamp)
+            self.commanded_stamp = paired.stamp
             self.watchdog.fed(time.monotonic())
         self.answered += 1
 

@@ -65,7 +65,7 @@ from offline_rl_core.data.bag import BagWriter, transition_ends_episode, typesto
 from offline_rl_core.data.bag.recording import MIN_SQLITE_SPLIT_SIZE, OutOfSpace
 from offline_rl_core.data.collect import EpisodePlan
 from offline_rl_core.data.episode_labels import LABEL_MSGTYPE, LABEL_TOPIC
-from offline_rl_core.nodes.publication_clock import PublicationClock
+from offline_rl_core.nodes.publication_clock import PublicationClock, published_ns
 from offline_rl_core.nodes.collect_driver import CollectDriver, Command
 from offline_rl_core.task.pusher_reach import JOINT_NAMES
 from offline_rl_core.common.errors import UserError
@@ -163,11 +163,6 @@ def subscription_qos(infos, depth: int) -> QoSProfile:
         reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
         durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE,
     )
-
-
-def published_ns(info) -> int:
-    """When a message was published (the publisher's clock), else when it was received."""
-    return info["source_timestamp"] or info["received_timestamp"]
 
 
 def hidden(topic: str) -> bool:
