@@ -128,8 +128,10 @@ def test_a_passive_recording_of_every_topic_keeps_markers_and_diagnostics_and_ev
     from rosbags.highlevel import AnyReader
 
     bags = {"db3": tmp_path / "session.db3", "mcap": tmp_path / "session.mcap", "lean": tmp_path / "lean.db3"}
+    # the recorders subscribe to what discovery finds: the sim's first tick waits until each
+    # reads the state, so the episode (two seconds) is not over before they hear its markers
     sim = spawn(ros2("run", "sim", "node", "--ros-args", "-p", "mode:=realtime", "-p", "episodes:=1",
-                     "-p", "wait_for_subscribers:=3"), "sim")
+                     "-p", "wait_for_subscribers:=3", "-p", "wait_for_readers:=[rec_db3, rec_mcap, rec_lean]"), "sim")
     excluded = ["--exclude-topic-types", "visualization_msgs/msg/MarkerArray", "diagnostic_msgs/msg/DiagnosticArray"]
     recorders = [spawn(ros2("run", "recorder", "node", "--passive", "--episodes", "1", "--out", bag,
                             *(excluded if name == "lean" else ()), "--ros-args", "-r", f"__node:=rec_{name}"),
@@ -212,7 +214,8 @@ def test_gamepad_takes_over_through_the_mux_and_labels_episodes(spawn):
         # released: the policy has the arm again
         n_policy = len(policy_cmds)
         assert node.spin_until(lambda: (pad(axes, [0] * 11), len(policy_cmds) >= n_policy + 5)[1], 30)
-        assert sources[-1] == SOURCE_POLICY
+        # the sim's transitions come a step behind the mux's commands, on another topic
+        assert node.spin_until(lambda: sources[-1] == SOURCE_POLICY, 10), sources[-10:]
 
         # A, then B: one label per press
         for buttons in ([1] + [0] * 10, [0] * 11, [0, 1] + [0] * 9, [0] * 11):
