@@ -375,7 +375,10 @@ def test_on_pusher7_reach_raw_topics_the_learner_trains_on_the_arms_joined_topic
     assert proc.returncode == 0, proc.stderr[-3000:]
     topics = {t.name for t in bag_info(out / "session.db3").topics}
     assert "/pusher/transition" not in topics
-    assert {"/" + task.state.topic, "/" + task.goal.topic, "/" + task.command.topic} <= topics, topics
+    # the arm's own state and goal; its commands come through the mux (the policy's or the
+    # person's), never from the policy node straight to the controller, which would bypass it
+    assert {"/" + task.state.topic, "/" + task.goal.topic, "/pusher/command/policy"} <= topics, topics
+    assert "/" + task.command.topic not in topics, topics
     state = torch.load(out / "learner" / "learner_state.pt", weights_only=True)
     # every step; the session's last (no later state comes) only if the learner, idle, took
     # the arm's silence as its end before it was stopped

@@ -85,8 +85,10 @@ def test_lockstep_validates_commands_tags_sources_and_resets(spawn, tmp_path):
         assert row[24] == 3.0 and row[22] == 0 and row[23] == 0  # source human, episode 0, step 0
         assert np.allclose(row[:8], obs)
         # /clock is the sim time of the newest state; joint_states carries the same state
-        assert node.spin_until(lambda: clocks and stamp_ns(joint_states[-1]) == t0 + TICK, 10)
-        assert stamp_ns_of_clock(clocks[-1]) == t0 + TICK  # (the first one may predate discovery)
+        # (two topics: neither waits for the other; the first clock may predate discovery)
+        assert node.spin_until(lambda: joint_states and stamp_ns(joint_states[-1]) == t0 + TICK
+                               and clocks and stamp_ns_of_clock(clocks[-1]) == t0 + TICK, 10), \
+            ([stamp_ns_of_clock(c) for c in clocks[-3:]], [stamp_ns(j) for j in joint_states[-3:]])
 
         command([0.0, 0.0], publisher=human_pub)  # answers the old stamp: stale, ignored
         node.spin_for(0.3)
