@@ -328,10 +328,17 @@ def test_a_learner_on_raw_topics_resumes_from_the_session_bag(tmp_path, files, r
     first.save()  # then it dies; the rest of the session goes by unseen
     resumed = _service(tmp_path, d / "offline.db3", d / "prior.pt", "run", from_topics=True, resume=True,
                        session_bag=str(bag))
+    # the recording is all of the session there is here (live, the arm's next messages would
+    # come): its last steps are final once the join knows nothing more is on the way, not
+    # when the wall clock's quiet rule, timed from the bag's reading, says so
+    resumed.last_poll = -np.inf
+    resumed.take_steps(quiet=True)
     assert 0 < first.learner.n_steps < resumed.learner.n_steps == whole.learner.n_steps == 199
     _drain(resumed)
     assert resumed.learner.version == whole.learner.version == 19
     assert torch.equal(_flat(resumed.learner.weights()), _flat(whole.learner.weights()))
+
+
 def test_a_full_buffer_evicts_the_oldest_live_rows_and_keeps_the_offline_ones(offline, prior):
     """The online buffer is a ring over ``capacity`` (plus room for a lagging learner): it
     never raises, the offline rows stay, each update samples among the newest ``capacity``

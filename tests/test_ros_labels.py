@@ -8,6 +8,7 @@ import os
 import re
 import signal
 import subprocess
+import time
 
 import numpy as np
 import pytest
@@ -144,8 +145,21 @@ def test_a_lockstep_label_ends_only_the_episode_it_names(spawn, tmp_path):
 
         # the probe is the policy (a recorder and this probe: the sim's two transition readers)
         assert node.spin_until(lambda: states and label_pub.get_subscription_count() >= 2, 60), sim.output()
-        # the recorder has heard this probe (its commands in the bag on disk), so it hears its labels too
-        assert run_until(lambda: len(rows) >= 5 and recorded(bag, "/pusher/command/policy") > 0), sim.output()
+        # a few steps of episode 0, then the arm waits (lockstep: no new answer, no step) until
+        # the recorder has heard this probe (its commands in the bag on disk), so it hears its
+        # labels too; meanwhile the last answer goes again, which the sim ignores (stale)
+        assert run_until(lambda: len(rows) >= 5), sim.output()
+        sent_at = [0.0]
+
+        def repeat_last_answer():
+            if time.monotonic() - sent_at[0] > 0.2:
+                latest = max(answered)
+                msg = JointState(name=["shoulder", "elbow"], effort=[0.2, -0.1])
+                msg.header.stamp.sec, msg.header.stamp.nanosec = latest
+                command_pub.publish(msg)
+                sent_at[0] = time.monotonic()
+            return recorded(bag, "/pusher/command/policy") > 0
+        assert node.spin_until(repeat_last_answer, 60), sim.output()
         label_pub.publish(String(data=json.dumps({"label": "failure", "episode": 0})))
         assert node.spin_until(lambda: "episode 0 labelled failure: it ends" in sim.output(), 10), sim.output()
         assert run_until(lambda: any(int(field(r, "episode")) == 1 for r in rows))

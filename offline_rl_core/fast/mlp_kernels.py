@@ -134,9 +134,13 @@ def covers(net) -> bool:
     return len(w) == 3 and w[1].shape[1] == w[1].shape[2] == w[0].shape[2] and w[2].shape[1] == w[1].shape[2]
 
 
-# How far the hand-written kernels may be from autograd: fp32 reorders a few sums; a bf16
-# hidden layer keeps 8 mantissa bits.
-_TOLERANCE = {"fp32": 1e-4, "bf16": 5e-2}
+# How far the hand-written kernels may be from autograd: fp32 reorders a few sums. A bf16
+# hidden layer keeps 8 mantissa bits, and its ReLU takes the sign of the rounded
+# pre-activation: the few units within rounding of zero switch off where fp32's are on, each
+# taking its whole share of the gradient, so the first layers' gradients differ by about
+# sqrt(share switched) (0.03-0.09 measured on 5 random rows, AMD EPYC avx512_bf16). A wrong
+# kernel (a transpose, a missing term) is off by the order of the gradient itself.
+_TOLERANCE = {"fp32": 1e-4, "bf16": 0.2}
 
 
 def disagreement_with_autograd(net, hidden: HiddenLayer) -> str | None:
