@@ -128,10 +128,6 @@ def test_a_passive_recording_of_every_topic_keeps_markers_and_diagnostics_and_ev
     from rosbags.highlevel import AnyReader
 
     bags = {"db3": tmp_path / "session.db3", "mcap": tmp_path / "session.mcap", "lean": tmp_path / "lean.db3"}
-    # the recorders subscribe to what discovery finds: the sim's first tick waits until each
-    # reads the state, so the episode (two seconds) is not over before they hear its markers
-    sim = spawn(ros2("run", "sim", "node", "--ros-args", "-p", "mode:=realtime", "-p", "episodes:=1",
-                     "-p", "wait_for_subscribers:=3", "-p", "wait_for_readers:=[rec_db3, rec_mcap, rec_lean]"), "sim")
     excluded = ["--exclude-topic-types", "visualization_msgs/msg/MarkerArray", "diagnostic_msgs/msg/DiagnosticArray"]
     recorders = [spawn(ros2("run", "recorder", "node", "--passive", "--episodes", "1", "--out", bag,
                             *(excluded if name == "lean" else ()), "--ros-args", "-r", f"__node:=rec_{name}"),
@@ -144,6 +140,13 @@ def test_a_passive_recording_of_every_topic_keeps_markers_and_diagnostics_and_ev
             out.header.stamp = state.header.stamp
             commands.publish(out)
         node.create_subscription(JointState, "/pusher/state", answer, 10)
+        # the recorders subscribe to what discovery finds: every one has this policy's topic
+        # before the sim starts, and the sim's first tick waits until each reads the state, so
+        # the episode (two seconds) is not over before they hear its commands and markers
+        assert node.spin_until(lambda: commands.get_subscription_count() >= 3, 60), [r.output() for r in recorders]
+        sim = spawn(ros2("run", "sim", "node", "--ros-args", "-p", "mode:=realtime", "-p", "episodes:=1",
+                         "-p", "wait_for_subscribers:=3", "-p", "wait_for_readers:=[rec_db3, rec_mcap, rec_lean]"),
+                    "sim")
         assert node.spin_until(lambda: all(r.poll() is not None for r in recorders), 120), \
             [r.output() for r in recorders]
     assert [r.poll() for r in recorders] == [0, 0, 0], [r.output() for r in recorders]
