@@ -313,3 +313,22 @@ def test_the_trainer_sees_the_same_dataset_in_every_layout(tmp_path):
              _split(tmp_path, "mcap", 3, with_yaml=False)]
     for bag in bags:
         assert dataset_hash(bag) == reference, bag.name
+
+
+@pytest.mark.xfail(strict=True, reason="known defect (stop note): the scan of an MCAP file without an index takes a "
+                   "record damaged mid-file for the cut end of a killed recording and returns the rows before it")
+def test_a_bit_flipped_mid_file_in_an_unindexed_mcap_is_not_read_as_a_cut_end(tmp_path):
+    """Found by the fuzz test above in a CI run (bits=[436782202], no cut): 17 of the 60 rows
+    come back, silently, where the rows written or one line naming the file are due."""
+    layout = "no_statistics-no_summary_offsets-no_repeat_channels-no_repeat_schemas-index_none"
+    data = bytearray(FUZZ[layout])
+    at = 436782202 % (len(data) * 8)
+    data[at // 8] ^= 1 << (at % 8)
+    path = tmp_path / "damaged.mcap"
+    path.write_bytes(bytes(data))
+    try:
+        got = read_transitions(path).to_rows()
+    except UserError as exc:
+        assert "\n" not in str(exc) and str(path) in str(exc), exc
+        return
+    assert np.array_equal(got, ROWS[:60])
