@@ -136,9 +136,12 @@ def test_a_lockstep_label_ends_only_the_episode_it_names(spawn, tmp_path):
             if states and (states[-1].header.stamp.sec, states[-1].header.stamp.nanosec) not in answered:
                 state = states[-1]
                 answered.add((state.header.stamp.sec, state.header.stamp.nanosec))
-                msg = JointState(name=["shoulder", "elbow"], effort=[0.2, -0.1])
-                msg.header.stamp = state.header.stamp
-                command_pub.publish(msg)
+                answer((state.header.stamp.sec, state.header.stamp.nanosec))
+
+        def answer(stamp):
+            msg = JointState(name=["shoulder", "elbow"], effort=[0.2, -0.1])
+            msg.header.stamp.sec, msg.header.stamp.nanosec = stamp
+            command_pub.publish(msg)
 
         def run_until(predicate, timeout=60):
             return node.spin_until(lambda: (answer_latest(), predicate())[1], timeout)
@@ -153,10 +156,7 @@ def test_a_lockstep_label_ends_only_the_episode_it_names(spawn, tmp_path):
 
         def repeat_last_answer():
             if time.monotonic() - sent_at[0] > 0.2:
-                latest = max(answered)
-                msg = JointState(name=["shoulder", "elbow"], effort=[0.2, -0.1])
-                msg.header.stamp.sec, msg.header.stamp.nanosec = latest
-                command_pub.publish(msg)
+                answer(max(answered))
                 sent_at[0] = time.monotonic()
             return recorded(bag, "/pusher/command/policy") > 0
         assert node.spin_until(repeat_last_answer, 60), sim.output()

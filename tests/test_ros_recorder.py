@@ -187,15 +187,12 @@ def test_passive_records_every_topic_with_its_qos_namespace_and_clock(spawn, ros
 
 def wait_for_rows(bag, n: int, timeout: float = 60.0) -> bool:
     """Wait until the bag being recorded holds at least ``n`` transitions on disk."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
+    def enough() -> bool:
         try:
-            if len(read_transitions(bag)) >= n:
-                return True
+            return len(read_transitions(bag)) >= n
         except UserError:
-            pass  # nothing flushed yet
-        time.sleep(0.05)
-    return False
+            return False  # nothing flushed yet
+    return wait_until(enough, timeout)
 
 
 
