@@ -79,6 +79,8 @@ def record_raw_bag(
     source_tags: bool = False,
     noise_seed: int = 1,
     estop: tuple[tuple[int, bool], ...] = (),
+    late_resends: float = 0.0,
+    republishes: float = 0.0,
 ) -> None:
     """Roll out ``episodes`` as `offline-rl collect` does and write their raw topics.
 
@@ -90,6 +92,10 @@ def record_raw_bag(
     Commands go, as the sim takes them, to /pusher/command/<source>; ``source_tags``: to
     /pusher/command with the source in header.frame_id, as older recorders sent them.
     ``estop``: (receive stamp, value) of /estop (std_msgs/Bool) messages to record too.
+    ``late_resends``: share of commands sent once more after the next state, before that
+    state's own (the mux answering a republished state late: its stamp, received later).
+    ``republishes``: share of states published again after their command (a lockstep sim's
+    paced wait), the command then sent again (the mux answering the copy).
     """
     msgs = _Messages()
     env = PusherReachEnv()
@@ -132,6 +138,7 @@ def record_raw_bag(
             write("/pusher/state", msgs.joint_state(jitter(ns), "", env.qpos, env.qvel, effort), START_NS + ns, True)
 
         tick = 0
+        resend = None  # (topic, payload) of a command to send again after the next state
         for ep in range(episodes):
             obs = env.reset(seed=seed + ep)
             source = plan.source(ep)
@@ -139,6 +146,9 @@ def record_raw_bag(
             while not done:
                 ns = tick * TICK_NS
                 publish_state(ns)
+                if resend is not None:
+                    write(*resend)
+                    resend = None
                 action = plan.action(ep, env.qpos, env.qvel, env.target[:2])
                 if torque_commands:
                     torques = np.asarray(action, np.float64) * 0.5
@@ -148,6 +158,11 @@ def record_raw_bag(
                 else:
                     command = msgs.joint_state(jitter(ns), "", effort=action)
                     write(f"/pusher/command/{SOURCE_NAMES[source]}", command, None, True)
+                    if republishes and noise.random() < republishes:
+                        publish_state(ns)
+                        write(f"/pusher/command/{SOURCE_NAMES[source]}", command)
+                    if late_resends and noise.random() < late_resends:
+                        resend = (f"/pusher/command/{SOURCE_NAMES[source]}", command)
                 step = env.steps
                 next_obs, reward, done, info = env.step(action)
                 row = np.empty(TRANSITION_WIDTH, np.float32)

@@ -114,6 +114,21 @@ def test_commands_without_a_header_joined_live_by_receive_time(tmp_path):
     assert_same_as_batch(learner, bag, task)
 
 
+def test_republished_states_and_late_resends_joined_live_by_receive_time_as_in_the_batch(tmp_path):
+    """Stamped states and commands joined by receive times, some states republished and
+    their commands re-sent, some commands re-sent for a state the arm has left (received
+    beside the next state): the live join keeps one of each, as the batch join does."""
+    bag = tmp_path / "resends.db3"
+    record_raw_bag(bag, episodes=2, expert_frac=0.5, seed=6, sim_like=True, late_resends=0.3, republishes=0.3)
+    task = pusher_task(join={"stamps": "receive"})
+    learner = Learner(task)
+    for message in bag_messages(bag, task):
+        learner.take(*message)
+    assert_same_as_batch(learner, bag, task)
+    _, report = transitions_from_topics(bag, task)
+    assert report.commands["answering_an_earlier_state"] > 20 and report.transitions == 198
+
+
 def test_a_message_that_does_not_fit_the_task_is_refused_and_counted(tmp_path):
     bag = tmp_path / "torque.db3"
     record_raw_bag(bag, episodes=1, expert_frac=1.0, seed=0, sim_like=False, torque_commands=True)

@@ -110,6 +110,28 @@ def test_torque_commands_joined_by_receive_time(tmp_path):
     assert report.commands["within_tolerance"] == 200  # receive times: 0.5 ms after the state
 
 
+def test_republished_states_and_resent_commands_joined_by_receive_time_give_the_recorded_steps(tmp_path):
+    """Joined by receive times, a lockstep sim's republished state (same header stamp,
+    received later) is the same state, and the command re-sent for it is a duplicate of its
+    first; a command re-sent for a state the arm has left arrives beside the next state,
+    nearer to it than that state's own command, but its header names the earlier state: it
+    is dropped and counted. Every transition is the recorded one, one per step."""
+    bag = tmp_path / "resends.db3"
+    record_raw_bag(bag, episodes=3, expert_frac=0.34, seed=8, sim_like=True, late_resends=0.2, republishes=0.2)
+    built, report = transitions_from_topics(bag, pusher_task(join={"stamps": "receive"}))
+    recorded = rows_by_step(read_transitions(bag))
+    built_rows = rows_by_step(built)
+    assert len(built) == len(built_rows) == 297
+    assert sorted(set(recorded) - set(built_rows)) == [(e, 99) for e in range(3)]
+    for key, row in built_rows.items():
+        assert np.array_equal(bits(row), bits(recorded[key])), key
+    cmd = report.commands
+    assert report.states["duplicates"] > 30 and report.states["duplicates_differing"] == 0
+    assert cmd["answering_an_earlier_state"] > 30 and cmd["superseded"] == report.states["duplicates"]
+    assert cmd["messages"] == 300 + cmd["answering_an_earlier_state"] + cmd["superseded"]
+    assert report.steps == 300
+
+
 @pytest.mark.parametrize("episodes", [
     {"goal_change": 0.0},
     {"reset_topic": "pusher/reset", "goal_change": 10.0},
@@ -142,7 +164,8 @@ def test_dropped_and_jittered_messages_are_counted_never_filled(tmp_path):
     built, report = transitions_from_topics(raw, task)
     cmd = report.commands
     joined = cmd["exact"] + cmd["within_tolerance"]
-    assert cmd["messages"] == cmd["duplicates"] + cmd["malformed"] + joined + cmd["without_state"] + cmd["superseded"]
+    assert cmd["messages"] == (cmd["duplicates"] + cmd["malformed"] + joined + cmd["without_state"]
+                               + cmd["answering_an_earlier_state"] + cmd["superseded"])
     assert joined == report.transitions + cmd["no_next_state"] + cmd["after_termination"]
     assert cmd["without_state"] > 0 and cmd["no_next_state"] > 4 and cmd["within_tolerance"] > 0
     assert report.points["fingertip"] == "planar_two_link" and not report.point_topics

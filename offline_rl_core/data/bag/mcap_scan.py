@@ -293,6 +293,18 @@ def chunk_message_positions(path: Path, info: ChunkInfo) -> list[tuple[int, int,
     return out
 
 
+_END_NAMES = {OP_DATA_END: "DataEnd", OP_FOOTER: "Footer"}
+
+
+def _closes_the_data(op: int, record_end: int, end: int | None, size: int) -> bool:
+    """Whether a DataEnd or Footer record ending at ``record_end`` can be where the data
+    section ends: a Footer only before the closing magic; with the data section's end known
+    (``end``, from a checked footer), a DataEnd only right before it."""
+    if op == OP_FOOTER:
+        return record_end + len(MAGIC) == size
+    return end is None or record_end == end
+
+
 def scan_mcap(path: Path, end: int | None = None) -> McapScan:
     """Read an MCAP file record by record through its data section, rebuilding its index.
 
@@ -331,6 +343,10 @@ def scan_mcap(path: Path, end: int | None = None) -> McapScan:
                                                           else "runs past the data section")
                 break
             if op in (OP_DATA_END, OP_FOOTER):
+                if not _closes_the_data(op, pos + 9 + length, end, size):
+                    # a flipped opcode reads as an early end: the rest of the file would go unread
+                    raise UserError(f"{path}: the MCAP file is corrupt: a {_END_NAMES[op]} record at byte {pos} "
+                                    "before the end of its data section")
                 stored = struct.unpack("<I", f.read(4))[0] if op == OP_DATA_END and length >= 4 else 0
                 if stored and stored != data_crc:
                     raise UserError(f"{path}: the MCAP file is corrupt: its data section does not match "

@@ -6,7 +6,8 @@ The steps, each on whole arrays:
 1. Read the task's topics (payloads and receive times) and decode them (``streams``).
    Stamps are the header stamps, or the bag's receive times with ``join.stamps: receive``.
 2. Duplicates: messages of a topic with the same stamp. The first received is kept, the
-   others counted (and how many of them differ from the kept one).
+   others counted (and how many of them differ from the kept one). Joined by receive
+   times, states with the same header stamp are duplicates too (a republished state).
 3. States get their goal (the latest at or before the state's stamp, give or take the
    join tolerance) and each tracked point (the one with the state's stamp, nearest within
    the tolerance; the point's forward kinematics when its topic is not in the bag or lacks
@@ -18,7 +19,9 @@ The steps, each on whole arrays:
 5. Each command joins one state: the one with its stamp (``join.match: exact``) or the
    nearest within ``join.tolerance``; when several commands join one state the nearest is
    kept. A command with no state, or superseded, is dropped and counted; none is ever
-   filled in. A joined command is one environment step of the recording.
+   filled in. Joined by receive times, a command whose header names an earlier state than
+   the one it arrived beside (a late re-send) is dropped and counted too. A joined command
+   is one environment step of the recording.
 6. A joined command makes a transition to the state one control period later (give or take
    ``join.period_tolerance``) in the same episode; without one (the episode's last state,
    a dropped message) it is counted and dropped.
@@ -46,7 +49,7 @@ from ..bag.estop_spans import bag_engaged_spans, engaged_at
 from ..transitions import Transitions
 from .messages import MessageDecodeError
 from .spec import JoinPlan, plan_for
-from .streams import Mismatch, Rows, decode_rows, has_header
+from .streams import NO_HEADER, Mismatch, Rows, decode_rows, has_header
 
 
 @dataclass
@@ -86,6 +89,7 @@ class JoinReport:
             f"  commands    {_messages_text(cmd)}, {cmd['malformed']} malformed ({cmd['wrong_length']} of another "
             f"length); joined {cmd['exact'] + cmd['within_tolerance']} ({cmd['exact']} exact, "
             f"{cmd['within_tolerance']} within tolerance), dropped {cmd['without_state']} without a state, "
+            f"{cmd['answering_an_earlier_state']} answering an earlier state (by its header), "
             f"{cmd['superseded']} with another command nearer the same state, {cmd['no_next_state']} without a "
             f"next state, {cmd['after_termination']} after termination; {cmd['clipped']} clipped to [-1, 1]",
             f"              on {', '.join(f'{t} ({n})' for t, n in self.command_topics.items())}"
@@ -296,10 +300,19 @@ def nearest(sorted_t: np.ndarray, query: np.ndarray, tolerance_ns: int) -> tuple
     return pick, dist, dist <= tolerance_ns
 
 
-def _unique_rows(rows: Rows, section: dict) -> Rows:
-    """One row per stamp, usable ones, in stamp order; counted into ``section``."""
+def _unique_rows(rows: Rows, section: dict, by_header: bool = False) -> Rows:
+    """One row per stamp, usable ones, in stamp order; counted into ``section``. With
+    ``by_header`` (receive stamps), also one per header stamp: a copy received later (a
+    state republished while the arm waits) is the same message."""
     content = np.hstack([rows.values, rows.source[:, None].astype(np.float64)])
     kept, dups, differing = first_per_stamp(rows.stamp, content)
+    if by_header:
+        headed = np.flatnonzero(rows.header[kept] != NO_HEADER)
+        first, more, more_differing = first_per_stamp(rows.header[kept[headed]], content[kept[headed]])
+        keep = np.ones(kept.size, bool)
+        keep[headed] = False
+        keep[headed[first]] = True  # the earliest received of each header stamp
+        kept, dups, differing = kept[keep], dups + more, differing + more_differing
     section.update(messages=len(rows), duplicates=dups, duplicates_differing=differing,
                    malformed=int((~rows.ok[kept]).sum()))
     return rows.take(kept[rows.ok[kept]])
@@ -351,7 +364,7 @@ def join(plan: JoinPlan, s: Streams, report: JoinReport, kinematics=None, allow_
     n_joints = len(task.state.joints)
 
     # 2. one state per stamp
-    states = _unique_rows(s.states, report.states)
+    states = _unique_rows(s.states, report.states, by_header=plan.receive_stamps)
     goals = _unique_rows(s.goal, report.goals)
     t_state, recv_state = states.stamp, states.recv
 
@@ -404,6 +417,14 @@ def join(plan: JoinPlan, s: Streams, report: JoinReport, kinematics=None, allow_
     report.commands["clipped"] = int((np.abs(action64) > 1.0).any(axis=1).sum())
     action = np.clip(action64, -1.0, 1.0).astype(np.float32)  # as the sim does: clip, then float32
     state_of, dist, joined = nearest(t_state, t_cmd, tol)
+    # Joined by receive times, a command that names in its header an earlier state than the
+    # one it arrived beside answers a state the arm had left (a re-send for a republished
+    # state that came after the next one: the arm ignored it, as the sim does). Joined by
+    # header stamps, such a command is never within the tolerance of that state anyway.
+    header_state = states.header[keep][state_of] if t_state.size else np.zeros(0, np.int64)
+    stale = (joined & (commands.header != NO_HEADER) & (header_state != NO_HEADER)
+             & (commands.header < header_state - tol))
+    joined &= ~stale
     c = np.flatnonzero(joined)
     # per state: a command of the project's action topics before the controller's (they say
     # who acted: the mux's output, where a policy node also sends its own proposal to the
@@ -412,7 +433,8 @@ def join(plan: JoinPlan, s: Streams, report: JoinReport, kinematics=None, allow_
     first = np.ones(c.size, bool)
     first[1:] = state_of[c][1:] != state_of[c][:-1]
     report.commands.update(exact=int((dist[c[first]] == 0).sum()), within_tolerance=int((dist[c[first]] > 0).sum()),
-                           without_state=int((~joined).sum()), superseded=int((~first).sum()))
+                           without_state=int((~joined & ~stale).sum()), answering_an_earlier_state=int(stale.sum()),
+                           superseded=int((~first).sum()))
     c = c[first]
     c = c[np.argsort(state_of[c], kind="stable")]
     a = state_of[c]  # the state each kept command acts on; one step each

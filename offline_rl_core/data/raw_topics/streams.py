@@ -39,6 +39,9 @@ def source_of_topic(topic: str) -> int | None:
     return SOURCE_BY_NAME.get(topic.rstrip("/").rsplit("/", 1)[-1])
 
 
+NO_HEADER = -1  # Rows.header of a message whose type has no header
+
+
 @dataclass
 class Rows:
     """The decoded messages of one role, in arrival order."""
@@ -50,6 +53,9 @@ class Rows:
     source: np.ndarray  # int64: who acted (commands; 0 otherwise)
     rank: np.ndarray | None = None  # commands: 0 from the project's action topics, 1 from the controller's
     wrong_length: int = 0  # commands refused for holding another number of values
+    # int64 ns: the header stamp where the type has one, else NO_HEADER; kept with
+    # join.stamps: receive too, where it still names the state a command answers
+    header: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.stamp.size)
@@ -57,6 +63,8 @@ class Rows:
     def __post_init__(self):
         if self.rank is None:
             self.rank = np.zeros(self.stamp.size, np.int8)
+        if self.header is None:
+            self.header = np.full(self.stamp.size, NO_HEADER, np.int64)
 
     @classmethod
     def empty(cls, width: int) -> "Rows":
@@ -67,13 +75,14 @@ class Rows:
     def concat(cls, parts: list["Rows"], width: int) -> "Rows":
         if not parts:
             return cls.empty(width)
-        return cls(*(np.concatenate([getattr(p, f) for p in parts])
-                     for f in ("stamp", "recv", "values", "ok", "source", "rank")),
-                   sum(p.wrong_length for p in parts))
+        stamp, recv, values, ok, source, rank, header = (
+            np.concatenate([getattr(p, f) for p in parts])
+            for f in ("stamp", "recv", "values", "ok", "source", "rank", "header"))
+        return cls(stamp, recv, values, ok, source, rank, sum(p.wrong_length for p in parts), header)
 
     def take(self, index) -> "Rows":
         return Rows(self.stamp[index], self.recv[index], self.values[index], self.ok[index], self.source[index],
-                    self.rank[index], self.wrong_length)
+                    self.rank[index], self.wrong_length, self.header[index])
 
 
 def role_width(plan: JoinPlan, role: TopicRole) -> int:
@@ -113,9 +122,11 @@ def decode_rows(plan: JoinPlan, role: TopicRole, msgtype: str, payloads, recv_ns
     decoded = decode_messages(payloads, msgtype) if role.types is not None else []
     rows = Rows(recv.copy(), recv, np.zeros((n, width)), np.zeros(n, bool) if role.types else np.ones(n, bool),
                 np.zeros(n, np.int64))
-    if not plan.receive_stamps:
-        for d in decoded:
-            rows.stamp[d.rows] = d.stamp_ns
+    for d in decoded:
+        if d.stamp_ns is not None:
+            rows.header[d.rows] = d.stamp_ns
+            if not plan.receive_stamps:
+                rows.stamp[d.rows] = d.stamp_ns
     read = {"state": _read_state, "command": _read_command, "action": _read_command, "goal": _read_vector,
             "point": _read_vector}.get(role.role)
     if read is not None:

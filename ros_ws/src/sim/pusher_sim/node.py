@@ -115,6 +115,9 @@ from offline_rl_core.nodes.diagnostics import StatusDiagnosis
 
 # Transitions must not be dropped by a slow reader: a deep reliable history.
 TRANSITION_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+# the arm's state, goal, points and /clock: a KEEP_LAST writer replaces samples a reader has
+# not yet acknowledged, so at depth 10 a learner busy with an update for a few ticks lost states
+STREAM_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 # The task, as robot_description is published: kept for subscribers that come later.
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 FIELD_OF_INTERFACE = {"effort": "effort", "velocity": "velocity", "position": "position"}
@@ -186,19 +189,19 @@ class PusherSim(Node):
                                 on_reset=lambda: self.loop.reset_faults())
         self.tripped = 0  # watchdog trips logged so far
 
-        self.clock_pub = self.create_publisher(ClockMsg, "/clock", 10)
+        self.clock_pub = self.create_publisher(ClockMsg, "/clock", STREAM_QOS)
         self.clock_ns: int | None = None  # the sim time last published on /clock
-        self.state_pub = self.create_publisher(JointState, task.state.topic, 10)
+        self.state_pub = self.create_publisher(JointState, task.state.topic, STREAM_QOS)
         # robot_state_publisher reads joint_states: the state goes there too (when someone listens)
         self.joint_states_pub = None if self.resolve(task.state.topic) == self.resolve("joint_states") else \
-            self.create_publisher(JointState, "joint_states", 10)
+            self.create_publisher(JointState, "joint_states", STREAM_QOS)
         goal_type = {JOINT_STATE: JointState, POSE_STAMPED: PoseStamped}.get(task.goal.type, PointStamped)
-        self.goal_pub = self.create_publisher(goal_type, task.goal.topic, 10)
+        self.goal_pub = self.create_publisher(goal_type, task.goal.topic, STREAM_QOS)
         self.goal_msg = goal_type()
         # Tracked points with a topic (pusher_reach's fingertip: MuJoCo's site, see env.apply_action,
         # so a ROS policy rebuilds the training observation exactly).
         self.point_pubs = [(p.name, self.create_publisher(PoseStamped if p.type == POSE_STAMPED else PointStamped,
-                                                          p.topic, 10),
+                                                          p.topic, STREAM_QOS),
                             PoseStamped() if p.type == POSE_STAMPED else PointStamped())
                            for p in task.points if p.topic]
         for msg in [self.goal_msg] + [m for _, _, m in self.point_pubs]:
