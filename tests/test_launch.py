@@ -113,6 +113,38 @@ def test_launched_processes_end_with_the_on_exit_node_and_stop_the_rest(tmp_path
     assert not launched["server"].running() and "done" in (tmp_path / "worker.log").read_text()
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the parent-death signal is Linux's")
+def test_a_node_does_not_outlive_a_pipeline_that_was_killed(tmp_path):
+    """A pipeline SIGKILLed (a timeout, the OOM killer) cannot stop its nodes: they get
+    SIGTERM from the kernel instead of driving the arm, and loading the machine, alone."""
+    import os
+    import signal
+    import subprocess
+    import time
+
+    parent = subprocess.Popen([sys.executable, "-c", f"""
+import sys, time
+from offline_rl_core.pipelines.processes import RosProcess
+node = RosProcess([sys.executable, "-c", "import time; time.sleep(120)"], {{}}, {str(tmp_path / "node.log")!r}).start()
+print(node.pid, flush=True)
+time.sleep(120)
+"""], stdout=subprocess.PIPE, text=True, cwd=REPO)
+    try:
+        child = int(parent.stdout.readline())
+        assert os.path.exists(f"/proc/{child}")
+        parent.kill()
+        parent.wait(timeout=10)
+        deadline = time.monotonic() + 30
+        while os.path.exists(f"/proc/{child}") and time.monotonic() < deadline:
+            time.sleep(0.05)  # the kernel's signal, then the exit; reaped by init
+        gone = not os.path.exists(f"/proc/{child}") or " Z " in open(f"/proc/{child}/stat").read()
+    finally:
+        parent.kill()
+    if not gone:
+        os.kill(child, signal.SIGKILL)
+    assert gone, "the node outlived its pipeline"
+
+
 def test_online_launch_splits_into_one_learner_and_namespaced_actors():
     """Several actors, one learner (hil --online --actors N): the learner alone, subscribed to
     every actor's transitions; each actor without a learner, on the learner's weights."""

@@ -10,15 +10,19 @@ No ROS import: the nodes are separate processes (``ros2 run PKG EXE ...`` or the
 
 Every process is started in its own process group (so a terminal's Ctrl-C reaches only
 the parent, which then stops its children in order), and is only ever signalled by its
-own pid.
+own pid. On Linux a node also gets SIGTERM when the process that started it dies without
+stopping it (killed, or a timeout's SIGKILL), so no node outlives its pipeline to drive
+an arm, or load the machine, on its own.
 """
 
 from __future__ import annotations
 
+import ctypes
 import os
 import random
 import signal
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -52,10 +56,20 @@ def isolated_ros_env(domain_id: int | None = None, base: dict | None = None) -> 
     return env
 
 
-def _default_sigint() -> None:
-    """In the child: SIGINT back to its default, so a graceful stop works even when the
-    parent was started with SIGINT ignored (a background job of a non-interactive shell)."""
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
+# loaded here, not in the child: between fork and exec only async-signal-safe calls are safe
+_LIBC = ctypes.CDLL(None, use_errno=True) if sys.platform.startswith("linux") else None
+
+
+def _child_setup(parent_pid: int) -> None:
+    """In the child, before exec: SIGINT back to its default, so a graceful stop works even
+    when the parent was started with SIGINT ignored (a background job of a non-interactive
+    shell); SIGTERM when the parent dies (a parent already gone: at once)."""
     signal.signal(signal.SIGINT, signal.SIG_DFL)
+    if _LIBC is not None:
+        _LIBC.prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+        if os.getppid() != parent_pid:
+            os.kill(os.getpid(), signal.SIGTERM)
 
 
 class RosProcess:
@@ -82,7 +96,8 @@ class RosProcess:
         self._log = open(self.log_path, "wb")
         self.proc = subprocess.Popen(
             self.cmd, env=self.env, cwd=self.cwd, stdout=self._log, stderr=subprocess.STDOUT,
-            stdin=subprocess.DEVNULL, start_new_session=True, preexec_fn=_default_sigint,
+            stdin=subprocess.DEVNULL, start_new_session=True,
+            preexec_fn=lambda parent=os.getpid(): _child_setup(parent),
         )
         return self
 
