@@ -266,14 +266,21 @@ def test_a_person_at_the_keyboard_takes_over_in_realtime(ros_env, tmp_path, prio
             time.sleep(0.05)
         return False
 
-    def human_steps():
+    def learner_progress(key):
         try:
-            return json.loads((out / "learner" / "progress.jsonl").read_text().splitlines()[-1])["human"]
-        except (OSError, IndexError, ValueError):
+            return json.loads((out / "learner" / "progress.jsonl").read_text().splitlines()[-1])[key]
+        except (OSError, IndexError, ValueError, KeyError):
             return 0
+
+    def human_steps():
+        return learner_progress("human")
 
     try:
         assert shown("answering", 120), "".join(screen)[-3000:]  # the keyboard corrector is up
+        # a takeover is a person's step after the policy's in one episode: the policy acts first
+        deadline = time.monotonic() + 60
+        while learner_progress("received") == 0 and time.monotonic() < deadline:
+            time.sleep(0.05)
         os.write(fd, b"d")  # shoulder torque +1: the person takes over
         deadline = time.monotonic() + 60
         while human_steps() < 10 and time.monotonic() < deadline:  # the learner has their steps

@@ -237,7 +237,9 @@ def test_ctrl_c_and_a_second_one_never_crash_the_recorder_or_cut_its_bag(spawn, 
     busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
     try:
         with probe_node() as node:
-            pub = node.create_publisher(String, "/notes", QoSProfile(depth=1000,
+            # deeper than a run publishes: a full reliable history of samples not yet acknowledged
+            # makes Fast DDS's publish block, then fail ("cannot publish data"), the test's not the recorder's
+            pub = node.create_publisher(String, "/notes", QoSProfile(depth=4000,
                                                                      reliability=ReliabilityPolicy.RELIABLE))
             for run in range(6):
                 bag = tmp_path / f"run{run}.db3"
