@@ -274,6 +274,44 @@ def test_mux_over_ros_lockstep_and_realtime(spawn, ros_env):
         assert got["real"][-1][0] == "policy"
 
 
+@pytest.mark.ros
+def test_the_lockstep_mux_holds_its_first_command_until_the_named_readers_read_the_commands(spawn, ros_env):
+    """A raw-topic learner or recorder whose command readers discovery matched late loses
+    no step: the lockstep arm waits for the held command, which goes once they read both
+    command topics (a re-send for the held stamp adds nothing); later ones go at once."""
+    require_corrections()
+    from sensor_msgs.msg import JointState
+
+    from ros2_shim.ament_index import ros2_run
+
+    mux = spawn(ros2_run("corrections", "mux", "--ros-args", "-p", "mode:=lockstep", "-p",
+                         "wait_for_readers:=[late_reader]", "-r", "__ns:=/held"), "mux_held")
+    assert mux.wait_for_output("mux lockstep", 60), mux.output()
+    with probe_node("watcher") as node:
+        got = []
+        for source in ("policy", "human"):
+            node.create_subscription(JointState, f"/held/pusher/command/{source}", lambda m: got.append(m), 10)
+        policy = node.create_publisher(JointState, "/held/policy/action", 10)
+        assert node.spin_until(lambda: policy.get_subscription_count() >= 1, 30)
+        policy.publish(joint_msg(A, 1, "policy"))
+        policy.publish(joint_msg(A, 1, "policy"))  # the sim republished the state: answered again
+        node.spin_for(0.5)
+        assert got == [], "a command went before the named reader read the commands"
+        with probe_node("late_reader") as late:
+            late_got = []
+            for source in ("policy", "human"):
+                late.create_subscription(JointState, f"/held/pusher/command/{source}", lambda m: late_got.append(m), 10)
+            assert node.spin_until(lambda: len(got) >= 1, 30), mux.output()
+            assert late.spin_until(lambda: len(late_got) >= 1, 10), mux.output()
+            policy.publish(joint_msg(B, 2, "policy"))  # the readers are there: at once
+            assert node.spin_until(lambda: len(got) >= 2, 10), mux.output()
+            node.spin_for(0.3)
+            assert [(m.header.stamp.nanosec, list(m.effort)) for m in got] == [
+                (1, list(map(float, A))), (2, list(map(float, B)))]
+            assert late.spin_until(lambda: len(late_got) >= 2, 10)
+            assert [m.header.stamp.nanosec for m in late_got] == [1, 2]
+
+
 @pytest.fixture(scope="module")
 def weak_prior(tmp_path_factory):
     """An AWAC prior trained briefly on the reference bag (it rarely succeeds)."""

@@ -88,6 +88,8 @@ def test_a_key_labels_the_episode_the_realtime_sim_ends_it_and_the_bag_keeps_it(
             # the corrector's writers matched on its side is not the recorder's side matched: wait until the
             # recorder has heard the corrector (its answers in the bag on disk)
             assert node.spin_until(lambda: recorded(bag, "/teleop/action") > 0, 60), recorder.output()
+            # and the sim's steps: a label the bag holds before any transition names no episode
+            assert node.spin_until(lambda: recorded(bag, "/pusher/transition") > 0, 60), recorder.output()
             assert node.spin_until(lambda: rows, 30), sim.output()
             episode = 0
             os.write(master, b"y")  # success

@@ -16,6 +16,10 @@ Its parameters:
 - ``require_teleop`` (false): lockstep: always wait for the corrector's word on each
   stamp (an action, or an empty-effort *yield*). When false, the mux waits only while
   a ``/teleop/action`` publisher is matched.
+- ``wait_for_readers`` ([]): lockstep: hold the first command until these nodes (by name:
+  a raw-topic learner and recorder) read ``pusher/command/policy`` and ``.../human``. The
+  lockstep arm waits for it, so neither misses the session's first steps however slowly
+  discovery matches them (as the sim's parameter of that name holds its first state).
 
 The rule in lockstep: exactly one command per stamp. A teleop action for the stamp
 wins; a yield lets the policy's action for the stamp through; a late message for a
@@ -77,9 +81,13 @@ PARAMS = (
           "are dropped", low=0.0, high=60_000.0),
     Param("require_teleop", False, "lockstep: always wait for the corrector's word on each stamp (otherwise only "
           "while a teleop/action publisher is matched)"),
+    # the sim holds its first state for the readers of its topics; the commands are the mux's
+    Param("wait_for_readers", [], "lockstep: hold the first command until these nodes (names, e.g. [learner, "
+          "recorder]) read pusher/command/policy and pusher/command/human", read_only=True),
     THREAD_PRIORITY,
 )
 ONLY_IN = {"hold_ms": "realtime", "require_teleop": "lockstep"}
+READERS_CHECK_PERIOD_S = 0.01  # while the first command is held for its readers
 
 
 def hold_check_period(hold_s: float) -> float:
@@ -104,6 +112,9 @@ class Mux(Node):
         self.position = None  # the state joints' latest positions, where the safe command holds them
         self.velocity = None  # and their speeds, for the soft limits
         self.last_sent = (None, None)  # (stamp, action) of the latest command sent
+        # lockstep: nodes that must read the commands before the first goes (then never again)
+        self.wait_for_readers = set(self.settings.wait_for_readers or ()) if self.mode == "lockstep" else set()
+        self.held: tuple | None = None  # (command, msg) decided while the readers were not there
         self.status = NodeStatus(self, fields=lambda: {"forwarded": dict(self.arbiter.counts),
                                                        "intervening": self.intervening,
                                                        "slew_limited": self.slew.limited,
@@ -121,6 +132,8 @@ class Mux(Node):
         self.policy_sub = self.create_subscription(JointState, "policy/action", self.on_policy, 10)
         self.teleop_sub = self.create_subscription(JointState, "teleop/action", self.on_teleop, 10)
         self.hold_timer = None
+        self.readers_timer = (self.create_timer(READERS_CHECK_PERIOD_S, self.send_held) if self.wait_for_readers
+                              else None)
         if self.mode == "realtime":
             self.hold_timer = self.create_timer(hold_check_period(self.hold_s), self.check_hold)
             # wall time: a controller gone silent is a fault whatever the sim clock does
@@ -189,8 +202,36 @@ class Mux(Node):
             self.send(self.arbiter.on_teleop(stamp, action, self.now()), msg)
             self.check_hold()
 
+    def readers_matched(self) -> bool:
+        """Tell whether the nodes of ``wait_for_readers`` read both command topics.
+
+        A reader this node's graph lists is one its writer has matched: both come from one discovery.
+        """
+        if self.wait_for_readers:
+            for pub in self.command_pubs.values():
+                reading = {info.node_name for info in self.get_subscriptions_info_by_topic(pub.topic_name)}
+                if not self.wait_for_readers <= reading:
+                    return False
+            self.wait_for_readers = set()
+            self.get_logger().info("the command topics' readers are matched: forwarding")
+        return True
+
+    def send_held(self) -> None:
+        """Send what was held, once, when the readers read the commands (their timer)."""
+        if not self.readers_matched():
+            return
+        self.readers_timer.cancel()
+        if self.held is not None:
+            held, self.held = self.held, None
+            self.send(*held)
+
     def send(self, command, msg: JointState) -> None:
         if command is None:
+            return
+        if not self.readers_matched():
+            # the lockstep arm waits for its command; re-sends of a held stamp are the held command
+            if not command.resend or self.held is None:
+                self.held = (command, msg)
             return
         if not command.resend:
             self.last_sent = (command.stamp, self.slew.limit(command.action))

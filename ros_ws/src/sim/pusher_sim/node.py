@@ -145,7 +145,7 @@ PARAMS = (
     # raw topics (no pusher/transition): the readers of the state that must not miss a step,
     # by node name, since other nodes (a policy, a mux) read it too
     Param("wait_for_readers", [], "hold the first state (lockstep) or the first tick (realtime) until these nodes "
-          "(names, e.g. [learner, recorder]) read the task's state topic", read_only=True),
+          "(names, e.g. [learner, recorder]) read the task's state, goal and point topics", read_only=True),
     Param("start_time", 0.0, "sim time of the first state, in seconds since the epoch (0: the wall clock at start, "
           "whole seconds); every stamp and /clock count one control period per tick from it (stamps are int32 seconds: "
           "at most a year before 2038)", low=0.0, high=float(MAX_START_TIME_S), read_only=True),
@@ -440,10 +440,12 @@ class PusherSim(Node):
             self.wait_for_subscribers = 0
         if self.wait_for_readers:
             # a reader this node's graph lists is one its writer has matched (both come
-            # from the same endpoint discovery)
-            reading = {info.node_name for info in self.get_subscriptions_info_by_topic(self.state_pub.topic_name)}
-            if not self.wait_for_readers <= reading:
-                return False
+            # from the same endpoint discovery). Every topic a join needs from the sim: a
+            # reader of the state whose goal reader was not matched yet lost the first goal
+            for pub in [self.state_pub, self.goal_pub, *(p for _, p, _ in self.point_pubs)]:
+                reading = {info.node_name for info in self.get_subscriptions_info_by_topic(pub.topic_name)}
+                if not self.wait_for_readers <= reading:
+                    return False
             self.wait_for_readers = set()
         return True
 
