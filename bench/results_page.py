@@ -405,6 +405,19 @@ def pusher7_online_section(name: str, payload: dict) -> list[str]:
                                                   "![success against environment steps](pusher7_online.png)", ""]
 
 
+def pusher7_probes_section(name: str, payload: dict) -> list[str]:
+    from pusher7_online_probes import probes_table
+
+    return ["## What bounds the HIL-SERL stage on pusher7_reach", "",
+            "The in-process stage on seed 0 at the full budget (20,000 environment steps), one setting changed at a "
+            "time against the stage's defaults; success without intervention of the deterministic policy on the 100 "
+            "held-out resets every 2,500 steps (Wilson 95 % at the best point). The last column looks at the final "
+            "policy's failed episodes: how many came within 0.1 m of the goal (the success radius is 0.05 m) and the "
+            "median of their closest approach. None reaches 0.9: the failures are near misses, the fingertip brought "
+            "near the goal and then crawling toward it, and the last centimetres are what 20,000 steps do not teach.",
+            ""] + source_lines(name, payload) + ["", probes_table(payload), ""]
+
+
 # ----------------------------------------------------------------------------- the best prior
 
 CHAPTER_8000 = {"BC": "0.03 / 0.07 / 0.05", "AWAC": "0.27 / 0.20 / 0.21"}  # the chapter's 8000-step runs
@@ -566,6 +579,7 @@ SECTIONS = {  # file -> its section, in the page's order (the speed sections fol
     "hil_online.json": hil_section,
     "multi_actor.json": multi_actor_section,
     "pusher7_online.json": pusher7_online_section,
+    "pusher7_online_probes.json": pusher7_probes_section,
     "crash_safety.json": crash_section,
     "gpu_ensemble.json": gpu_ensemble_section,
     "pusher7_ros.json": ros_pipeline_section,

@@ -1,0 +1,150 @@
+"""What bounds the HIL-SERL stage on pusher7_reach (issue 23): the in-process stage on seed 0
+at the full budget (20,000 environment steps) with one setting changed at a time.
+
+    .venv/bin/python bench/pusher7_online_probes.py [--variants NAME ...] [--out runs/p7-probes]
+                                                    [--json bench/pusher7_online_probes.json]
+
+The stage is ``runs.online_loop.run_online`` (what ``offline-rl hil --online --in-process``
+runs): the ``--algo auto`` prior of bench/pusher7_online.py (trained on the task's recorded mix
+``offline-rl collect --task pusher7_reach --episodes 200 --expert-frac 0.3 --seed 0``), SAC
+with the scripted corrector, lockstep, the deterministic policy scored on the 100 held-out
+resets every 2,500 steps. Each variant changes one thing against ``baseline`` (the stage's
+defaults); a variant whose record is in the JSON is not run again. The final policy's
+failures are looked at too (``failures``: how near each failed episode came). Writes the JSON (each
+variant's curve, counts, settings, the command and the machine) and prints the table of
+bench/RESULTS.md's section.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from offline_rl_core.benchmarks.harness import run_facts
+from offline_rl_core.common.atomic import write_json_atomic
+from offline_rl_core.data.bag import read_transitions
+from offline_rl_core.learners.config import TrainConfig
+from offline_rl_core.learners.online import OnlineSettings
+from offline_rl_core.runs.online_loop import OnlineRunConfig, run_online, steps_to
+from offline_rl_core.serving.checkpoint import load_checkpoint
+from offline_rl_core.common.seeds import HELD_OUT
+from offline_rl_core.serving.policy import LoadedPolicy
+from offline_rl_core.task.corrector import CorrectorParams
+from offline_rl_core.task.envs import make_env
+from offline_rl_core.task.spec import load_task
+
+TASK = "pusher7_reach"
+# name -> (what it changes, the OnlineRunConfig / TrainConfig / OnlineSettings / CorrectorParams overrides)
+VARIANTS = {
+    "baseline": ("the stage's defaults: utd 2, half of each batch offline, alpha 0.01, gamma 0.99", {}),
+    "end_on_success": ("an episode ends where the simulator judges success (HIL-SERL's rule)",
+                       {"run": {"end_on_success": True}}),
+    "utd4": ("4 gradient steps per environment step", {"online": {"utd": 4}}),
+    "alpha0.001": ("a tenth of the entropy weight", {"train": {"alpha": 0.001}}),
+    "target_entropy-7": ("the entropy weight tuned toward -7 (one nat per joint below zero)",
+                         {"train": {"target_entropy": -7.0}}),
+    "offline0.25": ("a quarter of each batch offline", {"online": {"offline_ratio": 0.25}}),
+    "offline0.25_gamma0.97": ("a quarter offline and gamma 0.97",
+                              {"online": {"offline_ratio": 0.25}, "train": {"gamma": 0.97}}),
+    "corrector_progress0.01": ("the corrector takes over when the fingertip gained under 1 cm in 8 steps "
+                               "(a person grabbing an arm that crawls)", {"corrector": {"min_progress": 0.01}}),
+    "corrector_progress0.01_offline0.25": ("both of the above",
+                                           {"corrector": {"min_progress": 0.01}, "online": {"offline_ratio": 0.25}}),
+}
+
+
+def config_of(name: str, seed: int, env_steps: int) -> OnlineRunConfig:
+    over = VARIANTS[name][1]
+    return OnlineRunConfig(env_steps=env_steps, seed=seed, task=TASK, eval_every=2500,
+                           train=TrainConfig(**{"algo": "sac", **over.get("train", {})}),
+                           settings=OnlineSettings(**over.get("online", {})),
+                           corrector=CorrectorParams(**over.get("corrector", {})), **over.get("run", {}))
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--env-steps", type=int, default=20_000)
+    p.add_argument("--out", default="runs/p7-probes", help="the mix and the prior (made if missing)")
+    p.add_argument("--json", default="bench/pusher7_online_probes.json")
+    args = p.parse_args()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    offline_rl = [sys.executable, "-m", "offline_rl_core"]
+    bag, prior = out / "pusher7.db3", out / "prior" / "policy.pt"
+    if not bag.exists():
+        subprocess.run([*offline_rl, "collect", "--task", TASK, "--episodes", "200", "--expert-frac", "0.3",
+                        "--seed", "0", "--out", str(bag)], check=True)
+    if not prior.exists():  # the stage's own prior: offline-rl hil --online trains it so
+        subprocess.run([*offline_rl, "train", "--task", TASK, "--bag", str(bag), "--algo", "auto", "--seed",
+                        str(args.seed), "--eval-episodes", "0", "--logger", "none", "--out", str(prior.parent)],
+                       check=True)
+    path = Path(args.json)
+    import json
+
+    data = json.loads(path.read_text()) if path.exists() else {"task": TASK, "variants": {}}
+    data.update(run_facts())
+    offline, checkpoint = read_transitions(bag), load_checkpoint(prior)
+    for name in args.variants:
+        if name in data["variants"]:
+            continue
+        print(f"{name}: {VARIANTS[name][0]}", flush=True)
+        cfg = config_of(name, args.seed, args.env_steps)
+        result = run_online(offline, checkpoint, cfg, log=lambda s: print(s, flush=True))
+        weights = result.pop("final_weights")
+        (out / name).mkdir(exist_ok=True)
+        torch.save(weights, out / name / "policy.pt")
+        data["variants"][name] = {"changes": VARIANTS[name][0], "seed": args.seed, **result,
+                                  "failures": failures(weights),
+                                  "settings": {"online": asdict(cfg.settings), "corrector": asdict(cfg.corrector),
+                                               "end_on_success": cfg.end_on_success}}
+        write_json_atomic(path, data)
+    print(probes_table(data))
+    return 0
+
+
+def failures(weights: dict, first_seed: int = HELD_OUT, episodes: int = 100) -> dict:
+    """How the final deterministic policy fails on the held-out resets: each failed episode's
+    closest approach and final distance (m), and its fingertip's mean speed over the last 10
+    steps (m per step): a policy that gets near and then crawls, or one that never gets near."""
+    task = load_task(TASK)
+    policy, env = LoadedPolicy(weights), make_env(task, terminate_on_success=False)
+    failed = []
+    for reset in range(first_seed, first_seed + episodes):
+        obs, done, dist = env.reset(reset), False, []
+        while not done:
+            obs, _, done, info = env.step(policy.act(obs))
+            dist.append(info["dist"])
+        if not info["success"]:
+            failed.append({"reset": reset, "closest": round(min(dist), 4), "final": round(dist[-1], 4),
+                           "last_10_steps_m_per_step": round(abs(dist[-1] - dist[-11]) / 10, 5)})
+    closest = np.array([f["closest"] for f in failed]) if failed else np.zeros(0)
+    return {"count": len(failed), "within_0.1m": int((closest < 0.1).sum()),
+            "closest_median": round(float(np.median(closest)), 4) if failed else None, "episodes": failed}
+
+
+def probes_table(data: dict) -> str:
+    lines = ["| variant | what it changes | success at 10k / 15k / 17.5k / 20k steps | best point | steps to 0.8 / 0.9 "
+             "| intervention rate, last window | final policy's failures: within 0.1 m, closest (median) |",
+             "|---|---|---|---|---|---|---|"]
+    for name, rec in data["variants"].items():
+        at = {p["env_steps"]: p for p in rec["curve"]}
+        points = " / ".join(f"{at[n]['success']:.2f}" if n in at else "-" for n in (10000, 15000, 17500, 20000))
+        best = max(rec["curve"], key=lambda p: p["success"])
+        reach = " / ".join(str(r["env_steps"]) if (r := steps_to(rec["curve"], t)) else "-" for t in (0.8, 0.9))
+        lines.append(f"| {name} | {rec['changes']} | {points} | {best['success']:.2f} [{best['ci'][0]:.2f}, "
+                     f"{best['ci'][1]:.2f}] at {best['env_steps']} | {reach} | {rec['curve'][-1]['intervention_rate']:.3f} | "
+                     + (f"{f['within_0.1m']} of {f['count']}, {f['closest_median']:.3f} m |" if (f := rec.get("failures"))
+                        else "- |"))
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
