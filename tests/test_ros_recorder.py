@@ -197,39 +197,44 @@ def wait_for_rows(bag, n: int, timeout: float = 60.0) -> bool:
 
 
 @pytest.mark.slow
-def test_on_sim_time_headerless_commands_are_stamped_in_the_tick_they_answer(spawn, tmp_path):
-    """pusher7_reach as a ros2_control arm in lockstep, driven by a controller that sends
+@pytest.mark.parametrize("task_name", ["pusher7_reach", "pusher_push"])
+def test_on_sim_time_headerless_commands_are_stamped_in_the_tick_they_answer(spawn, tmp_path, task_name):
+    """A task as a ros2_control arm in lockstep, driven by a controller that sends
     Float64MultiArray commands (no header), recorded passively on sim time: each command is
     stamped with the sim time of its arrival, not of the step it caused, so joining the raw
     topics by receive times (`offline-rl dataset`) gives `offline-rl collect`'s rows exactly
-    (each episode's last step has no next state on the topics: the sim resets)."""
+    (each episode's last step has no next state on the topics: the sim resets). pusher_push's
+    puck, as a tracker publishes it, is recorded by discovery (not given a type): the sim holds
+    its first state until the recorder reads it, which on sim time needs the recorder's
+    discovery to run on wall time (no /clock comes before that state)."""
     import sys
 
     from offline_rl_core.data.raw_topics import transitions_from_topics
     from offline_rl_core.task.spec import load_task
     from ros_helpers import REPO
 
-    task = load_task("pusher7_reach")
+    task = load_task(task_name)
     bag = tmp_path / "raw.db3"
     command = task.command.topic  # the controller's commands topic (velocity_controller/commands)
+    tracked = [p.topic for p in task.points if p.topic]
     recorder = spawn(ros2("run", "recorder", "node", "--passive", "--out", bag, "--topics", "joint_states", "goal",
-                          command, "--types", "joint_states:sensor_msgs/msg/JointState",
+                          command, *tracked, "--types", "joint_states:sensor_msgs/msg/JointState",
                           "goal:geometry_msgs/msg/PointStamped", f"{command}:std_msgs/msg/Float64MultiArray",
                           "--ros-args", "-p", "use_sim_time:=true"), "recorder")
     assert recorder.wait_for_output("recording passively", 60), recorder.output()
     # the controller sees the recorder in its graph, not whether the sim's writers have matched
     # it (on a loaded machine, seconds later): the sim holds its first state until they have
-    sim = spawn(ros2("run", "sim", "node", "--ros-args", "-p", "task:=pusher7_reach", "-p", "mode:=lockstep",
+    sim = spawn(ros2("run", "sim", "node", "--ros-args", "-p", f"task:={task_name}", "-p", "mode:=lockstep",
                      "-p", "seed:=0", "-p", "episodes:=2", "-p", "republish_period:=0.2",
                      "-p", "wait_for_readers:=[recorder]"), "sim")
     controller = spawn([sys.executable, REPO / "ros_ws" / "tools" / "bench_probes" / "scripted_controller.py",
-                        "pusher7_reach", "2", "0.5", "0", "2", "0.02"], "controller")
+                        task_name, "2", "0.5", "0", "2", "0.02"], "controller")
     assert controller.wait(timeout=300) == 0, controller.output()
     assert sim.wait(timeout=60) == 0, sim.output()
     assert recorder.stop(signal.SIGINT) == 0, recorder.output()
     rows, report = transitions_from_topics(bag, task)
     reference = collect_transitions(2, 0.5, 0, task=task)
     kept = ~(reference.truncated | reference.terminated)
-    assert len(rows) == int(kept.sum()) == 198, report
+    assert len(rows) == int(kept.sum()) == 2 * (task.episodes.max_steps - 1), report
     for field in ("obs", "action", "reward", "next_obs", "episode", "step"):
         assert np.array_equal(getattr(rows, field), getattr(reference, field)[kept]), field

@@ -1,7 +1,8 @@
 """A user's scripted controller for a task's arm, over its raw topics only (a bench probe).
 
 It stands in for whatever drives a real ros2_control arm while someone records it: it
-hears the task's state (sensor_msgs/JointState) and goal on their topics, and answers
+hears the task's state (sensor_msgs/JointState), goal and tracked points with a topic (a
+tracker's puck) on their topics, and answers
 each state on the controller's command topic (std_msgs/Float64MultiArray in the
 controller's joint order, or a JointState command, as the task says), with the actions
 of ``offline_rl_core.data.collect.EpisodePlan``: the task's scripted expert for the first
@@ -70,6 +71,20 @@ def drive(task_name: str, episodes: int, expert_frac: float, seed: int, subscrib
         if goal is not None:
             goals[stamp_ns(msg.header.stamp)] = goal
 
+    # tracked points with a topic (an object a tracker publishes), by the state's stamp
+    tracked = [p for p in task.points if p.topic]
+    tracked_at: dict[str, dict[int, np.ndarray]] = {p.name: {} for p in tracked}
+
+    def on_point(msg, name):
+        p = msg.pose.position if isinstance(msg, PoseStamped) else msg.point
+        vector, bad = reader.point(name, p.x, p.y, p.z)
+        if vector is not None:
+            tracked_at[name][stamp_ns(msg.header.stamp)] = vector
+
+    for p in tracked:
+        node.create_subscription(PoseStamped if p.type == POSE_STAMPED else PointStamped, p.topic,
+                                 lambda m, name=p.name: on_point(m, name), 100)
+
     heard: dict[int, int] = {}  # copies of each state stamp heard
 
     def on_state(msg):
@@ -86,6 +101,7 @@ def drive(task_name: str, episodes: int, expert_frac: float, seed: int, subscrib
 
     def answer(stamp: int) -> None:
         (names, position, velocity), goal = states.pop(stamp), goals.pop(stamp)
+        heard_points = {name: by_stamp.pop(stamp) for name, by_stamp in tracked_at.items()}
         joints, bad = reader.state(names, position, velocity)
         if joints is None:
             raise RuntimeError(f"a state the task cannot read: {bad}")
@@ -97,7 +113,7 @@ def drive(task_name: str, episodes: int, expert_frac: float, seed: int, subscrib
         episode = progress["episode"]
         if episode >= episodes:
             return
-        vectors = reader.vectors(positions, goal, {})
+        vectors = reader.vectors(positions, goal, heard_points)
         points = {p.name: vectors[p.name] for p in task.points}
         action = plan.action(episode, positions, velocities, goal, points if episode < plan.n_expert else None)
         values = [float(v) for v in command_from_action(task.command, action)]
@@ -130,15 +146,16 @@ def drive(task_name: str, episodes: int, expert_frac: float, seed: int, subscrib
             for stamp in sorted(states):
                 if progress["last_stamp"] is not None and stamp <= progress["last_stamp"]:
                     del states[stamp]  # republished while our answer was in flight
-                elif stamp in goals:
+                elif stamp in goals and all(stamp in by_stamp for by_stamp in tracked_at.values()):
                     answer(stamp)
             if progress["episode"] == episodes - 1 and progress["steps"] >= task.episodes.max_steps:
                 # the last episode's last step: no later state comes; the command must reach
                 # the sim before this node goes, so wait for the sim to end
                 wait_until(lambda: node.count_publishers(task.state.topic) == 0, 30.0, spin)
                 break
-            for old in [s for s in goals if progress["last_stamp"] is not None and s <= progress["last_stamp"]]:
-                del goals[old]
+            for by_stamp in (goals, *tracked_at.values()):
+                for old in [s for s in by_stamp if progress["last_stamp"] is not None and s <= progress["last_stamp"]]:
+                    del by_stamp[old]
     except KeyboardInterrupt:  # stopped by whoever started it (the sim has run its episodes)
         pass
     finally:

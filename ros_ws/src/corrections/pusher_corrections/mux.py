@@ -132,7 +132,8 @@ class Mux(Node):
         self.policy_sub = self.create_subscription(JointState, "policy/action", self.on_policy, 10)
         self.teleop_sub = self.create_subscription(JointState, "teleop/action", self.on_teleop, 10)
         self.hold_timer = None
-        self.readers_timer = (self.create_timer(READERS_CHECK_PERIOD_S, self.send_held) if self.wait_for_readers
+        self.readers_timer = (self.create_timer(READERS_CHECK_PERIOD_S, self.send_held,
+                                                clock=Clock(clock_type=ClockType.STEADY_TIME)) if self.wait_for_readers
                               else None)
         if self.mode == "realtime":
             self.hold_timer = self.create_timer(hold_check_period(self.hold_s), self.check_hold)

@@ -52,6 +52,7 @@ from collections import deque
 from pathlib import Path
 
 from geometry_msgs.msg import PointStamped
+from rclpy.clock import Clock as NodeClock, ClockType
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message, serialize_message
@@ -243,7 +244,9 @@ class Recorder(Node):
         # Other topics are subscribed as discovery finds their publishers (and types).
         self.dynamic = self.record_all or bool(self.wanted - set(self.subs))
         if self.dynamic:
-            self.create_timer(DISCOVERY_PERIOD_S, self.discover)
+            # wall time: under use_sim_time a sim that holds its first state (and /clock) until
+            # this recorder reads its topics would otherwise wait for a discovery that never runs
+            self.create_timer(DISCOVERY_PERIOD_S, self.discover, clock=NodeClock(clock_type=ClockType.STEADY_TIME))
             self.discover()
         self.diagnostics = NodeDiagnostics(self, self.status, StatusDiagnosis(
             checks=(recorder_checks,), idle=lambda st: f"recording to {self.bag.path}"))
