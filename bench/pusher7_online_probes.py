@@ -31,13 +31,14 @@ from offline_rl_core.common.atomic import write_json_atomic
 from offline_rl_core.data.bag import read_transitions
 from offline_rl_core.learners.config import TrainConfig
 from offline_rl_core.learners.online import OnlineSettings
-from offline_rl_core.runs.online_loop import OnlineRunConfig, run_online, steps_to
+from offline_rl_core.runs.online_loop import OnlineRunConfig, run_online
 from offline_rl_core.serving.checkpoint import load_checkpoint
 from offline_rl_core.common.seeds import HELD_OUT
 from offline_rl_core.serving.policy import LoadedPolicy
 from offline_rl_core.task.corrector import CorrectorParams
 from offline_rl_core.task.envs import make_env
 from offline_rl_core.task.spec import load_task
+from results_page import probes_table
 
 TASK = "pusher7_reach"
 # name -> (what it changes, the OnlineRunConfig / TrainConfig / OnlineSettings / CorrectorParams overrides)
@@ -128,22 +129,6 @@ def failures(weights: dict, first_seed: int = HELD_OUT, episodes: int = 100) -> 
     closest = np.array([f["closest"] for f in failed]) if failed else np.zeros(0)
     return {"count": len(failed), "within_0.1m": int((closest < 0.1).sum()),
             "closest_median": round(float(np.median(closest)), 4) if failed else None, "episodes": failed}
-
-
-def probes_table(data: dict) -> str:
-    lines = ["| variant | what it changes | success at 10k / 15k / 17.5k / 20k steps | best point | steps to 0.8 / 0.9 "
-             "| intervention rate, last window | final policy's failures: within 0.1 m, closest (median) |",
-             "|---|---|---|---|---|---|---|"]
-    for name, rec in data["variants"].items():
-        at = {p["env_steps"]: p for p in rec["curve"]}
-        points = " / ".join(f"{at[n]['success']:.2f}" if n in at else "-" for n in (10000, 15000, 17500, 20000))
-        best = max(rec["curve"], key=lambda p: p["success"])
-        reach = " / ".join(str(r["env_steps"]) if (r := steps_to(rec["curve"], t)) else "-" for t in (0.8, 0.9))
-        lines.append(f"| {name} | {rec['changes']} | {points} | {best['success']:.2f} [{best['ci'][0]:.2f}, "
-                     f"{best['ci'][1]:.2f}] at {best['env_steps']} | {reach} | {rec['curve'][-1]['intervention_rate']:.3f} | "
-                     + (f"{f['within_0.1m']} of {f['count']}, {f['closest_median']:.3f} m |" if (f := rec.get("failures"))
-                        else "- |"))
-    return "\n".join(lines)
 
 
 if __name__ == "__main__":

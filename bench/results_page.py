@@ -405,9 +405,24 @@ def pusher7_online_section(name: str, payload: dict) -> list[str]:
                                                   "![success against environment steps](pusher7_online.png)", ""]
 
 
-def pusher7_probes_section(name: str, payload: dict) -> list[str]:
-    from pusher7_online_probes import probes_table
+def probes_table(data: dict) -> str:
+    lines = ["| variant | what it changes | success at 10k / 15k / 17.5k / 20k steps | best point | steps to 0.8 / 0.9 "
+             "| intervention rate, last window | final policy's failures: within 0.1 m, closest (median) |",
+             "|---|---|---|---|---|---|---|"]
+    for name, rec in data["variants"].items():
+        at = {p["env_steps"]: p for p in rec["curve"]}
+        points = " / ".join(f"{at[n]['success']:.2f}" if n in at else "-" for n in (10000, 15000, 17500, 20000))
+        best = max(rec["curve"], key=lambda p: p["success"])
+        reach = " / ".join(next((str(p["env_steps"]) for p in rec["curve"] if p["success"] >= t), "-")
+                           for t in (0.8, 0.9))
+        lines.append(f"| {name} | {rec['changes']} | {points} | {best['success']:.2f} [{best['ci'][0]:.2f}, "
+                     f"{best['ci'][1]:.2f}] at {best['env_steps']} | {reach} | {rec['curve'][-1]['intervention_rate']:.3f} | "
+                     + (f"{f['within_0.1m']} of {f['count']}, {f['closest_median']:.3f} m |" if (f := rec.get("failures"))
+                        else "- |"))
+    return "\n".join(lines)
 
+
+def pusher7_probes_section(name: str, payload: dict) -> list[str]:
     return ["## What bounds the HIL-SERL stage on pusher7_reach", "",
             "The in-process stage on seed 0 at the full budget (20,000 environment steps), one setting changed at a "
             "time against the stage's defaults; success without intervention of the deterministic policy on the 100 "
