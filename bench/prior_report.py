@@ -57,7 +57,7 @@ from offline_rl_core.learners import TrainConfig, train
 from offline_rl_core.runs import chapter_loop as chapter
 from offline_rl_core.runs.prior import chapter_awac_seconds, plan_training, step_rate, steps_for_budget
 from offline_rl_core.task.spec import DEFAULT_TASK, load_task
-from results_page import curves_table, musthold_table
+from results_page import curves_table, musthold_table, task_curves_table
 
 ROOT = Path(__file__).resolve().parents[1]
 SEEDS = (0, 1, 2)
@@ -229,7 +229,7 @@ def render(store: Store, out_png: Path, expert_frac: float) -> None:
     ax.legend(fontsize=8)
     ax.set_xscale("log")
     ax.set_title(f"{'' if TASK == DEFAULT_TASK else TASK + ': '}success against training time, "
-                 f"{expert_frac:.0%} expert episodes (Wilson 95 %)")
+                 f"{expert_frac:.0%} expert episodes (Wilson 95 %)", fontsize=10)
     fig.tight_layout()
     fig.savefig(out_png, dpi=120)
     print(f"wrote {out_png}")
@@ -238,22 +238,7 @@ def render(store: Store, out_png: Path, expert_frac: float) -> None:
         print()
         print(musthold_table(store.data.get("musthold", {})))
         return
-    rows = [(label, [r["points"][-1] for r in recs]) for label, recs in by_label.items()]  # the whole budget, per seed
-    pooled = {label: (sum(p["successes"] for p in pts), sum(p["episodes"] for p in pts)) for label, pts in rows}
-    print("| learner | steps in the budget, seeds | success | pooled [95 % CI] | minus BC [95 % CI, Newcombe] "
-          "| final distance m |")
-    print("|---|---|---|---|---|---|")
-    for label, pts in rows:
-        s, n = pooled[label]
-        a, b = wilson_ci(s, n)
-        steps = " / ".join(str(p["steps"]) for p in pts)
-        success = " / ".join(f"{p['success_rate']:.2f}" for p in pts)
-        dist = " / ".join(f"{p['mean_final_dist']:.3f}" for p in pts)
-        diff = "-"
-        if "BC" in pooled and label != "BC":
-            lo, hi = newcombe_diff_ci(s, n, *pooled["BC"])
-            diff = f"{s / n - pooled['BC'][0] / pooled['BC'][1]:+.3f} [{lo:+.3f}, {hi:+.3f}]"
-        print(f"| {label} | {steps} | {success} | {s / n:.3f} [{a:.3f}, {b:.3f}] | {diff} | {dist} |")
+    print(task_curves_table(store.data.get("curves", {}), expert_frac))
     for key, rec in sorted(store.data.get("musthold", {}).items()):
         print(f"{key}: chapter {rec['chapter_awac_s']} s, auto {rec['auto_command_s']} s "
               f"({rec['auto_train_s']} s training, {rec['steps']} steps), within {rec['within']}, "

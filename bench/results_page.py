@@ -422,6 +422,46 @@ def probes_table(data: dict) -> str:
     return "\n".join(lines)
 
 
+def task_curves_table(curves: dict, expert_frac: float) -> str:
+    """Every learner at the whole budget on another task (prior_report.py --task): per seed and
+    pooled with Wilson intervals, and each against BC (Newcombe)."""
+    by_label: dict[str, list] = {}
+    for rec in curves.values():
+        if rec["points"] and rec["expert_frac"] == expert_frac:
+            by_label.setdefault(rec["label"], []).append(rec)
+    rows = [(label, [r["points"][-1] for r in sorted(recs, key=lambda r: r["seed"])])
+            for label, recs in by_label.items()]  # the whole budget, per seed
+    pooled = {label: (sum(p["successes"] for p in pts), sum(p["episodes"] for p in pts)) for label, pts in rows}
+    lines = ["| learner | steps in the budget, seeds | success | pooled [95 % CI] | minus BC [95 % CI, Newcombe] "
+             "| final distance m |", "|---|---|---|---|---|---|"]
+    for label, pts in rows:
+        s, n = pooled[label]
+        a, b = wilson_ci(s, n)
+        steps = " / ".join(str(p["steps"]) for p in pts)
+        success = " / ".join(f"{p['success_rate']:.2f}" for p in pts)
+        dist = " / ".join(f"{p['mean_final_dist']:.3f}" for p in pts)
+        diff = "-"
+        if "BC" in pooled and label != "BC":
+            lo, hi = newcombe_diff_ci(s, n, *pooled["BC"])
+            diff = f"{s / n - pooled['BC'][0] / pooled['BC'][1]:+.3f} [{lo:+.3f}, {hi:+.3f}]"
+        lines.append(f"| {label} | {steps} | {success} | {s / n:.3f} [{a:.3f}, {b:.3f}] | {diff} | {dist} |")
+    return "\n".join(lines)
+
+
+def push_experiment_section(name: str, payload: dict) -> list[str]:
+    curves = payload.get("curves", {})
+    budget = next(iter(curves.values()))["budget_s"] if curves else None
+    return ["## The chapter's experiment on pusher_push", "",
+            f"Every learner for the same training time ({budget:.1f} s: the chapter's 8000-step AWAC loop on this "
+            "machine, each learner's steps from its own measured step rate) on the push task's mixed log of each "
+            "seed (`offline-rl collect --task pusher_push --episodes 200 --expert-frac 0.3 --seed S`, S = 0, 1, 2; "
+            "recorded over ROS on raw topics it gives the same rows, `tests/test_ros_recorder.py`), 100 held-out "
+            "rollouts per seed (reset seeds 500000 + S ..). `--algo auto` plans from the data alone (it looks at no "
+            "reset). The success against training time: [pusher_push_curves.png](pusher_push_curves.png).", ""] \
+        + source_lines(name, payload) + ["", task_curves_table(curves, 0.3), "",
+                                         "![success against training time](pusher_push_curves.png)", ""]
+
+
 def pusher7_probes_section(name: str, payload: dict) -> list[str]:
     return ["## What bounds the HIL-SERL stage on pusher7_reach", "",
             "The in-process stage on seed 0 at the full budget (20,000 environment steps), one setting changed at a "
@@ -595,6 +635,7 @@ SECTIONS = {  # file -> its section, in the page's order (the speed sections fol
     "multi_actor.json": multi_actor_section,
     "pusher7_online.json": pusher7_online_section,
     "pusher7_online_probes.json": pusher7_probes_section,
+    "pusher_push_report.json": push_experiment_section,
     "crash_safety.json": crash_section,
     "gpu_ensemble.json": gpu_ensemble_section,
     "pusher7_ros.json": ros_pipeline_section,
