@@ -277,6 +277,7 @@ class LearnerService:
         arrived (default: the live join's quiet rule)."""
         if self.live is None:
             return 0
+        told = quiet is True  # the caller knows all has arrived, commands included
         now = time.monotonic()
         if now - self.last_poll < LIVE_POLL_PERIOD_S and not ended and quiet is None:
             return 0  # a join of the window costs milliseconds: at most once a control period
@@ -289,7 +290,7 @@ class LearnerService:
                 quiet = now - max(self.last_arrival, self.idle_since) >= self.cfg.live.quiet
             if (quiet or ended) and self.publication_clock.waiting:
                 self._join_released(self.publication_clock.flush())
-        steps = self.live.poll(now, self.idle_since, ended=ended, quiet=quiet)
+        steps = self.live.poll(now, self.idle_since, ended=ended, quiet=quiet, all_arrived=told)
         if len(steps) == 0:
             return 0
         self.live_file_due = True

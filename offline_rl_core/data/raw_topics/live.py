@@ -17,7 +17,12 @@ goal published once an episode, a person who does not take over) is taken comple
 the caller was idle (a lockstep sim waiting for the learner), everything published so far
 is taken to have arrived: up to twice the largest tolerance past the latest state, for
 commands up to just before it (the latest state's command may come only once the learner
-answers). A message that
+answers). A state that has no command by then is not yet taken to have none: its command
+and the next state come from different writers, in no order between them, and on a busy
+machine the command can come after the state it caused and a short silence (a step taken
+as commandless there would be one step short for good, and a lockstep session paced on the
+steps would wait for it forever). It is taken to have none after ``quiet_missing`` seconds
+of silence (a lost message), or when the caller says all has arrived. A message that
 comes after a step it could have changed was handed out is counted as late (the live
 rows may then differ from the batch's).
 """
@@ -46,6 +51,9 @@ _GROUP = {"state": "states", "command": "commands", "action": "commands", "goal"
 class LiveSettings:
     lateness: float = 0.5  # s of stamps: a silent topic is complete up to this before the states
     quiet: float = 0.05  # s with nothing new while idle: all that was published has arrived
+    # s with nothing new while idle before a state still without its command is taken to have
+    # none (a command only delayed on a busy machine comes well within it)
+    quiet_missing: float = 1.0
 
 
 @dataclass
@@ -124,7 +132,7 @@ class LiveJoin:
         self.sealed = {"states": NEVER, "commands": NEVER, "observed": NEVER, "resets": NEVER}
         self.last_advance = -math.inf  # when a watermark last moved (the caller's clock, s)
         self.changed = False
-        self.quiet_used = False
+        self.quiet_used = 0  # the quiet level of the last poll that joined: 0 none, 1 quiet, 2 quiet_missing
         self.episode_key: int | None = None  # the episode of the last transition handed out
         self.episode_id = -1
         self.counts = LiveCounts()
@@ -165,7 +173,7 @@ class LiveJoin:
         if stamp > self.watermark[topic]:
             self.watermark[topic] = stamp
             self.last_advance = now
-            self.quiet_used = False
+            self.quiet_used = 0
         self.changed = True
         if role.types is not None and rows.wrong_length:
             return self._refuse("wrong length", f"{topic}: a command of another length than the "
@@ -193,18 +201,24 @@ class LiveJoin:
         return stamp >= self.window_start - self.plan.tolerance_ns
 
     # ---------------------------------------------------------------- output
-    def poll(self, now: float, idle_since: float = -math.inf, ended: bool = False, quiet: bool | None = None
-             ) -> LiveSteps:
+    def poll(self, now: float, idle_since: float = -math.inf, ended: bool = False, quiet: bool | None = None,
+             all_arrived: bool = False) -> LiveSteps:
         """The steps that became final since the last poll. ``idle_since``: when the caller
         last finished other work (the quiet rule counts only time it was free to take
-        messages); ``quiet``: whether all that was published has arrived (default: by the
-        quiet rule); ``ended``: the stream is over (nothing more will come), every step is final."""
+        messages); ``quiet``: whether all that was published has arrived but for commands
+        still on their way (default: by the quiet rule); ``all_arrived``: commands too (the
+        caller knows; otherwise after ``quiet_missing`` of silence); ``ended``: the stream is
+        over (nothing more will come), every step is final."""
+        silent = now - max(self.last_advance, idle_since)
+        missing = all_arrived or silent >= self.settings.quiet_missing
         if quiet is None:
-            quiet = now - max(self.last_advance, idle_since) >= self.settings.quiet
-        if not self.changed and (not quiet or self.quiet_used) and not ended:
+            quiet = silent >= self.settings.quiet
+        level = 2 if missing else 1 if quiet else 0
+        if not self.changed and level <= self.quiet_used and not ended:
             return self._none()
         self.changed = False
-        self.quiet_used = quiet
+        self.quiet_used = level
+        quiet = level > 0
         report = JoinReport("live", self.task.source_file())
         streams = Streams(self.states.rows, self.commands.rows, self.goal.rows,
                           {name: b.rows for name, b in self.points.items()}, np.asarray(self.resets, np.int64))
@@ -212,11 +226,12 @@ class LiveJoin:
             result = join(self.plan, streams, report, self.kinematics, allow_empty=True)
         except JoinEmpty:
             return self._none()
-        seals = (-NEVER, -NEVER, -NEVER) if ended else self._seals(quiet)
+        seals = (-NEVER, -NEVER, -NEVER, -NEVER) if ended else self._seals(quiet, level == 2)
         cut = self._cut(result, seals)
         if cut <= self.handed_out:
             return self._none()
-        self.sealed.update(states=seals[0], commands=seals[1], observed=seals[2])
+        # a command below the seal of the states without one could have changed a step handed out
+        self.sealed.update(states=seals[0], commands=seals[2], observed=seals[3])
         t = result.state_t
         steps = np.flatnonzero((t >= self.handed_out) & (t < cut) & (result.cmd_dist >= 0))
         rows = result.row_of_state[steps]
@@ -239,29 +254,32 @@ class LiveJoin:
     def _none(self) -> LiveSteps:
         return LiveSteps(Transitions.empty(0, Layout(self.task.obs_dim, self.task.act_dim)), np.zeros(0, bool))
 
-    def _seals(self, quiet: bool) -> tuple[int, int, int]:
-        """How far the states, the commands and the goal and points are known complete:
-        each topic up to its latest stamp, a silent one up to ``lateness`` behind the states;
-        when quiet, all but the commands up to twice the largest tolerance past the latest
-        state, and the commands up to just before it (those for earlier states were sent
-        before it came; the latest state's may come only once the learner answers)."""
+    def _seals(self, quiet: bool, missing: bool = False) -> tuple[int, int, int, int]:
+        """How far the states, the commands (for a state that has one, and for one that has
+        none yet) and the goal and points are known complete: each topic up to its latest
+        stamp, a silent one up to ``lateness`` behind the states; when quiet, all but the
+        commands up to twice the largest tolerance past the latest state, and the commands of
+        the states that have one up to just before it (those for earlier states were sent
+        before it came; the latest state's may come only once the learner answers); with
+        ``missing`` (a longer silence) the commands of those that have none too."""
         s_wm = self.watermark[self.plan.state_topic]
         if s_wm == NEVER:
-            return NEVER, NEVER, NEVER
+            return NEVER, NEVER, NEVER, NEVER
         silent = s_wm - self.lateness_ns
         states = s_wm + (self.quiet_horizon if quiet else 0)
         read = self.topics()
         commands = min((max(self.watermark[r.topic], silent) for r in read if r.role in ("command", "action")),
                        default=silent)
+        without = max(commands, s_wm - 1) if missing else commands
         if quiet:
             commands = max(commands, s_wm - 1)
         seen = min((max(self.watermark[r.topic], silent, states if quiet else NEVER)
                     for r in read if r.role in ("goal", "point")), default=states)
-        return states, commands, seen
+        return states, commands, without, seen
 
-    def _cut(self, r, seals: tuple[int, int, int]) -> int:
+    def _cut(self, r, seals: tuple[int, int, int, int]) -> int:
         """The stamp before which every state's outcome is final."""
-        states_seal, commands_seal, observed_seal = seals
+        states_seal, commands_seal, without_seal, observed_seal = seals
         if states_seal == NEVER:
             return NEVER
         tol, period, ptol = self.plan.tolerance_ns, self.plan.period_ns, self.plan.period_tolerance_ns
@@ -272,7 +290,8 @@ class LiveJoin:
         need_states = np.where(has_cmd, np.maximum(r.cmd_t + r.cmd_dist,
                                                    t + period + np.where(has_next, r.next_dist, ptol)), NEVER)
         need_observed = np.where(has_cmd & has_next, r.next_t + tol, t + tol)
-        final = (commands_seal >= need_commands) & (states_seal >= need_states) & (observed_seal >= need_observed)
+        final = (np.where(has_cmd, commands_seal, without_seal) >= need_commands) & (states_seal >= need_states) \
+            & (observed_seal >= need_observed)
         cut = min(self.watermark[self.plan.state_topic] + 1, states_seal)  # states not heard yet come later
         if not final.all():
             cut = min(cut, int(t[np.argmin(final)]))

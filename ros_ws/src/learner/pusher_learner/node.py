@@ -119,6 +119,9 @@ PARAMS = [
     Param("quiet", _L.quiet, "raw topics: seconds with nothing new, while idle, after which everything published is "
           "taken to have arrived (a lockstep arm waiting for the learner)", low=0.001, high=10.0, read_only=True,
           flag="--quiet"),
+    Param("quiet_missing", _L.quiet_missing, "raw topics: seconds with nothing new, while idle, after which a state "
+          "still without its command is taken to have none (a command only delayed comes within it)", low=0.001,
+          high=60.0, read_only=True, flag="--quiet-missing"),
     Param("logger", DEFAULT_LOGGER, "where each weights version's losses and rates go besides progress.jsonl: "
           "tensorboard (event files in OUT), wandb (OUT/wandb) or none", choices=LOGGERS, read_only=True,
           flag="--logger"),
@@ -147,7 +150,7 @@ class Learner(Node):
             bags=list(s.bag), out=s.out, prior=s.prior or None, task=s.task or None, seed=s.seed,
             save_every=s.save_every, resume=s.resume, session_bag=s.session_bag or None,
             snapshot_every=s.snapshot_every, from_topics=s.from_topics, actors=tuple(s.actors or ()),
-            live=LiveSettings(lateness=s.lateness, quiet=s.quiet), settings=settings, train=train,
+            live=LiveSettings(lateness=s.lateness, quiet=s.quiet, quiet_missing=s.quiet_missing), settings=settings, train=train,
             logger=s.logger, sim_time=bool(self.get_parameter("use_sim_time").value)),
             log=self.get_logger().info)
         self.weights_pub = self.create_publisher(UInt8MultiArray, "~/weights", WEIGHTS_QOS)
