@@ -150,7 +150,8 @@ class Learner(Node):
             bags=list(s.bag), out=s.out, prior=s.prior or None, task=s.task or None, seed=s.seed,
             save_every=s.save_every, resume=s.resume, session_bag=s.session_bag or None,
             snapshot_every=s.snapshot_every, from_topics=s.from_topics, actors=tuple(s.actors or ()),
-            live=LiveSettings(lateness=s.lateness, quiet=s.quiet, quiet_missing=s.quiet_missing), settings=settings, train=train,
+            live=LiveSettings(lateness=s.lateness, quiet=s.quiet, quiet_missing=s.quiet_missing),
+            settings=settings, train=train,
             logger=s.logger, sim_time=bool(self.get_parameter("use_sim_time").value)),
             log=self.get_logger().info)
         self.weights_pub = self.create_publisher(UInt8MultiArray, "~/weights", WEIGHTS_QOS)
