@@ -57,6 +57,8 @@ VARIANTS = {
                                "(a person grabbing an arm that crawls)", {"corrector": {"min_progress": 0.01}}),
     "corrector_progress0.01_offline0.25": ("both of the above",
                                            {"corrector": {"min_progress": 0.01}, "online": {"offline_ratio": 0.25}}),
+    "imitate_expert": ("the actor's BC term also on the mix's expert episodes (TD3+BC's anchor on demonstrations)",
+                       {"online": {"imitate_expert": True}}),
 }
 
 

@@ -427,3 +427,23 @@ def test_while_the_estop_is_engaged_the_learner_trains_on_no_live_transition(tmp
     service.estop.on_estop(False)
     assert service.estop.reset()[0]
     assert service.receive(payloads[3]) is None and service.learner.n_online == 2
+
+
+def test_imitate_expert_keeps_the_actor_near_the_demonstrations(offline, prior):
+    """With ``imitate_expert`` the actor's BC term also covers the offline data's expert rows
+    (TD3+BC's anchor on demonstrations): after the same updates, on the same stream, the
+    actor is nearer the expert's actions than without it, and only the expert rows count."""
+    from offline_rl_core.data.transitions import SOURCE_EXPERT
+    from offline_rl_core.serving.policy import LoadedPolicy
+
+    rows = _stream(200)
+    expert = offline.source == SOURCE_EXPERT
+    errors = {}
+    for imitate in (False, True):
+        learner = _learner(offline, prior, imitate_expert=imitate)
+        marked = learner.data.human[0, :len(offline), 0].numpy().astype(bool)
+        assert np.array_equal(marked, expert | (offline.source == SOURCE_HUMAN)) if imitate else not marked.any()
+        _feed(learner, rows)
+        policy = LoadedPolicy(learner.weights())
+        errors[imitate] = float(np.mean((policy.act(offline.obs[expert]) - offline.action[expert]) ** 2))
+    assert errors[True] < errors[False], errors

@@ -17,7 +17,7 @@ from ..runs.loggers import DEFAULT_LOGGER, LOGGERS
 OFFLINE_ONLY = ("rounds", "episodes", "steps", "correction_ratio", "beta", "patience", "hold_steps", "grace_steps",
                 "noise", "reaction_delay")
 ONLINE_ONLY = ("env_steps", "corrector", "mode", "prior_algo", "no_prior", "utd", "publish_every", "eval_every",
-               "in_process", "from_topics", "success", "end_on_success", "actors")
+               "in_process", "from_topics", "success", "end_on_success", "actors", "imitate_expert")
 
 
 def _resolve_mode_flags(args) -> None:
@@ -61,7 +61,7 @@ def _run_online(args) -> int:
         bags=args.bag, task=args.task, corrector=args.corrector, mode=args.mode, utd=args.utd,
         publish_every=args.publish_every, eval_every=args.eval_every, eval_episodes=args.eval_episodes,
         eval_seed=args.eval_seed, in_process=args.in_process, from_topics=args.from_topics, success=args.success,
-        end_on_success=args.end_on_success, actors=args.actors)
+        end_on_success=args.end_on_success, actors=args.actors, imitate_expert=args.imitate_expert)
     summary = run_hil_online(cfg, logger=args.logger)
     print(json.dumps({k: summary[k] for k in ("prior_success", "final_success", "final_ci", "to", "intervention_rate",
                                               "wall_seconds")}))
@@ -127,6 +127,9 @@ def register(subparsers) -> None:
                         f"'The best prior') or the chapter's AWAC for --prior-steps (default: {od.prior_algo})")
     o.add_argument("--no-prior", action="store_true", default=None, help="the learner starts from scratch (an ablation)")
     o.add_argument("--utd", type=int, help=f"gradient steps per environment step (default: {od.utd})")
+    o.add_argument("--imitate-expert", action="store_true", default=None,
+                   help="the actor's BC term also on the bag's expert episodes (its demonstrations), as TD3+BC keeps "
+                        "an actor near them (default: only on a person's corrections)")
     o.add_argument("--publish-every", type=int,
                    help=f"environment steps between weights versions (default: {od.publish_every}, 1 s at 50 Hz)")
     o.add_argument("--eval-every", type=int,

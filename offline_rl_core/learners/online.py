@@ -39,7 +39,7 @@ from dataclasses import asdict, dataclass
 import torch
 
 from ..serving.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, task_field
-from ..data.transitions import SOURCE_HUMAN, Transitions
+from ..data.transitions import SOURCE_EXPERT, SOURCE_HUMAN, Transitions
 from .config import TrainConfig
 from .data import MemberData
 from .loop import LEARNERS, seed_generators, torch_threads
@@ -55,6 +55,9 @@ class OnlineSettings:
     offline_ratio: float = 0.5  # share of each batch drawn from the offline data
     publish_every: int = 50  # environment steps between weights versions (1 s at 50 Hz)
     capacity: int = 200_000  # online transitions sampled from: the newest, older ones evicted
+    # the actor's BC term (sac's bc_weight) also on the offline data's expert rows (its
+    # demonstrations), as TD3+BC keeps an actor near them; off: only on a person's corrections
+    imitate_expert: bool = False
 
     def __post_init__(self) -> None:
         if self.utd < 1 or self.publish_every < 1 or self.capacity < 1:
@@ -119,6 +122,9 @@ class OnlineLearner:
         self.prior_algorithm = None if prior is None else prior.get("algorithm")
         ring = settings.capacity + LAG_VERSIONS * settings.publish_every
         self.data = MemberData([offline], capacity=len(offline) + ring, fifo_from=len(offline))
+        if settings.imitate_expert:  # the demonstrations are imitated as a person's corrections are
+            expert = torch.from_numpy(offline.source == SOURCE_EXPERT).to(self.data.human.dtype)
+            self.data.human[0, :len(offline), 0] = torch.maximum(self.data.human[0, :len(offline), 0], expert)
         self.n_offline = len(offline)
         self.sample_gen = sample_gen
         self.sampler = OnlineSampler(self.n_offline, cfg.batch_size, settings.offline_ratio, sample_gen,

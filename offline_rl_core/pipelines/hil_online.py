@@ -70,6 +70,7 @@ class OnlineHilConfig:
     corrector: str = "scripted"  # scripted | keyboard | none
     mode: str = "lockstep"  # lockstep (paced, reproducible) | realtime (50 Hz)
     utd: int = 2
+    imitate_expert: bool = False  # the actor's BC term also on the offline expert rows (OnlineSettings)
     publish_every: int = 50
     eval_every: int = 2500
     eval_episodes: int = 100
@@ -221,7 +222,8 @@ def _in_process(cfg: OnlineHilConfig, task, prior_path: Path | None, log, curves
     run = run_online(offline, prior, OnlineRunConfig(
         env_steps=cfg.env_steps, seed=cfg.seed, corrections=cfg.corrector != "none", eval_every=cfg.eval_every,
         eval_episodes=cfg.eval_episodes, eval_seed=cfg.eval_seed,
-        settings=OnlineSettings(utd=cfg.utd, publish_every=cfg.publish_every), train=TrainConfig(algo="sac"),
+        settings=OnlineSettings(utd=cfg.utd, publish_every=cfg.publish_every, imitate_expert=cfg.imitate_expert),
+        train=TrainConfig(algo="sac"),
         task=task, success=cfg.success, end_on_success=cfg.end_on_success),
         log=log, logger=curves)
     return {"curve": run["curve"], "counts": run["counts"], "learner_seconds": run["wall_s"], "where": "in process"}
@@ -240,7 +242,7 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
         # until the learner's first weights, the policy serves the prior (or the learner's initial weights)
         "checkpoint": prior_path or learner_dir / "policy.pt",
         "mode": cfg.mode, "paced_every": cfg.publish_every if lockstep else 0, "publish_every": cfg.publish_every,
-        "utd": cfg.utd, "seed": cfg.seed, "learner_nice": 0 if lockstep else 10,
+        "utd": cfg.utd, "imitate_expert": "true" if cfg.imitate_expert else "false", "seed": cfg.seed, "learner_nice": 0 if lockstep else 10,
         # realtime: the nodes that answer the arm go first (where the user may use SCHED_FIFO)
         "thread_priority": 0 if lockstep else REALTIME_THREAD_PRIORITY, "reset_seed": TRAIN_SEED_BASE + 10000 * cfg.seed, "episodes": episodes,
         "snapshot_every": cfg.eval_every, "corrector": cfg.corrector, "logger": logger,

@@ -90,6 +90,8 @@ PARAMS = [
           read_only=True, flag="--offline-ratio"),
     Param("publish_every", _O.publish_every, "live transitions between weights versions (50 = 1 s at 50 Hz)", low=1,
           read_only=True, flag="--publish-every"),
+    Param("imitate_expert", _O.imitate_expert, "the actor's BC term (bc_weight) also on the offline bag's expert rows "
+          "(its demonstrations), as TD3+BC keeps an actor near them", read_only=True, flag="--imitate-expert"),
     Param("capacity", _O.capacity, "live transitions the online buffer holds", low=1, read_only=True,
           flag="--capacity"),
     Param("alpha", _T.alpha, "entropy weight of the SAC objective", low=1e-8, read_only=True, flag="--alpha"),
@@ -145,7 +147,7 @@ class Learner(Node):
         train = TrainConfig(algo="sac", alpha=s.alpha, bc_weight=s.bc_weight, init_log_std=s.init_log_std, lr=s.lr,
                             batch_size=s.batch_size, threads=s.threads)
         settings = OnlineSettings(utd=s.utd, offline_ratio=s.offline_ratio, publish_every=s.publish_every,
-                                  capacity=s.capacity)
+                                  capacity=s.capacity, imitate_expert=s.imitate_expert)
         self.service = LearnerService(LearnerServiceConfig(
             bags=list(s.bag), out=s.out, prior=s.prior or None, task=s.task or None, seed=s.seed,
             save_every=s.save_every, resume=s.resume, session_bag=s.session_bag or None,
