@@ -11,6 +11,8 @@ import pytest
 from offline_rl_core.data.raw_topics import LiveJoin, transitions_from_topics
 from offline_rl_core.data.raw_topics.live import LiveSettings
 from offline_rl_core.data.transitions import Transitions
+from offline_rl_core.learners.success_classifier import (ClassifierConfig, SuccessClassifier, labelled_states,
+                                                         train_classifier)
 from offline_rl_core.task.spec import load_task
 
 from raw_topic_bags import RAW_TOPICS, bag_messages, pusher_task, record_raw_bag
@@ -21,8 +23,8 @@ QUIET = LiveSettings().quiet
 class Learner:
     """What the learner service does with a LiveJoin: take messages, poll, keep the steps."""
 
-    def __init__(self, task, settings=None):
-        self.live = LiveJoin(task, settings)
+    def __init__(self, task, settings=None, judge=None):
+        self.live = LiveJoin(task, settings, judge)
         self.parts, self.steps, self.now = [], 0, 0.0
 
     def take(self, topic, msgtype, payload, recv):
@@ -46,8 +48,8 @@ def bits(rows):
     return np.ascontiguousarray(rows, np.float32).view(np.uint32)
 
 
-def assert_same_as_batch(learner: Learner, bag, task):
-    batch, report = transitions_from_topics(bag, task)
+def assert_same_as_batch(learner: Learner, bag, task, judge=None):
+    batch, report = transitions_from_topics(bag, task, judge=judge)
     learner.now += learner.live.settings.quiet_missing  # long enough that a lost command is taken as lost
     learner.poll(idle=True)
     before = learner.steps
@@ -58,6 +60,7 @@ def assert_same_as_batch(learner: Learner, bag, task):
     assert np.array_equal(bits(live), bits(batch.to_rows()))
     assert learner.steps == report.steps
     assert learner.live.counts.late == 0
+    return batch, report
 
 
 def test_a_paced_lockstep_session_joined_live_is_the_batch_join_of_its_bag(tmp_path):
@@ -82,6 +85,37 @@ def test_a_paced_lockstep_session_joined_live_is_the_batch_join_of_its_bag(tmp_p
                 assert learner.steps >= n, f"deadlock at state {n}: {learner.steps} steps"
         learner.take(topic, msgtype, payload, recv)
     assert_same_as_batch(learner, bag, task)
+
+
+def test_a_success_classifier_judges_the_live_join_as_it_judges_the_batch(tmp_path):
+    """Where no tracker says whether the arm succeeded, a classifier trained on a few labelled
+    episodes judges each state (the learner's `success` parameter): the live rows are the
+    batch join's with the same classifier, bit for bit, its disagreements with the task's
+    success distance are counted alike, and only the reward and success flags differ from
+    the distance's rows."""
+    bag = tmp_path / "session.db3"
+    record_raw_bag(bag, episodes=4, expert_frac=0.5, seed=4, sim_like=True)
+    task = load_task("pusher_reach")
+    ruled, _ = transitions_from_topics(bag, task)
+    labels = {int(e): bool(ruled.success[ruled.episode == e][-1]) for e in np.unique(ruled.episode)}
+    assert set(labels.values()) == {True, False}
+    obs, success = labelled_states(ruled, labels, tail=5)
+    # a few steps: a rough judge that disagrees with the distance somewhere, as a real one may
+    judge = SuccessClassifier(train_classifier(obs, success, ClassifierConfig(steps=30), seed=0, task=task))
+    learner = Learner(task, judge=judge)
+    for message in bag_messages(bag, task):
+        learner.take(*message)
+    batch, report = assert_same_as_batch(learner, bag, task, judge=judge)
+    assert learner.live.counts.as_dict()["judged"] == report.judged
+    assert report.judged["successes"] == int(batch.success.sum())
+    assert report.judged["rule_successes"] == int(ruled.success.sum())
+    disagree = batch.success != ruled.success
+    assert report.judged["false_successes"] + report.judged["missed"] == int(disagree.sum()) > 0
+    for name in ("obs", "action", "next_obs", "episode", "step", "source"):
+        assert np.array_equal(getattr(batch, name), getattr(ruled, name)), name
+    bonus_moved = batch.reward != ruled.reward  # the success bonus, on another step or none
+    assert bonus_moved.any()
+    assert np.allclose(np.abs(batch.reward - ruled.reward)[bonus_moved], task.reward.success_bonus, atol=1e-5)
 
 
 @pytest.mark.parametrize("seed", [0, 1])

@@ -156,24 +156,46 @@ def test_two_actors_in_two_namespaces_feed_one_learner_and_act_on_its_weights(ro
 
 
 @pytest.mark.slow
-def test_on_raw_topics_the_learner_trains_on_the_batch_join_of_the_sessions_recording(ros_env, tmp_path, prior):
+@pytest.mark.parametrize("judged", [False, True], ids=["success-distance", "classifier"])
+def test_on_raw_topics_the_learner_trains_on_the_batch_join_of_the_sessions_recording(ros_env, tmp_path, prior,
+                                                                                       judged):
     """The stage against an arm that publishes only standard topics (--from-topics): the
     learner joins the raw topics live, and its online buffer is, row for row and in order,
     what `offline-rl dataset` builds from the passive recorder's bag of the same session;
-    the recording holds the raw topics and no transition."""
+    the recording holds the raw topics and no transition. With a success classifier
+    (--success: no tracker says whether the arm succeeded), the learner's successes and
+    rewards are the classifier's, as `offline-rl dataset --success` builds them."""
+    from offline_rl_core.data.bag import read_transitions
     from offline_rl_core.data.bag.info import bag_info
+    from offline_rl_core.data.episode_labels import labels_from_success
     from offline_rl_core.data.raw_topics import transitions_from_topics
     from offline_rl_core.learners.data import MemberData
+    from offline_rl_core.learners.success_classifier import (ClassifierConfig, labelled_states, load_classifier,
+                                                             save_classifier, train_classifier)
+    from offline_rl_core.task.spec import load_task
 
     out = tmp_path / "online"
+    extra, judge = [], None
+    if judged:
+        task = load_task("pusher_reach")
+        mix = read_transitions(REPO / "bags" / "mix.db3")
+        obs, success = labelled_states(mix, labels_from_success(mix), tail=10)
+        save_classifier(tmp_path / "cls.pt", train_classifier(obs, success, ClassifierConfig(steps=200), 0, task))
+        extra, judge = ["--success", str(tmp_path / "cls.pt")], load_classifier(tmp_path / "cls.pt", task)
     cmd = [sys.executable, "-m", "offline_rl_core", "hil", "--online", "--env-steps", "200", "--publish-every", "25",
            "--eval-every", "100", "--eval-episodes", "2", "--prior", str(prior), "--out", str(out),
-           "--task", "pusher_reach", "--from-topics"]
+           "--task", "pusher_reach", "--from-topics", *extra]
     proc = subprocess.run(cmd, env=ros_env, cwd=REPO, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     topics = {t.name for t in bag_info(out / "session.db3").topics}
     assert "/pusher/transition" not in topics and {"/pusher/state", "/pusher/target", "/pusher/command/policy"} <= topics
-    batch, report = transitions_from_topics(out / "session.db3", "pusher_reach")
+    batch, report = transitions_from_topics(out / "session.db3", "pusher_reach", judge=judge)
+    live = json.loads((out / "learner" / "live.json").read_text())["join"]
+    if judged:
+        assert live["judged"] == report.judged and report.judged["judge"] == str(tmp_path / "cls.pt")
+        assert report.judged["successes"] == int(batch.success.sum())
+    else:
+        assert "judged" not in live
     state = torch.load(out / "learner" / "learner_state.pt", weights_only=True)
     assert state["n_online"] == len(batch) == 198  # two episodes, each but its last step
     assert state["n_steps"] == report.steps - 1 == 199  # the session's last step: no later state closes it
@@ -182,7 +204,7 @@ def test_on_raw_topics_the_learner_trains_on_the_batch_join_of_the_sessions_reco
         assert np.array_equal(state["online_rows"][name].numpy(), expected[name]), name
     summary = json.loads((out / "summary.json").read_text())
     assert summary["counts"]["steps"] == 198 and summary["counts"]["human"] == int(expected["human"].sum())
-    assert json.loads((out / "learner" / "live.json").read_text())["join"]["late"] == 0
+    assert live["late"] == 0
 
 
 def test_the_learner_node_drops_bad_transitions_and_counts_them(spawn, tmp_path, prior):

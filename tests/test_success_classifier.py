@@ -171,14 +171,51 @@ def test_the_online_stage_takes_its_reward_and_episode_end_from_the_classifier(l
         run_online(read_transitions(path), None, replace(cfg, task="pusher_reach"), log=lambda s: None)
 
 
-def test_hil_takes_the_classifier_in_process_only(tmp_path):
+def test_hil_takes_the_classifier_in_process_or_on_raw_topics_only(tmp_path):
     over_ros = offline_rl("hil", "--online", "--success", "c.pt", "--out", str(tmp_path / "a"))
-    assert over_ros.returncode == 2 and "--success: only with --in-process" in over_ros.stderr
+    assert over_ros.returncode == 2 and "--success: over ROS only with --from-topics" in over_ros.stderr
+    ends = offline_rl("hil", "--online", "--from-topics", "--end-on-success", "--out", str(tmp_path / "d"))
+    assert ends.returncode == 2 and "--end-on-success: only with --in-process" in ends.stderr
     offline_rounds = offline_rl("hil", "--success", "c.pt", "--out", str(tmp_path / "b"))
     assert offline_rounds.returncode == 2 and "--success: only with --online" in offline_rounds.stderr
     missing = offline_rl("hil", "--online", "--in-process", "--success", str(tmp_path / "none.pt"),
                          "--out", str(tmp_path / "c"))
     assert missing.returncode == 2 and "none.pt: no such classifier file" in missing.stderr
+
+
+def test_dataset_from_topics_takes_its_success_from_a_classifier(tmp_path):
+    """`offline-rl dataset --success FILE`: the join's successes are the classifier's, its
+    report counts them against the task's success distance; another task's classifier is
+    one line, and nothing is written."""
+    from offline_rl_core.data.raw_topics import transitions_from_topics
+    from offline_rl_core.learners.success_classifier import labelled_states, save_classifier, train_classifier
+    from offline_rl_core.task.spec import load_task
+
+    from raw_topic_bags import record_raw_bag
+
+    reach = load_task("pusher_reach")
+    raw = tmp_path / "raw.db3"
+    record_raw_bag(raw, episodes=4, expert_frac=0.5, seed=4, sim_like=True)
+    ruled, _ = transitions_from_topics(raw, reach)
+    labels = {int(e): bool(ruled.success[ruled.episode == e][-1]) for e in np.unique(ruled.episode)}
+    obs, success = labelled_states(ruled, labels, tail=5)
+    save_classifier(tmp_path / "reach.pt", train_classifier(obs, success, ClassifierConfig(steps=30), 0, reach))
+    report = tmp_path / "report.json"
+    built = offline_rl("dataset", str(raw), str(tmp_path / "judged.db3"), "--success", str(tmp_path / "reach.pt"),
+                       "--report", str(report))
+    assert built.returncode == 0, built.stderr
+    judged = json.loads(report.read_text())["judged"]
+    assert judged["judge"] == str(tmp_path / "reach.pt") and "judged by" in built.stdout
+    assert judged["successes"] == int(read_transitions(tmp_path / "judged.db3").success.sum())
+    assert judged["rule_successes"] == int(ruled.success.sum())
+
+    push = tmp_path / "push.pt"
+    save_classifier(push, train_classifier(np.random.default_rng(0).normal(size=(20, PUSH.obs_dim)),
+                                           np.arange(20) % 2 == 0, ClassifierConfig(steps=5), 0, PUSH))
+    refused = offline_rl("dataset", str(raw), str(tmp_path / "out.db3"), "--success", str(push))
+    assert refused.returncode == 2 and refused.stderr.strip().count("\n") == 0
+    assert "push.pt" in refused.stderr and "judges task pusher_push" in refused.stderr
+    assert not (tmp_path / "out.db3").exists()
 
 
 def test_head_states_of_a_success_are_failures_and_never_its_tail(push_data):

@@ -55,6 +55,10 @@ def register(subparsers) -> None:
                         help="bag to write with /pusher/transition: x.db3 or x.mcap (single file), else a bag directory")
     parser.add_argument("--storage", choices=("sqlite3", "mcap"), default=None,
                         help="storage of a bag directory (default: from the suffix, else sqlite3)")
+    parser.add_argument("--success", metavar="CLASSIFIER", type=Path,
+                        help="a success classifier (`offline-rl classifier train`) judges each state's success, for "
+                        "the reward's bonus and the episode's end, instead of the task's success distance (which "
+                        "the report still counts beside it)")
     parser.add_argument("--report", metavar="FILE", type=Path, help="also write the join report as JSON here")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing OUT_BAG")
     parser.set_defaults(func=run)
@@ -70,7 +74,12 @@ def run(args) -> int:
     if args.report:
         check_output_file(args.report, "--report")  # before OUT_BAG is written
     task = task_of_bag(args.in_bag, task)
-    data, report = transitions_from_topics(args.in_bag, task)
+    judge = None
+    if args.success is not None:
+        from ..learners.success_classifier import load_classifier
+
+        judge = load_classifier(args.success, task)  # one line for no classifier or another task's
+    data, report = transitions_from_topics(args.in_bag, task, judge=judge)
     text = json.dumps(report.as_dict(), sort_keys=True)
     write_transitions(target.path, data, storage=target.storage, custom_data={REPORT_KEY: text}, task=task)
     if args.report:

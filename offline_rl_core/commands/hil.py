@@ -143,9 +143,9 @@ def register(subparsers) -> None:
                    help="N sims, each with its policy node, mux and corrector in namespace /arm1 ... /armN, feed the "
                         "one learner over DDS and act on its weights; --env-steps is the total over them "
                         f"(default: {od.actors})")
-    o.add_argument("--success", metavar="CLASSIFIER", help="with --in-process: a success classifier (`offline-rl "
-                   "classifier train`) judges each state's success for the learner's reward and the episode's end, "
-                   "instead of the simulator (which is still counted beside it, never trained on)")
+    o.add_argument("--success", metavar="CLASSIFIER", help="with --in-process or --from-topics: a success classifier "
+                   "(`offline-rl classifier train`) judges each state's success for the learner's reward and the "
+                   "episode's end, instead of the simulator (which is still counted beside it, never trained on)")
     o.add_argument("--end-on-success", action="store_true", default=None,
                    help="with --in-process: an episode ends where success is judged (the classifier's or the simulator's)")
     p.set_defaults(func=_run)

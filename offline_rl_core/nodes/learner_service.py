@@ -77,6 +77,7 @@ class LearnerServiceConfig:
     snapshot_every: int = 0  # live transitions between kept copies of the weights (0: none)
     task: str | None = None  # a built-in task or a task file; None: the prior's, else the bags'
     from_topics: bool = False  # build the live transitions from the task's raw topics
+    success: str | None = None  # raw topics: a success classifier judges each state, not the success distance
     actors: tuple[str, ...] = ()  # the actors' namespaces, when several feed this learner (counted apart)
     live: LiveSettings = field(default_factory=LiveSettings)
     sim_time: bool = False  # raw topics joined by receive times: stamped by the sim time of their publication
@@ -149,7 +150,7 @@ class LearnerService:
         if self.offline_estop_dropped is not None:
             log(f"offline half: left out {self.offline_estop_dropped} transitions recorded while the e-stop was engaged")
         # the live join of the task's raw topics (None: the transitions come on pusher/transition)
-        self.live = LiveJoin(self.task, cfg.live) if cfg.from_topics else None
+        self.live = LiveJoin(self.task, cfg.live, self._judge(cfg)) if cfg.from_topics else None
         # raw topics joined by receive times, on a sim's /clock: each message waits for the
         # /clock that says which tick it was published in (see receive_clock)
         self.publication_clock = PublicationClock() if (
@@ -190,6 +191,17 @@ class LearnerService:
                 save_checkpoint(self.out / "snapshots" / "policy_000000.pt", {**self.learner.weights(), "wall_s": 0.0,
                                                                              "train_s": 0.0})
         self.weights = self.learner.weights()  # the version the actor should be acting on
+
+    def _judge(self, cfg: LearnerServiceConfig):
+        """The success classifier the live join judges states with (None: the task's distance)."""
+        if cfg.success is None:
+            return None
+        if not cfg.from_topics:
+            raise UserError(f"parameter success ({cfg.success}): a classifier judges the live join's states; "
+                            "pusher/transition comes scored by its sim (set from_topics)")
+        from ..learners.success_classifier import load_classifier
+
+        return load_classifier(cfg.success, self.task)
 
     @staticmethod
     def _offline(bags: list[str], from_topics: bool, task: TaskSpec, load_bags) -> tuple[Transitions, list[dict]]:

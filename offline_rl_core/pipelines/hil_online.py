@@ -95,11 +95,12 @@ class OnlineHilConfig:
         if self.env_steps < 1:
             raise UserError(f"--env-steps must be >= 1 (whole episodes of the task), got {self.env_steps}")
         if not self.in_process:
-            given = [flag for flag, value in (("--success", self.success),
-                                              ("--end-on-success", self.end_on_success)) if value]
-            if given:
-                raise UserError(f"{', '.join(given)}: only with --in-process (the ROS stage judges success "
-                                "by the simulator)")
+            if self.end_on_success:
+                raise UserError("--end-on-success: only with --in-process (over ROS an episode ends at the sim's "
+                                "time limit or a person's label)")
+            if self.success is not None and not self.from_topics:
+                raise UserError("--success: over ROS only with --from-topics (the learner judges the states it "
+                                "joins from the raw topics; pusher/transition comes scored by the sim)")
         if self.success is not None and not Path(self.success).is_file():
             raise UserError(f"--success {self.success}: no such classifier file (train one with "
                             "`offline-rl classifier train`)")
@@ -170,6 +171,10 @@ def run_hil_online(cfg: OnlineHilConfig, log: Callable[[str], None] = lambda s: 
 
     task = task_of_run(cfg.bags, cfg.task)
     cfg.check_task(task)  # before anything is started or written
+    if cfg.success is not None:
+        from ..learners.success_classifier import load_classifier
+
+        load_classifier(cfg.success, task)  # another task's classifier: one line, before any node starts
     if not cfg.raw_topics:
         load_bags(cfg.bags, task=task)  # bags of another layout than the task's: one line, before the prior
     loop = Loop(HilConfig(out=str(out), seed=cfg.seed, bags=cfg.bags), log, logger)
@@ -247,6 +252,7 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
         "thread_priority": 0 if lockstep else REALTIME_THREAD_PRIORITY, "reset_seed": TRAIN_SEED_BASE + 10000 * cfg.seed, "episodes": episodes,
         "snapshot_every": cfg.eval_every, "corrector": cfg.corrector, "logger": logger,
         "from_topics": "true" if cfg.raw_topics else "false",
+        "success": str(Path(cfg.success).resolve()) if cfg.success else "",
         "record_topics": _record_topics(cfg) if cfg.raw_topics else "",
         # commands without a header are joined by the sim time of their publication
         "sim_time": "true" if cfg.raw_topics and _joined_by_receive_times(cfg) else "false",
@@ -387,11 +393,17 @@ def _actor_record_topics() -> str:
 
 def session_transitions(cfg: OnlineHilConfig, bag: Path):
     """The session's transitions: those the sim published, or (raw topics) the batch join of
-    the recording, which are the ones the learner trained on."""
+    the recording (judged by the learner's classifier, if it has one), which are the ones the
+    learner trained on."""
     if cfg.raw_topics:
         from ..data.raw_topics import transitions_from_topics
 
-        return transitions_from_topics(bag, cfg.task)[0]
+        judge = None
+        if cfg.success is not None:
+            from ..learners.success_classifier import load_classifier
+
+            judge = load_classifier(cfg.success, load_task(cfg.task))
+        return transitions_from_topics(bag, cfg.task, judge=judge)[0]
     from ..data.bag import read_transitions
 
     return read_transitions(bag)

@@ -26,7 +26,11 @@ The steps, each on whole arrays:
    ``join.period_tolerance``) in the same episode; without one (the episode's last state,
    a dropped message) it is counted and dropped.
 7. Observation, reward, success latch and episode end: the task's (``task.features``), the
-   step index from the stamps (``round((t - episode start) / period)``).
+   step index from the stamps (``round((t - episode start) / period)``). With a ``judge`` (a
+   success classifier of observations, ``learners.success_classifier``) each state's success
+   is the judge's instead of the task's success distance: where no tracker says whether the
+   puck is at the goal, a classifier trained on a person's labels does. The distance rule is
+   still counted beside it (``JoinReport.judged``), never used.
 
 The observation is computed from the joint positions, velocities, goal and points exactly as
 published, so a sim bag gives the sim's own transitions bit for bit. ``join(...)`` (steps 2-7
@@ -71,12 +75,18 @@ class JoinReport:
     transitions: int = 0
     ignored: dict = field(default_factory=dict)  # topic -> why it was not read
     estop_dropped: int | None = None  # transitions whose state came while the e-stop was engaged; None: no estop topic
+    # with a judge: its successes against the task's success distance, per transition
+    judged: dict | None = None
 
     def as_dict(self) -> dict:
         fields = {k: getattr(self, k) for k in ("bag", "task", "points", "command_topics", "states", "commands",
                                                  "goals", "point_topics", "resets", "episodes", "episode_starts",
                                                  "steps", "transitions", "ignored")}
-        return fields if self.estop_dropped is None else {**fields, "estop_dropped": self.estop_dropped}
+        if self.estop_dropped is not None:
+            fields["estop_dropped"] = self.estop_dropped
+        if self.judged is not None:
+            fields["judged"] = self.judged
+        return fields
 
     def format(self) -> str:
         """The report as a few lines of text (what `offline-rl dataset` prints)."""
@@ -105,6 +115,11 @@ class JoinReport:
                      + (f"; {self.resets} reset messages" if self.resets else ""))
         if self.estop_dropped is not None:
             lines.append(f"  e-stop      {self.estop_dropped} transitions left out: their state came while it was engaged")
+        if self.judged is not None:
+            j = self.judged
+            lines.append(f"  success     judged by {j['judge']}: {j['successes']} transitions a success, "
+                         f"{j['false_successes']} of them not by the task's success distance, {j['missed']} a "
+                         f"success by the distance but not judged one")
         lines.append(f"  transitions {self.transitions} of {self.steps} steps")
         return "\n".join(lines)
 
@@ -122,12 +137,13 @@ def _counts_text(counts: dict) -> str:
     return ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in counts.items())
 
 
-def transitions_from_topics(bag: str | os.PathLike, task: TaskSpec | str | os.PathLike | None = None
-                            ) -> tuple[Transitions, JoinReport]:
+def transitions_from_topics(bag: str | os.PathLike, task: TaskSpec | str | os.PathLike | None = None,
+                            judge=None) -> tuple[Transitions, JoinReport]:
     """The transitions of a raw-topic bag as ``task`` says (a TaskSpec, a built-in name or a
     task file; None: the task the bag records, else pusher_reach), and the report of the
-    join. UserError for a missing topic, a wrong type, a joint the messages lack, a command
-    of the wrong length, or a bag that yields no transition."""
+    join; ``judge``: a success classifier whose judgement replaces the task's success
+    distance. UserError for a missing topic, a wrong type, a joint the messages lack, a
+    command of the wrong length, or a bag that yields no transition."""
     from ..task_record import task_of_bag
 
     bag = Path(bag)
@@ -135,7 +151,7 @@ def transitions_from_topics(bag: str | os.PathLike, task: TaskSpec | str | os.Pa
     plan = plan_for(task)
     streams, report = read_bag(bag, plan)
     try:
-        result = join(plan, streams, report, point_kinematics(task), engaged=bag_engaged_spans(bag))
+        result = join(plan, streams, report, point_kinematics(task), engaged=bag_engaged_spans(bag), judge=judge)
     except JoinEmpty as exc:
         raise UserError(f"{bag}: {exc}") from None
     return result.data, report
@@ -265,6 +281,8 @@ class JoinResult:
     next_dist: np.ndarray  # int64 ns from it to one period later
     row_of_state: np.ndarray  # int64: the transition of each kept state (-1: none)
     unobserved_t: np.ndarray  # int64 stamps of states dropped for a missing goal or point
+    # with a judge: each transition's success by the task's success distance (None: no judge)
+    rule_success: np.ndarray | None = None
 
 
 def first_per_stamp(stamp: np.ndarray, content: np.ndarray) -> tuple[np.ndarray, int, int]:
@@ -356,9 +374,10 @@ def _episode_starts(plan: JoinPlan, t: np.ndarray, recv: np.ndarray, goal: np.nd
 
 
 def join(plan: JoinPlan, s: Streams, report: JoinReport, kinematics=None, allow_empty: bool = False,
-         engaged: list[tuple[int, int]] | None = None) -> JoinResult:
+         engaged: list[tuple[int, int]] | None = None, judge=None) -> JoinResult:
     """Steps 2-7 on decoded streams. JoinEmpty when no state is usable, or (unless
-    ``allow_empty``: the live join's window) no transition can be built."""
+    ``allow_empty``: the live join's window) no transition can be built. ``judge``: an object
+    whose ``success(obs)`` (bool per observation) says which states are successes."""
     task = plan.task
     tol = plan.tolerance_ns
     n_joints = len(task.state.joints)
@@ -453,34 +472,51 @@ def join(plan: JoinPlan, s: Streams, report: JoinReport, kinematics=None, allow_
     c, a, b, step_index = c[has_next], a[has_next], b[has_next], step_index[has_next]
 
     # 7. reward, success latch, episode end: the task's rule on the next state
+    obs_all = features.observe(task, positions, velocities, vectors)
     dist_state = features.distances(features.vector(task, task.reward.distance[0], positions, vectors),
                                     features.vector(task, task.reward.distance[1], positions, vectors))
+    within = dist_state < task.reward.success_within
+    judged = None
+    if judge is not None:
+        judge = judge if isinstance(judge, StateVerdicts) else StateVerdicts(judge)
+        judged = judge(obs_all)
+        within, rule_within = judged, within
     # success latches on a step's result, as the sim latches it: at states a command acts on
     # or a step ends in, never at an episode's first (a driver's states between two
     # commands of a slower controller are neither)
     control = np.zeros(t_state.size, bool)
     control[state_of[joined]] = True
     control[b] = True
-    hit = (dist_state < task.reward.success_within) & ~new & control
-    hits_so_far = np.cumsum(hit)
-    before_episode = np.where(first_state > 0, hits_so_far[first_state - 1], 0)[episode]
-    success_before = hits_so_far[a] - before_episode[a] > 0
+    def latched_before(hit_now):
+        hit = hit_now & ~new & control
+        hits_so_far = np.cumsum(hit)
+        before_episode = np.where(first_state > 0, hits_so_far[first_state - 1], 0)[episode]
+        return hits_so_far[a] - before_episode[a] > 0
+
+    success_before = latched_before(within)
     step = np.rint((t_state[a] - t_state[first_state[episode[a]]]) / plan.period_ns).astype(np.int64)
-    score = features.score(task, positions[b], {n: v[b] for n, v in vectors.items()}, step + 1, success_before)
+    next_vectors = {n: v[b] for n, v in vectors.items()}
+    score = features.score(task, positions[b], next_vectors, step + 1, success_before,
+                           success_now=None if judged is None else judged[b])
+    rule = None if judged is None else features.score(task, positions[b], next_vectors, step + 1,
+                                                      latched_before(rule_within)).success
     alive = ~(success_before & task.reward.terminate_on_success)
     report.commands["after_termination"] = int((~alive).sum())
     c, a, b, step, step_index = c[alive], a[alive], b[alive], step[alive], step_index[alive]
     score = features.StepScore._make(f[alive] for f in score)
+    rule = None if rule is None else rule[alive]
     if engaged is not None:  # the e-stop's spans (engaged, released): the arm applied the safe command then
         outside = ~engaged_at(recv_state[a], engaged)
         report.estop_dropped = int((~outside).sum())
         c, a, b, step, step_index = c[outside], a[outside], b[outside], step[outside], step_index[outside]
         score = features.StepScore._make(f[outside] for f in score)
+        rule = None if rule is None else rule[outside]
+    if rule is not None:
+        report.judged = judged_counts(getattr(judge, "source", "a classifier"), score.success, rule)
     report.states["kept"] = int(t_state.size)
     report.episode_starts = {key: int(v.sum()) for key, v in starts.items()}
     report.steps = int(report.commands["exact"] + report.commands["within_tolerance"])
 
-    obs_all = features.observe(task, positions, velocities, vectors)
     used_episodes, episode_id = np.unique(episode[a], return_inverse=True)
     data = Transitions(
         obs=obs_all[a],
@@ -502,4 +538,37 @@ def join(plan: JoinPlan, s: Streams, report: JoinReport, kinematics=None, allow_
         raise JoinEmpty(f"no transitions could be built from {plan.state_topic} and the commands; "
                         f"commands: {_counts_text(report.commands)}")
     return JoinResult(data, step_index.astype(np.int64), t_state, t_state[first_state[episode]], live["cmd_t"],
-                      live["cmd_dist"], live["next_t"], live["next_dist"], row_of_state, unobserved_t)
+                      live["cmd_dist"], live["next_t"], live["next_dist"], row_of_state, unobserved_t, rule)
+
+
+class StateVerdicts:
+    """A judge's verdicts, one state at a time and remembered: a state's verdict must not
+    depend on which states share its batch (a batched matrix product may round otherwise),
+    and the live join, which joins a window of the stream again on every poll, judges each
+    state once. ``judge.success(obs)``: bool per row of observations."""
+
+    LIMIT = 200_000  # verdicts kept (the live join's window is an episode or two)
+
+    def __init__(self, judge):
+        self.judge = judge
+        self.source = getattr(judge, "source", "a classifier")
+        self.known: dict[bytes, bool] = {}
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        if len(self.known) > self.LIMIT:
+            self.known.clear()
+        out = np.empty(len(obs), bool)
+        for i, row in enumerate(obs):
+            key = row.tobytes()
+            verdict = self.known.get(key)
+            if verdict is None:
+                verdict = self.known[key] = bool(self.judge.success(row[None])[0])
+            out[i] = verdict
+        return out
+
+
+def judged_counts(judge: str, judged: np.ndarray, rule: np.ndarray) -> dict:
+    """A judge's successes against the task's success distance, over the same transitions."""
+    judged, rule = np.asarray(judged, bool), np.asarray(rule, bool)
+    return {"judge": judge, "successes": int(judged.sum()), "rule_successes": int(rule.sum()),
+            "false_successes": int((judged & ~rule).sum()), "missed": int((rule & ~judged).sum())}

@@ -25,6 +25,10 @@ steps would wait for it forever). It is taken to have none after ``quiet_missing
 of silence (a lost message), or when the caller says all has arrived. A message that
 comes after a step it could have changed was handed out is counted as late (the live
 rows may then differ from the batch's).
+
+With a ``judge`` (a success classifier) each state's success is its verdict, as in the batch
+join with that judge, and ``counts.judged`` keeps how often it disagreed with the task's
+success distance on the transitions handed out.
 """
 
 from __future__ import annotations
@@ -37,7 +41,7 @@ import numpy as np
 from ...common.rejections import Rejection
 from ...task.spec import TaskSpec
 from ..transitions import Layout, Transitions
-from .build import JoinEmpty, JoinReport, Streams, join, point_kinematics
+from .build import JoinEmpty, JoinReport, StateVerdicts, Streams, join, judged_counts, point_kinematics
 from .messages import MessageDecodeError
 from .spec import TopicRole, plan_for
 from .streams import Mismatch, Rows, decode_rows, has_header, role_width
@@ -77,11 +81,13 @@ class LiveCounts:
     refused: dict = field(default_factory=dict)  # reason -> messages that do not fit the task
     steps: int = 0
     transitions: int = 0
+    judged: dict | None = None  # with a judge: its successes against the task's success distance
 
     def as_dict(self) -> dict:
-        return {"messages": dict(self.messages), "late": self.late, "late_topics": dict(self.late_topics),
-                "old": self.old, "refused": dict(self.refused),
-                "steps": self.steps, "transitions": self.transitions}
+        out = {"messages": dict(self.messages), "late": self.late, "late_topics": dict(self.late_topics),
+               "old": self.old, "refused": dict(self.refused),
+               "steps": self.steps, "transitions": self.transitions}
+        return out if self.judged is None else {**out, "judged": dict(self.judged)}
 
 
 class _Buffer:
@@ -111,8 +117,13 @@ class _Buffer:
 
 
 class LiveJoin:
-    def __init__(self, task: TaskSpec, settings: LiveSettings | None = None):
+    """``judge``: a success classifier (``success(obs)``) whose judgement of each state
+    replaces the task's success distance, as in ``build.join``."""
+
+    def __init__(self, task: TaskSpec, settings: LiveSettings | None = None, judge=None):
         self.task = task
+        # verdicts remembered across polls: the window is joined again on each
+        self.judge = None if judge is None else StateVerdicts(judge)
         self.plan = plan_for(task)
         self.settings = settings or LiveSettings()
         self.kinematics = point_kinematics(task)
@@ -136,6 +147,8 @@ class LiveJoin:
         self.episode_key: int | None = None  # the episode of the last transition handed out
         self.episode_id = -1
         self.counts = LiveCounts()
+        if self.judge is not None:
+            self.counts.judged = judged_counts(self.judge.source, np.zeros(0, bool), np.zeros(0, bool))
         tol, ptol = self.plan.tolerance_ns, self.plan.period_tolerance_ns
         self.quiet_horizon = 2 * max(tol, ptol)
         self.lateness_ns = round(self.settings.lateness * 1e9)
@@ -223,7 +236,7 @@ class LiveJoin:
         streams = Streams(self.states.rows, self.commands.rows, self.goal.rows,
                           {name: b.rows for name, b in self.points.items()}, np.asarray(self.resets, np.int64))
         try:
-            result = join(self.plan, streams, report, self.kinematics, allow_empty=True)
+            result = join(self.plan, streams, report, self.kinematics, allow_empty=True, judge=self.judge)
         except JoinEmpty:
             return self._none()
         seals = (-NEVER, -NEVER, -NEVER, -NEVER) if ended else self._seals(quiet, level == 2)
@@ -249,6 +262,10 @@ class LiveJoin:
         self._prune(result, cut)
         self.counts.steps += int(steps.size)
         self.counts.transitions += int(picked.size)
+        if self.judge is not None:
+            more = judged_counts(self.judge.source, data.success, result.rule_success[picked])
+            for key in ("successes", "rule_successes", "false_successes", "missed"):
+                self.counts.judged[key] += more[key]
         return LiveSteps(data, rows >= 0)
 
     def _none(self) -> LiveSteps:

@@ -116,6 +116,9 @@ PARAMS = [
           "trains on, e.g. [/arm1, /arm2]; none: its own namespace's", read_only=True, flag="--actors", kind=list),
     Param("from_topics", False, "build the live transitions from the task's raw topics (joint states, commands, "
           "goal) instead of pusher/transition", read_only=True, flag="--from-topics"),
+    Param("success", "", "raw topics: a success classifier file (offline-rl classifier train) that judges each "
+          "state's success, for the reward's bonus and the episode's end, instead of the task's success distance; "
+          "empty: the distance", read_only=True, flag="--success"),
     Param("lateness", _L.lateness, "raw topics: seconds of stamps a silent topic (a goal sent once an episode) is "
           "taken complete behind the joint states", low=0.0, high=60.0, read_only=True, flag="--lateness"),
     Param("quiet", _L.quiet, "raw topics: seconds with nothing new, while idle, after which everything published is "
@@ -151,7 +154,8 @@ class Learner(Node):
         self.service = LearnerService(LearnerServiceConfig(
             bags=list(s.bag), out=s.out, prior=s.prior or None, task=s.task or None, seed=s.seed,
             save_every=s.save_every, resume=s.resume, session_bag=s.session_bag or None,
-            snapshot_every=s.snapshot_every, from_topics=s.from_topics, actors=tuple(s.actors or ()),
+            snapshot_every=s.snapshot_every, from_topics=s.from_topics, success=s.success or None,
+            actors=tuple(s.actors or ()),
             live=LiveSettings(lateness=s.lateness, quiet=s.quiet, quiet_missing=s.quiet_missing),
             settings=settings, train=train,
             logger=s.logger, sim_time=bool(self.get_parameter("use_sim_time").value)),
