@@ -333,7 +333,7 @@ def crash_section(name: str, payload: dict) -> list[str]:
 # ----------------------------------------------------------------------------- the HIL-SERL stage
 
 THRESHOLDS = ("0.5", "0.8", "0.9", "0.95")
-ARM_ORDER = ("online", "no_prior", "no_corrections", "offline_rounds")  # the stage, then its ablations
+ARM_ORDER = ("online", "imitate_expert", "classifier", "no_prior", "no_corrections", "offline_rounds")  # the stage, then its variants
 
 
 def hil_table(arms: dict) -> str:
@@ -460,6 +460,35 @@ def push_experiment_section(name: str, payload: dict) -> list[str]:
             "reset). The success against training time: [pusher_push_curves.png](pusher_push_curves.png).", ""] \
         + source_lines(name, payload) + ["", task_curves_table(curves, 0.3), "",
                                          "![success against training time](pusher_push_curves.png)", ""]
+
+
+def push_online_section(name: str, payload: dict) -> list[str]:
+    """The online stage on pusher_push beside its ablations and the classifier's reward (bench/push_online.py)."""
+    lines = ["## The HIL-SERL stage on pusher_push", "",
+             f"The online stage on the push task (digest `{payload['task_digest']}`) in one process, lockstep, from "
+             "the `--algo auto` prior of each seed's mixed log (200 episodes, 30 % expert), the scripted corrector, "
+             "the same environment-step budget for every arm; success without intervention of the deterministic "
+             "policy on the task's 100 held-out resets along the run. `classifier`: the learner's reward and episode "
+             "end from a success classifier trained on 20 labelled successes and 20 failures of the seed's log, the "
+             "simulator counted beside it; `no_prior`: from scratch; `no_corrections`: no corrector. Curves of success "
+             "and of the intervention rate against environment steps and robot time: "
+             "[pusher_push_online.png](pusher_push_online.png).", ""]
+    if payload.get("note"):
+        lines += [str(payload["note"]), ""]
+    lines += source_lines(name, payload) + ["", hil_table(payload["arms"]), ""]
+    judged = payload["arms"].get("classifier", {})
+    if judged:
+        lines += ["The classifier in the loop, per training episode against the simulator's success at the same "
+                  "state: episodes it ended as successes, of those the simulator calls failures (false ends), and "
+                  "simulator successes it let run to the time limit (missed).", "",
+                  "| seed | episodes | ended as successes | false ends | missed | simulator successes |",
+                  "|---|---|---|---|---|---|"]
+        for seed, s in sorted(judged.items(), key=lambda kv: int(kv[0])):
+            c = s["counts"]
+            lines.append(f"| {seed} | {c['episodes']} | {c['ended_early']} | {c['false_ends']} | {c['missed']} "
+                         f"| {c['successes']} |")
+        lines.append("")
+    return lines + ["![success against environment steps](pusher_push_online.png)", ""]
 
 
 def pusher7_probes_section(name: str, payload: dict) -> list[str]:
@@ -636,6 +665,7 @@ SECTIONS = {  # file -> its section, in the page's order (the speed sections fol
     "pusher7_online.json": pusher7_online_section,
     "pusher7_online_probes.json": pusher7_probes_section,
     "pusher_push_report.json": push_experiment_section,
+    "pusher_push_online.json": push_online_section,
     "crash_safety.json": crash_section,
     "gpu_ensemble.json": gpu_ensemble_section,
     "pusher7_ros.json": ros_pipeline_section,

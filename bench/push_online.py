@@ -1,0 +1,129 @@
+"""The online stage on pusher_push, per seed, beside its ablations and a classifier's reward.
+
+    python bench/push_online.py [--seeds 0 1 2] [--arms online classifier no_prior no_corrections]
+                                [--env-steps 49950] [--eval-every 4950] [--out runs/push-online]
+                                [--json bench/pusher_push_online.json]
+
+Every arm is ``offline-rl hil --online --in-process --task pusher_push`` on the mixed log of
+its seed (200 episodes, 30 % expert: ``offline-rl collect --task pusher_push --episodes 200
+--expert-frac 0.3 --seed S``, the chapter's experiment's bags, collected when absent), with the
+same environment-step budget (a whole number of 150-step episodes near 50,000):
+
+- ``online``: from the ``--algo auto`` prior the stage trains on that log, with the scripted
+  corrector, the simulator's reward;
+- ``classifier``: the same, the reward and the episode's end from a success classifier
+  (``offline-rl classifier train --labels simulator --successes 20 --failures 20 --head 40``
+  on the seed's log: 20 labelled successes and 20 failures) instead of the simulator, which
+  is counted beside it (``counts.false_ends``, ``counts.missed``);
+- ``no_prior``: the learner from scratch (corrector on);
+- ``no_corrections``: the prior and online RL alone;
+- ``imitate_expert`` (when named in ``--arms``): the online arm with the actor's BC term also on
+  the log's expert episodes (``--imitate-expert``), which keeps the actor near the
+  demonstrations while the critic, which the auto prior does not give, is learnt.
+
+The curve: success without intervention of the deterministic policy on the task's 100
+held-out resets every ``--eval-every`` steps, the intervention rate of each window, robot
+time (steps x the control period). In one process, not over ROS: the lockstep ROS stage gives
+the in-process run's bytes (tests/test_ros_online.py), and a 50,000-step session over ROS
+takes hours on two cores. A run whose ``summary.json`` exists is not run again (the script
+resumes). Writes the JSON (each arm's summaries, the command, the machine), the plot beside
+it, and prints the table of bench/RESULTS.md's section.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+from pathlib import Path
+
+from hil_online import curve_of, run
+from offline_rl_core.benchmarks.harness import run_facts
+from offline_rl_core.common.atomic import write_json_atomic
+from offline_rl_core.task.spec import load_task
+from results_page import hil_table
+
+TASK = "pusher_push"
+ARMS = ("online", "classifier", "no_prior", "no_corrections")
+VARIANTS = ("imitate_expert",)  # run when named: the stage with one setting changed
+BAGS = Path("runs/prior/pusher_push/bags")  # bench/prior_report.py --task pusher_push's logs
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    p.add_argument("--arms", nargs="+", choices=ARMS + VARIANTS, default=list(ARMS))
+    p.add_argument("--env-steps", type=int, default=49_950, help="a multiple of the task's 150-step episodes")
+    p.add_argument("--eval-every", type=int, default=4_950)
+    p.add_argument("--eval-episodes", type=int, default=100)
+    p.add_argument("--out", default="runs/push-online")
+    p.add_argument("--json", default="bench/pusher_push_online.json")
+    args = p.parse_args()
+    facts = run_facts()
+    offline_rl = [sys.executable, "-m", "offline_rl_core"]
+    out = Path(args.out)
+    results: dict = {}
+    for seed in args.seeds:
+        bag = BAGS / f"mix_s{seed}_e0.3.db3"
+        if not bag.exists():
+            bag.parent.mkdir(parents=True, exist_ok=True)
+            subprocess.run([*offline_rl, "collect", "--task", TASK, "--episodes", "200", "--expert-frac", "0.3",
+                            "--seed", str(seed), "--out", str(bag)], check=True)
+        for arm in args.arms:
+            run_dir = out / arm / f"seed{seed}"
+            cmd = [*offline_rl, "hil", "--online", "--in-process", "--task", TASK, "--bag", str(bag),
+                   "--seed", str(seed), "--env-steps", str(args.env_steps), "--eval-every", str(args.eval_every),
+                   "--eval-episodes", str(args.eval_episodes), "--logger", "none", "--out", str(run_dir)]
+            if arm == "classifier":
+                classifier = out / "classifiers" / f"seed{seed}.pt"
+                if not classifier.exists():
+                    subprocess.run([*offline_rl, "classifier", "train", "--bag", str(bag), "--labels", "simulator",
+                                    "--successes", "20", "--failures", "20", "--head", "40", "--seed", str(seed),
+                                    "--out", str(classifier)], check=True)
+                cmd += ["--success", str(classifier), "--end-on-success"]
+            cmd += {"no_prior": ["--no-prior"], "no_corrections": ["--corrector", "none"],
+                    "imitate_expert": ["--imitate-expert"]}.get(arm, [])
+            results.setdefault(arm, {})[str(seed)] = run(cmd, run_dir / "summary.json")
+            task = load_task(TASK)
+            write_json_atomic(args.json, {"task": task.name, "task_digest": task.digest, "arms": results,
+                                          "command": "python bench/push_online.py " + " ".join(sys.argv[1:]),
+                                          **facts})
+    print(hil_table(results))
+    plot(results, Path(args.json).with_suffix(".png"))
+    return 0
+
+
+def plot(results: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    period = load_task(TASK).control_period
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
+    for j, (arm, by_seed) in enumerate(results.items()):
+        for i, (seed, summary) in enumerate(sorted(by_seed.items(), key=lambda kv: int(kv[0]))):
+            steps, success = curve_of(arm, summary)
+            label = f"{arm}, seed {seed}"
+            style = dict(color=f"C{j}", alpha=1.0 - 0.25 * i, lw=2)
+            axes[0].plot(steps, success, "o-", label=label, **style)
+            if arm not in ("no_corrections",):
+                axes[1].plot([s * period / 60 for s in steps], [p["intervention_rate"] for p in summary["curve"]],
+                             "s--", label=label, **style)
+    axes[0].axhline(0.9, color="grey", ls=":", lw=1)
+    axes[0].set_xlabel("environment steps")
+    axes[0].set_ylabel("success without intervention (100 held-out resets)")
+    axes[1].set_xlabel(f"robot time, min ({1 / period:g} Hz)")
+    axes[1].set_ylabel("intervention rate (window)")
+    for ax in axes:
+        ax.set_ylim(0, 1.02)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, loc="best")
+    fig.suptitle(f"{TASK}: the online stage (auto prior, scripted corrector) and its ablations", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    print(f"wrote {path}", file=sys.stderr)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
