@@ -19,7 +19,9 @@ same environment-step budget (a whole number of 150-step episodes near 50,000):
 - ``no_corrections``: the prior and online RL alone;
 - ``imitate_expert`` (when named in ``--arms``): the online arm with the actor's BC term also on
   the log's expert episodes (``--imitate-expert``), which keeps the actor near the
-  demonstrations while the critic, which the auto prior does not give, is learnt.
+  demonstrations while the critic, which the auto prior does not give, is learnt;
+- ``critic_warmup`` (when named): the online arm with 5,000 steps of the critic alone on the
+  log, the prior's actor fixed, before the first update (``--critic-warmup 5000``).
 
 The curve: success without intervention of the deterministic policy on the task's 100
 held-out resets every ``--eval-every`` steps, the intervention rate of each window, robot
@@ -45,7 +47,7 @@ from results_page import hil_table
 
 TASK = "pusher_push"
 ARMS = ("online", "classifier", "no_prior", "no_corrections")
-VARIANTS = ("imitate_expert",)  # run when named: the stage with one setting changed
+VARIANTS = ("imitate_expert", "critic_warmup")  # run when named: the stage with one setting changed
 BAGS = Path("runs/prior/pusher_push/bags")  # bench/prior_report.py --task pusher_push's logs
 
 
@@ -82,7 +84,8 @@ def main() -> int:
                                     "--out", str(classifier)], check=True)
                 cmd += ["--success", str(classifier), "--end-on-success"]
             cmd += {"no_prior": ["--no-prior"], "no_corrections": ["--corrector", "none"],
-                    "imitate_expert": ["--imitate-expert"]}.get(arm, [])
+                    "imitate_expert": ["--imitate-expert"],
+                    "critic_warmup": ["--critic-warmup", "5000"]}.get(arm, [])
             results.setdefault(arm, {})[str(seed)] = run(cmd, run_dir / "summary.json")
             task = load_task(TASK)
             write_json_atomic(args.json, {"task": task.name, "task_digest": task.digest, "arms": results,

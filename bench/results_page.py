@@ -333,7 +333,7 @@ def crash_section(name: str, payload: dict) -> list[str]:
 # ----------------------------------------------------------------------------- the HIL-SERL stage
 
 THRESHOLDS = ("0.5", "0.8", "0.9", "0.95")
-ARM_ORDER = ("online", "imitate_expert", "classifier", "no_prior", "no_corrections", "offline_rounds")  # the stage, then its variants
+ARM_ORDER = ("online", "imitate_expert", "critic_warmup", "classifier", "no_prior", "no_corrections", "offline_rounds")  # the stage, then its variants
 
 
 def hil_table(arms: dict) -> str:

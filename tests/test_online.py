@@ -447,3 +447,35 @@ def test_imitate_expert_keeps_the_actor_near_the_demonstrations(offline, prior):
         policy = LoadedPolicy(learner.weights())
         errors[imitate] = float(np.mean((policy.act(offline.obs[expert]) - offline.action[expert]) ** 2))
     assert errors[True] < errors[False], errors
+
+
+def test_critic_warmup_fits_the_critic_alone_before_the_first_update_and_resumes_exactly(offline, prior):
+    """``critic_warmup``: before its first update the learner fits the critic alone on the
+    offline data (the actor still the prior's), once; a learner saved before that and
+    resumed ends with the same weights as one never stopped."""
+    rows = _stream(30)
+    learner = _learner(offline, prior, critic_warmup=40)
+    actor_before = _flat(learner.weights())
+    critic_before = [t.clone() for t in learner.learner.critic.online.parameters()]
+    learner.add(rows.select(np.array([0])))
+    learner._warm_up_critic()
+    assert learner.warmup_done == 40 and learner.updates == 0
+    assert torch.equal(_flat(learner.weights()), actor_before)  # the actor did not move
+    assert any(not torch.equal(a, b) for a, b in zip(critic_before, learner.learner.critic.online.parameters()))
+    learner._warm_up_critic()  # once only
+    assert learner.warmup_done == 40
+
+    straight = _learner(offline, prior, critic_warmup=40)
+    _feed(straight, rows)
+    stopped = _learner(offline, prior, critic_warmup=40)
+    saved = stopped.state()  # a resume point before the first update
+    resumed = _learner(offline, prior, critic_warmup=40)
+    resumed.restore(saved)
+    _feed(resumed, rows)
+    assert torch.equal(_flat(resumed.weights()), _flat(straight.weights()))
+    assert resumed.state()["critic_warmup_done"] == 40
+    plain = _learner(offline, prior)
+    _feed(plain, rows)
+    assert not torch.equal(_flat(plain.weights()), _flat(straight.weights()))
+    with pytest.raises(ValueError, match="critic_warmup must be >= 0"):
+        OnlineSettings(critic_warmup=-1)

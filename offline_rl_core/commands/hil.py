@@ -17,7 +17,8 @@ from ..runs.loggers import DEFAULT_LOGGER, LOGGERS
 OFFLINE_ONLY = ("rounds", "episodes", "steps", "correction_ratio", "beta", "patience", "hold_steps", "grace_steps",
                 "noise", "reaction_delay")
 ONLINE_ONLY = ("env_steps", "corrector", "mode", "prior_algo", "no_prior", "utd", "publish_every", "eval_every",
-               "in_process", "from_topics", "success", "end_on_success", "actors", "imitate_expert")
+               "in_process", "from_topics", "success", "end_on_success", "actors", "imitate_expert",
+               "critic_warmup")
 
 
 def _resolve_mode_flags(args) -> None:
@@ -61,7 +62,8 @@ def _run_online(args) -> int:
         bags=args.bag, task=args.task, corrector=args.corrector, mode=args.mode, utd=args.utd,
         publish_every=args.publish_every, eval_every=args.eval_every, eval_episodes=args.eval_episodes,
         eval_seed=args.eval_seed, in_process=args.in_process, from_topics=args.from_topics, success=args.success,
-        end_on_success=args.end_on_success, actors=args.actors, imitate_expert=args.imitate_expert)
+        end_on_success=args.end_on_success, actors=args.actors, imitate_expert=args.imitate_expert,
+        critic_warmup=args.critic_warmup)
     summary = run_hil_online(cfg, logger=args.logger)
     print(json.dumps({k: summary[k] for k in ("prior_success", "final_success", "final_ci", "to", "intervention_rate",
                                               "wall_seconds")}))
@@ -130,6 +132,9 @@ def register(subparsers) -> None:
     o.add_argument("--imitate-expert", action="store_true", default=None,
                    help="the actor's BC term also on the bag's expert episodes (its demonstrations), as TD3+BC keeps "
                         "an actor near them (default: only on a person's corrections)")
+    o.add_argument("--critic-warmup", type=int, metavar="N",
+                   help="gradient steps of the critic alone on the bag, with the prior's actor, before the first "
+                        f"update (a prior without a critic: --prior-algo auto's) (default: {od.critic_warmup})")
     o.add_argument("--publish-every", type=int,
                    help=f"environment steps between weights versions (default: {od.publish_every}, 1 s at 50 Hz)")
     o.add_argument("--eval-every", type=int,

@@ -44,7 +44,7 @@ from .config import TrainConfig
 from .data import MemberData
 from .loop import LEARNERS, seed_generators, torch_threads
 from .resume import learner_training_state, load_learner_training_state
-from .stepper import intra_op_threads, make_step
+from .stepper import EagerStep, intra_op_threads, make_step
 
 LAG_VERSIONS = 16  # weights versions the learner may lag the stream with its samples intact
 
@@ -58,10 +58,17 @@ class OnlineSettings:
     # the actor's BC term (sac's bc_weight) also on the offline data's expert rows (its
     # demonstrations), as TD3+BC keeps an actor near them; off: only on a person's corrections
     imitate_expert: bool = False
+    # gradient steps of the critic alone on the offline data, with the prior's actor, before
+    # the first update: the actor's first gradients then follow a critic of the prior, not a
+    # random one (a prior without a critic, the filtered BC of --algo auto, is otherwise pulled
+    # off its demonstrations in the stage's first thousands of steps)
+    critic_warmup: int = 0
 
     def __post_init__(self) -> None:
         if self.utd < 1 or self.publish_every < 1 or self.capacity < 1:
             raise ValueError("utd, publish_every and capacity must be >= 1")
+        if self.critic_warmup < 0:
+            raise ValueError(f"critic_warmup must be >= 0, got {self.critic_warmup}")
         if not 0.0 <= self.offline_ratio <= 1.0:
             raise ValueError(f"offline_ratio must be in [0, 1], got {self.offline_ratio}")
 
@@ -136,6 +143,11 @@ class OnlineLearner:
         self.n_steps = 0  # environment steps (transitions, and steps that made none)
         self.step_rows: list[int] | None = None  # online transitions through each step, once they differ
         self.updates = 0
+        self.warmup_done = 0  # critic-alone steps taken (critic_warmup)
+        if settings.critic_warmup and not hasattr(self.learner, "critic_alone_update"):
+            raise ValueError(f"critic_warmup: the {cfg.algo} learner has no critic to warm up alone")
+        if settings.critic_warmup and self.n_offline == 0:
+            raise ValueError("critic_warmup: no offline transitions to warm the critic up on")
         self.version = 0
         self.losses: dict[str, float] = {}
         self.train_seconds = 0.0
@@ -192,6 +204,7 @@ class OnlineLearner:
             return 0
         t0 = time.perf_counter()
         with torch_threads(intra_op_threads(self.cfg.threads)):
+            self._warm_up_critic()
             for _ in range(todo):
                 bound = self.rows_through(self.updates // self.settings.utd + 1)
                 losses = self.step_once(self.sampler.next(bound))
@@ -199,6 +212,16 @@ class OnlineLearner:
             self.losses = {k: float(v.float().mean()) for k, v in losses.items()}
         self.train_seconds += time.perf_counter() - t0
         return todo
+
+    def _warm_up_critic(self) -> None:
+        """The critic alone, ``critic_warmup`` steps on offline batches, before the first update
+        (eager: a few thousand steps once; the same bytes on every runner)."""
+        if self.warmup_done >= self.settings.critic_warmup:
+            return
+        step = EagerStep(self.learner.critic_alone_update, self.data)
+        for _ in range(self.settings.critic_warmup - self.warmup_done):
+            step(self.sampler.next(0))  # no online row is held before the first update
+        self.warmup_done = self.settings.critic_warmup
 
     def next_version_updates(self) -> int:
         """Updates after which the next weights version is cut."""
@@ -258,6 +281,7 @@ class OnlineLearner:
             "n_steps": self.n_steps,
             "step_rows": None if self.step_rows is None else torch.tensor(self.step_rows, dtype=torch.int64),
             "updates": self.updates,
+            "critic_warmup_done": self.warmup_done,
             "train_version": self.version,
             # the online rows still held, oldest first (the first is transition n_online - len)
             "online_rows": {name: getattr(self.data, name)[0, self._held_slots()].clone()
@@ -286,6 +310,8 @@ class OnlineLearner:
         human = state.get("n_human")  # saved since the buffer became a ring; before, every row was held
         self.n_human_seen = int(rows["human"].sum()) if human is None else int(human)
         self.updates, self.version = int(state["updates"]), int(state["train_version"])
+        # saved before the option: a learner that trained had nothing to warm up
+        self.warmup_done = int(state.get("critic_warmup_done", self.settings.critic_warmup if self.updates else 0))
         self.n_steps = int(state.get("n_steps", n))  # states saved before steps were counted: one per row
         steps = state.get("step_rows")
         self.step_rows = None if steps is None else [int(v) for v in steps]

@@ -70,6 +70,13 @@ class SAC(CriticLearner):
         bc = err.flatten(1).sum(1) / batch.human.flatten(1).sum(1).clamp(min=1.0)
         return per_member_mean(alpha * log_prob - q) + self.cfg.bc_weight * bc, log_prob, q
 
+    def critic_alone_update(self, batch):
+        """The critic's step of ``update`` alone (the actor, its std and alpha stay): the
+        current actor's values, fitted before it is moved (``OnlineSettings.critic_warmup``)."""
+        critic_loss = self.critic_update(batch, self.log_alpha.detach().exp())
+        self.critic.polyak()
+        return {"critic_loss": critic_loss / 2}
+
     def update(self, batch):
         alpha = self.log_alpha.detach().exp()
         critic_loss = self.critic_update(batch, alpha)

@@ -71,6 +71,7 @@ class OnlineHilConfig:
     mode: str = "lockstep"  # lockstep (paced, reproducible) | realtime (50 Hz)
     utd: int = 2
     imitate_expert: bool = False  # the actor's BC term also on the offline expert rows (OnlineSettings)
+    critic_warmup: int = 0  # critic-alone steps on the bag before the first update (OnlineSettings)
     publish_every: int = 50
     eval_every: int = 2500
     eval_episodes: int = 100
@@ -104,6 +105,8 @@ class OnlineHilConfig:
         if self.success is not None and not Path(self.success).is_file():
             raise UserError(f"--success {self.success}: no such classifier file (train one with "
                             "`offline-rl classifier train`)")
+        if self.critic_warmup < 0:
+            raise UserError(f"--critic-warmup must be >= 0, got {self.critic_warmup}")
         for name in ("utd", "publish_every", "eval_every", "eval_episodes"):
             if int(getattr(self, name)) < 1:
                 raise UserError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
@@ -227,7 +230,8 @@ def _in_process(cfg: OnlineHilConfig, task, prior_path: Path | None, log, curves
     run = run_online(offline, prior, OnlineRunConfig(
         env_steps=cfg.env_steps, seed=cfg.seed, corrections=cfg.corrector != "none", eval_every=cfg.eval_every,
         eval_episodes=cfg.eval_episodes, eval_seed=cfg.eval_seed,
-        settings=OnlineSettings(utd=cfg.utd, publish_every=cfg.publish_every, imitate_expert=cfg.imitate_expert),
+        settings=OnlineSettings(utd=cfg.utd, publish_every=cfg.publish_every, imitate_expert=cfg.imitate_expert,
+                                critic_warmup=cfg.critic_warmup),
         train=TrainConfig(algo="sac"),
         task=task, success=cfg.success, end_on_success=cfg.end_on_success),
         log=log, logger=curves)
@@ -247,7 +251,8 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
         # until the learner's first weights, the policy serves the prior (or the learner's initial weights)
         "checkpoint": prior_path or learner_dir / "policy.pt",
         "mode": cfg.mode, "paced_every": cfg.publish_every if lockstep else 0, "publish_every": cfg.publish_every,
-        "utd": cfg.utd, "imitate_expert": "true" if cfg.imitate_expert else "false", "seed": cfg.seed, "learner_nice": 0 if lockstep else 10,
+        "utd": cfg.utd, "imitate_expert": "true" if cfg.imitate_expert else "false",
+        "critic_warmup": cfg.critic_warmup, "seed": cfg.seed, "learner_nice": 0 if lockstep else 10,
         # realtime: the nodes that answer the arm go first (where the user may use SCHED_FIFO)
         "thread_priority": 0 if lockstep else REALTIME_THREAD_PRIORITY, "reset_seed": TRAIN_SEED_BASE + 10000 * cfg.seed, "episodes": episodes,
         "snapshot_every": cfg.eval_every, "corrector": cfg.corrector, "logger": logger,

@@ -92,6 +92,8 @@ PARAMS = [
           read_only=True, flag="--publish-every"),
     Param("imitate_expert", _O.imitate_expert, "the actor's BC term (bc_weight) also on the offline bag's expert rows "
           "(its demonstrations), as TD3+BC keeps an actor near them", read_only=True, flag="--imitate-expert"),
+    Param("critic_warmup", _O.critic_warmup, "gradient steps of the critic alone on the offline bag, with the prior's "
+          "actor, before the first update (a prior without a critic)", low=0, read_only=True, flag="--critic-warmup"),
     Param("capacity", _O.capacity, "live transitions the online buffer holds", low=1, read_only=True,
           flag="--capacity"),
     Param("alpha", _T.alpha, "entropy weight of the SAC objective", low=1e-8, read_only=True, flag="--alpha"),
@@ -150,7 +152,8 @@ class Learner(Node):
         train = TrainConfig(algo="sac", alpha=s.alpha, bc_weight=s.bc_weight, init_log_std=s.init_log_std, lr=s.lr,
                             batch_size=s.batch_size, threads=s.threads)
         settings = OnlineSettings(utd=s.utd, offline_ratio=s.offline_ratio, publish_every=s.publish_every,
-                                  capacity=s.capacity, imitate_expert=s.imitate_expert)
+                                  capacity=s.capacity, imitate_expert=s.imitate_expert,
+                                  critic_warmup=s.critic_warmup)
         self.service = LearnerService(LearnerServiceConfig(
             bags=list(s.bag), out=s.out, prior=s.prior or None, task=s.task or None, seed=s.seed,
             save_every=s.save_every, resume=s.resume, session_bag=s.session_bag or None,
