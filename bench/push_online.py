@@ -60,6 +60,7 @@ def main() -> int:
     p.add_argument("--eval-episodes", type=int, default=100)
     p.add_argument("--out", default="runs/push-online")
     p.add_argument("--json", default="bench/pusher_push_online.json")
+    p.add_argument("--note", help="what bounded the measurement (seeds, arms not run), for the page")
     args = p.parse_args()
     facts = run_facts()
     offline_rl = [sys.executable, "-m", "offline_rl_core"]
@@ -89,11 +90,24 @@ def main() -> int:
             results.setdefault(arm, {})[str(seed)] = run(cmd, run_dir / "summary.json")
             task = load_task(TASK)
             write_json_atomic(args.json, {"task": task.name, "task_digest": task.digest, "arms": results,
-                                          "command": "python bench/push_online.py " + " ".join(sys.argv[1:]),
-                                          **facts})
+                                          **({"note": args.note} if args.note else {}), **facts,
+                                          "command": command_line(sys.argv[1:])})
     print(hil_table(results))
     plot(results, Path(args.json).with_suffix(".png"))
     return 0
+
+
+def command_line(argv: list[str]) -> str:
+    """The command that made the figures (without the page's note)."""
+    kept, skip = [], False
+    for arg in argv:
+        if skip:
+            skip = False
+        elif arg == "--note":
+            skip = True
+        elif not arg.startswith("--note="):
+            kept.append(arg)
+    return " ".join(["python bench/push_online.py", *kept])
 
 
 def plot(results: dict, path: Path) -> None:
