@@ -150,7 +150,8 @@ class LearnerService:
         if self.offline_estop_dropped is not None:
             log(f"offline half: left out {self.offline_estop_dropped} transitions recorded while the e-stop was engaged")
         # the live join of the task's raw topics (None: the transitions come on pusher/transition)
-        self.live = LiveJoin(self.task, cfg.live, self._judge(cfg)) if cfg.from_topics else None
+        judge = self._judge(cfg)  # a classifier without from_topics is refused here, not ignored
+        self.live = LiveJoin(self.task, cfg.live, judge) if cfg.from_topics else None
         # raw topics joined by receive times, on a sim's /clock: each message waits for the
         # /clock that says which tick it was published in (see receive_clock)
         self.publication_clock = PublicationClock() if (
