@@ -2,7 +2,7 @@
 
     python bench/pusher7_online.py [--seeds 0 1 2] [--env-steps 20000] [--out runs/p7-online]
                                    [--json bench/pusher7_online.json] [--in-process]
-                                   [--utd N] [--end-on-success] [--imitate-expert]
+                                   [--utd N] [--end-on-success] [--imitate-expert] [--normalize-obs]
 
 The stage as a user of a ros2_control arm runs it: ``offline-rl hil --online --from-topics
 --task pusher7_reach`` (lockstep, scripted corrector), the learner joining the arm's raw topics
@@ -49,6 +49,8 @@ def main() -> int:
     p.add_argument("--utd", type=int, help="the stage's gradient steps per environment step (default: the stage's)")
     p.add_argument("--imitate-expert", action="store_true",
                    help="the actor's BC term also on the mix's expert episodes (offline-rl hil --imitate-expert)")
+    p.add_argument("--normalize-obs", action="store_true",
+                   help="actor and critic on observations z-scored by the mix's statistics (offline-rl hil --normalize-obs)")
     p.add_argument("--end-on-success", action="store_true",
                    help="with --in-process: an episode ends where the simulator judges success (HIL-SERL's rule)")
     args = p.parse_args()
@@ -71,6 +73,7 @@ def main() -> int:
         cmd += ["--utd", str(args.utd)] if args.utd else []
         cmd += ["--end-on-success"] if args.end_on_success else []
         cmd += ["--imitate-expert"] if args.imitate_expert else []
+        cmd += ["--normalize-obs"] if args.normalize_obs else []
         cmd += ["--in-process"] if args.in_process else ["--from-topics"]
         results.setdefault(arm, {})[str(seed)] = run(cmd, run_dir / "summary.json")
         task = load_task(args.task)

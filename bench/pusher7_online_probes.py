@@ -57,6 +57,14 @@ VARIANTS = {
                                "(a person grabbing an arm that crawls)", {"corrector": {"min_progress": 0.01}}),
     "corrector_progress0.01_offline0.25": ("both of the above",
                                            {"corrector": {"min_progress": 0.01}, "online": {"offline_ratio": 0.25}}),
+    "normalize_obs": ("actor and critics on z-scored observations (the offline data's statistics, as the "
+                      "auto prior was trained), folded into every weights version", {"train": {"normalize_obs": True}}),
+    "normalize_obs_corrector_progress0.01_offline0.25": (
+        "z-scored observations, the crawling-arm corrector and a quarter of each batch offline",
+        {"train": {"normalize_obs": True}, "corrector": {"min_progress": 0.01}, "online": {"offline_ratio": 0.25}}),
+    "normalize_obs_corrector_progress0.01": (
+        "z-scored observations and the crawling-arm corrector",
+        {"train": {"normalize_obs": True}, "corrector": {"min_progress": 0.01}}),
     "imitate_expert": ("the actor's BC term also on the mix's expert episodes (TD3+BC's anchor on demonstrations)",
                        {"online": {"imitate_expert": True}}),
 }

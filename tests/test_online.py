@@ -479,3 +479,41 @@ def test_critic_warmup_fits_the_critic_alone_before_the_first_update_and_resumes
     assert not torch.equal(_flat(plain.weights()), _flat(straight.weights()))
     with pytest.raises(ValueError, match="critic_warmup must be >= 0"):
         OnlineSettings(critic_warmup=-1)
+
+
+def test_normalize_obs_learns_on_z_scored_rows_and_serves_raw_observations(offline, prior, tmp_path):
+    """``normalize_obs``: the networks learn on observations z-scored by the offline data's
+    statistics (offline and live rows alike), yet every weights version takes raw observations:
+    version 0 acts as the prior does, and a resumed learner still ends on the same bytes."""
+    from offline_rl_core.serving.policy import LoadedPolicy
+
+    cfg = TrainConfig(algo="sac", normalize_obs=True, **SMALL)
+    settings = OnlineSettings(publish_every=10)
+
+    def learner():
+        return OnlineLearner(offline, cfg, settings, seed=3, prior=prior)
+
+    rows = _stream(40)
+    one = learner()
+    held = one.data.obs[0, :len(offline)].numpy()
+    assert np.allclose(held.mean(0), 0.0, atol=1e-4) and not np.allclose(offline.obs.mean(0), 0.0, atol=1e-2)
+    served, prior_policy = LoadedPolicy(one.weights()), LoadedPolicy(prior)
+    assert np.allclose(served.act(offline.obs), prior_policy.act(offline.obs), atol=1e-5)
+    _feed(one, rows, 0, 1)
+    live = one.data.obs[0, len(offline)].numpy()
+    assert np.allclose(live, (rows.obs[0] - one.norm[0]) / one.norm[1], atol=1e-6)
+    _feed(one, rows, 1)
+    # what is served is what the learner's own (z-scored) actor does
+    mean = one.learner.policy(torch.from_numpy((offline.obs - one.norm[0]) / one.norm[1])[None])[0]
+    assert np.allclose(LoadedPolicy(one.weights()).act(offline.obs), torch.tanh(mean).detach().numpy(), atol=1e-5)
+
+    first = learner()
+    _feed(first, rows, 0, 17)
+    torch.save(first.state(), tmp_path / "state.pt")
+    resumed = learner()
+    resumed.restore(torch.load(tmp_path / "state.pt", weights_only=True))
+    _feed(resumed, rows, 17)
+    assert torch.equal(_flat(resumed.weights()), _flat(one.weights()))
+    plain = _learner(offline, prior)
+    _feed(plain, rows)
+    assert not torch.equal(_flat(plain.weights()), _flat(one.weights()))

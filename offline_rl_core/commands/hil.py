@@ -18,7 +18,7 @@ OFFLINE_ONLY = ("rounds", "episodes", "steps", "correction_ratio", "beta", "pati
                 "noise", "reaction_delay")
 ONLINE_ONLY = ("env_steps", "corrector", "mode", "prior_algo", "no_prior", "utd", "publish_every", "eval_every",
                "in_process", "from_topics", "success", "end_on_success", "actors", "imitate_expert",
-               "critic_warmup")
+               "critic_warmup", "normalize_obs")
 
 
 def _resolve_mode_flags(args) -> None:
@@ -63,7 +63,7 @@ def _run_online(args) -> int:
         publish_every=args.publish_every, eval_every=args.eval_every, eval_episodes=args.eval_episodes,
         eval_seed=args.eval_seed, in_process=args.in_process, from_topics=args.from_topics, success=args.success,
         end_on_success=args.end_on_success, actors=args.actors, imitate_expert=args.imitate_expert,
-        critic_warmup=args.critic_warmup)
+        critic_warmup=args.critic_warmup, normalize_obs=args.normalize_obs)
     summary = run_hil_online(cfg, logger=args.logger)
     print(json.dumps({k: summary[k] for k in ("prior_success", "final_success", "final_ci", "to", "intervention_rate",
                                               "wall_seconds")}))
@@ -135,6 +135,10 @@ def register(subparsers) -> None:
     o.add_argument("--critic-warmup", type=int, metavar="N",
                    help="gradient steps of the critic alone on the bag, with the prior's actor, before the first "
                         f"update (a prior without a critic: --prior-algo auto's) (default: {od.critic_warmup})")
+    o.add_argument("--normalize-obs", action="store_true", default=None,
+                   help="actor and critic learn on observations z-scored by the bag's statistics (fixed for the "
+                        "session; as --prior-algo auto trains the prior), folded into every weights version, so what "
+                        "is served takes raw observations (default: raw observations)")
     o.add_argument("--publish-every", type=int,
                    help=f"environment steps between weights versions (default: {od.publish_every}, 1 s at 50 Hz)")
     o.add_argument("--eval-every", type=int,

@@ -26,6 +26,12 @@ online transitions. Those are still held while the learner lags the stream by at
 ``capacity``); a learner further behind samples some newer transitions in place of
 evicted ones, which changes its weights but never stops it.
 
+With ``normalize_obs`` (``TrainConfig``) the networks learn on z-scored observations, the
+statistics of the offline data fixed for the whole stage (statistics that moved with the
+stream would move every input under the networks' feet): the prior is unfolded into that
+form, live rows are z-scored as they arrive, and every weights version folds the statistics
+back into the first layers, so what is served takes raw observations as every checkpoint does.
+
 ``state()`` / ``OnlineLearner.restore`` hold everything (networks, optimisers, random
 generators, counters and the online buffer), so a learner killed mid-run resumes where
 it last saved.
@@ -43,6 +49,7 @@ from ..data.transitions import SOURCE_EXPERT, SOURCE_HUMAN, Transitions
 from .config import TrainConfig
 from .data import MemberData
 from .loop import LEARNERS, seed_generators, torch_threads
+from .normalize import fold, normalized, obs_stats, unfold
 from .resume import learner_training_state, load_learner_training_state
 from .stepper import EagerStep, intra_op_threads, make_step
 
@@ -116,12 +123,19 @@ class OnlineLearner:
                              f"{task.obs_dim}, action {task.act_dim}")
         self.task = None if task is None else task_field(task)
         init_gen, sample_gen = seed_generators(seed)
+        # z-scored inputs (normalize_obs): the offline data's statistics, for the whole stage
+        self.norm = obs_stats(offline) if cfg.normalize_obs and len(offline) else None
+        if self.norm is not None:
+            offline = normalized(offline, *self.norm)
         with torch_threads(intra_op_threads(cfg.threads)):
             self.learner = LEARNERS[cfg.algo](cfg, 1, [init_gen], obs_dim, act_dim)
             if prior is not None:
-                self.learner.policy.load_member_state(0, prior["policy_state"])  # validated with the checkpoint
+                policy_state, learner_state = prior["policy_state"], prior.get("learner_state") or {}
+                if self.norm is not None:  # a checkpoint's networks take raw observations
+                    policy_state, learner_state = unfold(policy_state, *self.norm), unfold(learner_state, *self.norm)
+                self.learner.policy.load_member_state(0, policy_state)  # validated with the checkpoint
                 try:  # the critic's weights are the trainer's own: checked by loading them
-                    self.learner.load_learner_state(0, prior.get("learner_state") or {})
+                    self.learner.load_learner_state(0, learner_state)
                 except (RuntimeError, KeyError, TypeError, AttributeError) as exc:
                     reason = str(exc).strip().splitlines()[0][:160] if str(exc).strip() else type(exc).__name__
                     raise PriorMismatch(f"the prior's learner_state does not fit a {cfg.algo} learner "
@@ -160,7 +174,7 @@ class OnlineLearner:
         if steps < len(rows):
             raise ValueError(f"{len(rows)} transitions cannot come from {steps} steps")
         if len(rows):
-            self.data.append(rows)
+            self.data.append(rows if self.norm is None else normalized(rows, *self.norm))
             self.n_online += len(rows)
             self.n_human_seen += int((rows.source == SOURCE_HUMAN).sum())
         if self.step_rows is None and steps != len(rows):
@@ -239,7 +253,9 @@ class OnlineLearner:
         """The current policy as a checkpoint the policy node serves (``policy.py``),
         with the exploration std and which version this is."""
         learner = self.learner
-        state = learner.learner_state(0)
+        state, policy_state = learner.learner_state(0), learner.policy.member_state(0)
+        if self.norm is not None:  # served networks take raw observations
+            state, policy_state = fold(state, *self.norm), fold(policy_state, *self.norm)
         return {
             "format": CHECKPOINT_FORMAT,
             "version": CHECKPOINT_VERSION,
@@ -247,7 +263,7 @@ class OnlineLearner:
             "obs_dim": learner.obs_dim,
             "act_dim": learner.act_dim,
             "hidden": self.cfg.hidden,
-            "policy_state": learner.policy.member_state(0),
+            "policy_state": policy_state,
             "obs_mean": None,
             "obs_std": None,
             "learner_state": state,

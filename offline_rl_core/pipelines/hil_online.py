@@ -72,6 +72,7 @@ class OnlineHilConfig:
     utd: int = 2
     imitate_expert: bool = False  # the actor's BC term also on the offline expert rows (OnlineSettings)
     critic_warmup: int = 0  # critic-alone steps on the bag before the first update (OnlineSettings)
+    normalize_obs: bool = False  # actor and critic on z-scored observations (TrainConfig, the online learner)
     publish_every: int = 50
     eval_every: int = 2500
     eval_episodes: int = 100
@@ -232,7 +233,7 @@ def _in_process(cfg: OnlineHilConfig, task, prior_path: Path | None, log, curves
         eval_episodes=cfg.eval_episodes, eval_seed=cfg.eval_seed,
         settings=OnlineSettings(utd=cfg.utd, publish_every=cfg.publish_every, imitate_expert=cfg.imitate_expert,
                                 critic_warmup=cfg.critic_warmup),
-        train=TrainConfig(algo="sac"),
+        train=TrainConfig(algo="sac", normalize_obs=cfg.normalize_obs),
         task=task, success=cfg.success, end_on_success=cfg.end_on_success),
         log=log, logger=curves)
     return {"curve": run["curve"], "counts": run["counts"], "learner_seconds": run["wall_s"], "where": "in process"}
@@ -252,7 +253,8 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
         "checkpoint": prior_path or learner_dir / "policy.pt",
         "mode": cfg.mode, "paced_every": cfg.publish_every if lockstep else 0, "publish_every": cfg.publish_every,
         "utd": cfg.utd, "imitate_expert": "true" if cfg.imitate_expert else "false",
-        "critic_warmup": cfg.critic_warmup, "seed": cfg.seed, "learner_nice": 0 if lockstep else 10,
+        "critic_warmup": cfg.critic_warmup, "normalize_obs": "true" if cfg.normalize_obs else "false",
+        "seed": cfg.seed, "learner_nice": 0 if lockstep else 10,
         # realtime: the nodes that answer the arm go first (where the user may use SCHED_FIFO)
         "thread_priority": 0 if lockstep else REALTIME_THREAD_PRIORITY, "reset_seed": TRAIN_SEED_BASE + 10000 * cfg.seed, "episodes": episodes,
         "snapshot_every": cfg.eval_every, "corrector": cfg.corrector, "logger": logger,

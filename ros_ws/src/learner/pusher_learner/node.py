@@ -94,6 +94,9 @@ PARAMS = [
           "(its demonstrations), as TD3+BC keeps an actor near them", read_only=True, flag="--imitate-expert"),
     Param("critic_warmup", _O.critic_warmup, "gradient steps of the critic alone on the offline bag, with the prior's "
           "actor, before the first update (a prior without a critic)", low=0, read_only=True, flag="--critic-warmup"),
+    Param("normalize_obs", _T.normalize_obs, "actor and critic learn on observations z-scored by the offline bag's "
+          "statistics (fixed for the session), folded into every weights version", read_only=True,
+          flag="--normalize-obs"),
     Param("capacity", _O.capacity, "live transitions the online buffer holds", low=1, read_only=True,
           flag="--capacity"),
     Param("alpha", _T.alpha, "entropy weight of the SAC objective", low=1e-8, read_only=True, flag="--alpha"),
@@ -150,7 +153,7 @@ class Learner(Node):
                             "DIR/weights.key for the learner and DIR/weights.pub for the policy node)")
         self.signer = load_signer(s.signing_key)
         train = TrainConfig(algo="sac", alpha=s.alpha, bc_weight=s.bc_weight, init_log_std=s.init_log_std, lr=s.lr,
-                            batch_size=s.batch_size, threads=s.threads)
+                            batch_size=s.batch_size, threads=s.threads, normalize_obs=s.normalize_obs)
         settings = OnlineSettings(utd=s.utd, offline_ratio=s.offline_ratio, publish_every=s.publish_every,
                                   capacity=s.capacity, imitate_expert=s.imitate_expert,
                                   critic_warmup=s.critic_warmup)
