@@ -12,14 +12,16 @@ stage trains on the task's recorded mix of that seed (``offline-rl collect --tas
 uses bags/mix.db3). The curve: success without intervention of the deterministic policy on the
 task's 100 held-out resets every ``--eval-every`` environment steps, with the intervention rate
 of each window. ``--in-process`` runs the same stage without ROS (no topics: a quicker look).
-A seed whose ``summary.json`` exists is not run again, so the script can be resumed. Writes the
-JSON (each seed's summary, the command and the machine), the plot beside it, and prints the
+A seed whose ``summary.json`` exists is not run again, so the script can be resumed. An arm is
+named by where it ran and the options it changed (``online_raw_topics_normalize_obs``); the JSON
+keeps the other arms it already holds. Writes the JSON (each seed's summary, the command and the machine), the plot beside it, and prints the
 table of bench/RESULTS.md's section.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -62,8 +64,12 @@ def main() -> int:
         bag.parent.mkdir(parents=True, exist_ok=True)
         subprocess.run([*offline_rl, "collect", "--task", args.task, "--episodes", "200", "--expert-frac", "0.3",
                         "--seed", "0", "--out", str(bag)], check=True)
-    arm = "online_in_process" if args.in_process else ARM
-    results: dict = {}
+    # an arm is named by where it ran and the options it changed, so one JSON holds several
+    arm = "_".join(["online_in_process" if args.in_process else ARM,
+                    *(name for name in ("normalize_obs", "imitate_expert", "end_on_success") if getattr(args, name))])
+    previous = Path(args.json)
+    results: dict = json.loads(previous.read_text())["arms"] if previous.exists() else {}
+    results.pop(arm, None)  # this arm's seeds come from their summaries (a seed already run is read back)
     for seed in args.seeds:
         run_dir = out / f"seed{seed}" / arm
         cmd = [*offline_rl, "hil", "--online", "--task", args.task, "--bag", str(bag), "--seed", str(seed),

@@ -62,9 +62,11 @@ VARIANTS = {
     "normalize_obs_corrector_progress0.01_offline0.25": (
         "z-scored observations, the crawling-arm corrector and a quarter of each batch offline",
         {"train": {"normalize_obs": True}, "corrector": {"min_progress": 0.01}, "online": {"offline_ratio": 0.25}}),
-    "normalize_obs_corrector_progress0.01": (
-        "z-scored observations and the crawling-arm corrector",
-        {"train": {"normalize_obs": True}, "corrector": {"min_progress": 0.01}}),
+    "normalize_obs_imitate_expert": (
+        "z-scored observations and the actor's BC term also on the mix's expert episodes",
+        {"train": {"normalize_obs": True}, "online": {"imitate_expert": True}}),
+    "normalize_obs_alpha0.003": ("z-scored observations and a third of the entropy weight",
+                                 {"train": {"normalize_obs": True, "alpha": 0.003}}),
     "imitate_expert": ("the actor's BC term also on the mix's expert episodes (TD3+BC's anchor on demonstrations)",
                        {"online": {"imitate_expert": True}}),
 }

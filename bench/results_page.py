@@ -333,7 +333,7 @@ def crash_section(name: str, payload: dict) -> list[str]:
 # ----------------------------------------------------------------------------- the HIL-SERL stage
 
 THRESHOLDS = ("0.5", "0.8", "0.9", "0.95")
-ARM_ORDER = ("online", "imitate_expert", "critic_warmup", "classifier", "no_prior", "no_corrections", "offline_rounds")  # the stage, then its variants
+ARM_ORDER = ("online", "imitate_expert", "critic_warmup", "normalize_obs", "classifier", "no_prior", "no_corrections", "offline_rounds")  # the stage, then its variants
 
 
 def hil_table(arms: dict) -> str:
@@ -498,7 +498,11 @@ def pusher7_probes_section(name: str, payload: dict) -> list[str]:
             "held-out resets every 2,500 steps (Wilson 95 % at the best point). The last column looks at the final "
             "policy's failed episodes: how many came within 0.1 m of the goal (the success radius is 0.05 m) and the "
             "median of their closest approach. None reaches 0.9: the failures are near misses, the fingertip brought "
-            "near the goal and then crawling toward it, and the last centimetres are what 20,000 steps do not teach.",
+            "near the goal and then crawling toward it, and the last centimetres are what 20,000 steps do not teach. "
+            "Learning on z-scored observations (`normalize_obs`, `hil --normalize-obs`) reaches 0.8 in 7,500 steps "
+            "instead of 17,500, and with the actor also imitating the mix's expert episodes the stage holds 0.83 to "
+            "0.85 from 10,000 to 15,000 steps; neither ends higher than the defaults: successive weights versions "
+            "swing by about 0.1 on the same 100 resets.",
             ""] + source_lines(name, payload) + ["", probes_table(payload), ""]
 
 

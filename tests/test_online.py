@@ -517,3 +517,5 @@ def test_normalize_obs_learns_on_z_scored_rows_and_serves_raw_observations(offli
     plain = _learner(offline, prior)
     _feed(plain, rows)
     assert not torch.equal(_flat(plain.weights()), _flat(one.weights()))
+    with pytest.raises(ValueError, match="normalize_obs: no offline transitions"):
+        OnlineLearner(offline.select(np.arange(0)), cfg, OnlineSettings(offline_ratio=0.0), seed=3)

@@ -124,7 +124,9 @@ class OnlineLearner:
         self.task = None if task is None else task_field(task)
         init_gen, sample_gen = seed_generators(seed)
         # z-scored inputs (normalize_obs): the offline data's statistics, for the whole stage
-        self.norm = obs_stats(offline) if cfg.normalize_obs and len(offline) else None
+        if cfg.normalize_obs and len(offline) == 0:
+            raise ValueError("normalize_obs: no offline transitions to take the observations' statistics from")
+        self.norm = obs_stats(offline) if cfg.normalize_obs else None
         if self.norm is not None:
             offline = normalized(offline, *self.norm)
         with torch_threads(intra_op_threads(cfg.threads)):
