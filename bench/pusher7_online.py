@@ -3,6 +3,7 @@
     python bench/pusher7_online.py [--seeds 0 1 2] [--env-steps 20000] [--out runs/p7-online]
                                    [--json bench/pusher7_online.json] [--in-process]
                                    [--utd N] [--end-on-success] [--imitate-expert] [--normalize-obs]
+                                   [--rescore]
 
 The stage as a user of a ros2_control arm runs it: ``offline-rl hil --online --from-topics
 --task pusher7_reach`` (lockstep, scripted corrector), the learner joining the arm's raw topics
@@ -29,6 +30,7 @@ from pathlib import Path
 from hil_online import curve_of, run
 from offline_rl_core.benchmarks.harness import run_facts
 from offline_rl_core.common.atomic import write_json_atomic
+from offline_rl_core.pipelines.hil_online import rescore
 from offline_rl_core.task.spec import load_task
 from results_page import hil_table
 
@@ -53,6 +55,9 @@ def main() -> int:
                    help="the actor's BC term also on the mix's expert episodes (offline-rl hil --imitate-expert)")
     p.add_argument("--normalize-obs", action="store_true",
                    help="actor and critic on observations z-scored by the mix's statistics (offline-rl hil --normalize-obs)")
+    p.add_argument("--rescore", action="store_true",
+                   help="score each finished session's kept weights again, its final weights too (sessions scored "
+                        "before the stage scored its final weights), rewriting its summary.json")
     p.add_argument("--end-on-success", action="store_true",
                    help="with --in-process: an episode ends where the simulator judges success (HIL-SERL's rule)")
     args = p.parse_args()
@@ -81,6 +86,8 @@ def main() -> int:
         cmd += ["--imitate-expert"] if args.imitate_expert else []
         cmd += ["--normalize-obs"] if args.normalize_obs else []
         cmd += ["--in-process"] if args.in_process else ["--from-topics"]
+        if args.rescore and (run_dir / "summary.json").exists() and not args.in_process:
+            rescore(run_dir)
         results.setdefault(arm, {})[str(seed)] = run(cmd, run_dir / "summary.json")
         task = load_task(args.task)
         write_json_atomic(args.json, {"task": task.name, "task_digest": task.digest, "arms": results, **facts})

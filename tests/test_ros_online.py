@@ -205,6 +205,14 @@ def test_on_raw_topics_the_learner_trains_on_the_batch_join_of_the_sessions_reco
     summary = json.loads((out / "summary.json").read_text())
     assert summary["counts"]["steps"] == 198 and summary["counts"]["human"] == int(expected["human"].sum())
     assert live["late"] == 0
+    # the curve ends on the learner's final weights, past the last snapshot (200 steps were 199 here)
+    final = torch.load(out / "learner" / "policy.pt", weights_only=True)
+    assert [p["env_steps"] for p in summary["curve"]] == [0, 100, final["trained_through"]]
+    assert final["trained_through"] == 175
+    # scored again from what the session kept, the curve is the same
+    from offline_rl_core.pipelines.hil_online import rescore
+
+    assert rescore(out)["curve"] == summary["curve"]
 
 
 def test_the_learner_node_drops_bad_transitions_and_counts_them(spawn, tmp_path, prior):
