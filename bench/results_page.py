@@ -398,7 +398,10 @@ def pusher7_online_section(name: str, payload: dict) -> list[str]:
              "lockstep, scripted corrector, from the `--algo auto` prior of its seed on the task's 200-episode mix "
              "(30 % expert); success without intervention of the deterministic policy on the task's held-out resets "
              "along the run. `online_raw_topics`: over ROS, the learner joining the arm's raw topics live "
-             "(`--from-topics`); `online_in_process`: the same stage in one process.", ""]
+             "(`--from-topics`); `online_in_process`: the same stage in one process; a suffix names an option the "
+             "arm changed (`_normalize_obs`: `--normalize-obs`, actor and critic on z-scored observations). Over raw "
+             "topics an episode's last step makes no transition, so 200 episodes train on 19,800 steps of the 20,000: "
+             "the curve's last point is the learner's final weights.", ""]
     if payload.get("note"):
         lines += [str(payload["note"]), ""]
     return lines + source_lines(name, payload) + ["", hil_table(payload["arms"]), "",
