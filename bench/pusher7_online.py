@@ -15,7 +15,7 @@ task's 100 held-out resets every ``--eval-every`` environment steps, with the in
 of each window. ``--in-process`` runs the same stage without ROS (no topics: a quicker look).
 A seed whose ``summary.json`` exists is not run again, so the script can be resumed. An arm is
 named by where it ran and the options it changed (``online_raw_topics_normalize_obs``); the JSON
-keeps the other arms it already holds. Writes the JSON (each seed's summary, the command and the machine), the plot beside it, and prints the
+keeps the other arms it already holds, and the commands that made them. Writes the JSON (each seed's summary, the command and the machine), the plot beside it, and prints the
 table of bench/RESULTS.md's section.
 """
 
@@ -28,7 +28,7 @@ import sys
 from pathlib import Path
 
 from hil_online import curve_of, run
-from offline_rl_core.benchmarks.harness import run_facts
+from offline_rl_core.benchmarks.harness import add_run_facts
 from offline_rl_core.common.atomic import write_json_atomic
 from offline_rl_core.pipelines.hil_online import rescore
 from offline_rl_core.task.spec import load_task
@@ -61,7 +61,6 @@ def main() -> int:
     p.add_argument("--end-on-success", action="store_true",
                    help="with --in-process: an episode ends where the simulator judges success (HIL-SERL's rule)")
     args = p.parse_args()
-    facts = run_facts()
     offline_rl = [sys.executable, "-m", "offline_rl_core"]
     out = Path(args.out)
     bag = Path(args.bag) if args.bag else out / "pusher7.db3"
@@ -73,7 +72,9 @@ def main() -> int:
     arm = "_".join(["online_in_process" if args.in_process else ARM,
                     *(name for name in ("normalize_obs", "imitate_expert", "end_on_success") if getattr(args, name))])
     previous = Path(args.json)
-    results: dict = json.loads(previous.read_text())["arms"] if previous.exists() else {}
+    store: dict = json.loads(previous.read_text()) if previous.exists() else {}
+    add_run_facts(store)  # the file's arms come from several commands: each joins its `commands`
+    results: dict = store.setdefault("arms", {})
     results.pop(arm, None)  # this arm's seeds come from their summaries (a seed already run is read back)
     for seed in args.seeds:
         run_dir = out / f"seed{seed}" / arm
@@ -90,7 +91,8 @@ def main() -> int:
             rescore(run_dir)
         results.setdefault(arm, {})[str(seed)] = run(cmd, run_dir / "summary.json")
         task = load_task(args.task)
-        write_json_atomic(args.json, {"task": task.name, "task_digest": task.digest, "arms": results, **facts})
+        store.update(task=task.name, task_digest=task.digest)
+        write_json_atomic(args.json, store)
     print(hil_table(results))
     plot(results, Path(args.json).with_suffix(".png"))
     return 0

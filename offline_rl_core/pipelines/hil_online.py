@@ -556,13 +556,14 @@ def _score_snapshots(cfg: OnlineHilConfig, learner_dir: Path, sessions: list) ->
     snapshots = sorted((learner_dir / "snapshots").glob("policy_*.pt"))
     if not snapshots:
         raise UserError(f"{learner_dir / 'snapshots'}: the learner kept no snapshots")
+    kept = [(path, load_checkpoint(path)) for path in snapshots]
     final = learner_dir / "policy.pt"
-    if final.exists() and (int(load_checkpoint(final).get("trained_through", 0))
-                           > int(load_checkpoint(snapshots[-1]).get("trained_through", 0))):
-        snapshots.append(final)
+    if final.exists():
+        last = load_checkpoint(final)
+        if int(last.get("trained_through", 0)) > int(kept[-1][1].get("trained_through", 0)):
+            kept.append((final, last))
     previous = 0
-    for path in snapshots:
-        ckpt = load_checkpoint(path)
+    for path, ckpt in kept:
         n = int(ckpt.get("trained_through", 0))
         task = load_task(cfg.task)
         ev = evaluate_policy(load_policy(path, task), cfg.eval_episodes, cfg.eval_seed, task=task)
@@ -592,24 +593,23 @@ def rescore(run_dir: Path) -> dict:
     known = {f.name for f in fields(OnlineHilConfig)}
     cfg = OnlineHilConfig(**{**{k: v for k, v in summary["config"].items() if k in known}, "out": str(run_dir)})
     sessions = [session_transitions(cfg, run_dir / ns.strip("/") / "session.db3") for ns in cfg.namespaces]
-    curve = _score_snapshots(cfg, run_dir / "learner", sessions)
-    final = curve[-1]
-    summary.update({"curve": curve, "to": {str(t): steps_to(curve, t) for t in THRESHOLDS},
-                    "final_success": final["success"], "final_ci": final["ci"], "final_dist": final["final_dist"]})
+    summary.update(_curve_summary(_score_snapshots(cfg, run_dir / "learner", sessions)))
     write_json_atomic(run_dir / "summary.json", summary)
     return summary
 
 
+def _curve_summary(curve: list[dict]) -> dict:
+    """What a summary says of its learning curve: the curve, the steps to each threshold, the end."""
+    final = curve[-1]
+    return {"curve": curve, "to": {str(t): steps_to(curve, t) for t in THRESHOLDS},
+            "final_success": final["success"], "final_ci": final["ci"], "final_dist": final["final_dist"]}
+
+
 def _summary(cfg: OnlineHilConfig, result: dict, prior_path, prior_from: str, wall: float) -> dict:
     curve = result["curve"]
-    final = curve[-1]
     return {
         "where": result["where"],
-        "curve": curve,
-        "to": {str(t): steps_to(curve, t) for t in THRESHOLDS},
-        "final_success": final["success"],
-        "final_ci": final["ci"],
-        "final_dist": final["final_dist"],
+        **_curve_summary(curve),
         "prior_success": curve[0]["success"],
         "counts": result["counts"],
         "intervention_rate": round(result["counts"]["human"] / max(result["counts"]["steps"], 1), 4),
