@@ -189,3 +189,27 @@ def test_a_message_is_stamped_with_the_sim_time_of_its_publication_not_of_its_ca
     nothing = PublicationClock()
     nothing.add(5, "a")
     assert nothing.flush() == [(None, "a")]  # no /clock ever came: the recorder uses the wall clock
+
+
+def test_a_state_taken_before_its_clock_is_not_flushed_into_the_tick_before():
+    """The learner flushes what waits once the stream falls quiet (a lockstep sim waiting for
+    it). A state taken before the /clock published just before it (DDS delivers different
+    writers in no order; a busy learner can pause between the two) must not be stamped by
+    the tick before: its step would lose its next state, and the lockstep session would wait
+    for that step forever."""
+    from offline_rl_core.nodes.publication_clock import ORDER_SPAN_NS, PublicationClock
+
+    tick = 50_000_000
+    clock = PublicationClock()
+    clock.add_clock(10_000_000, 7 * tick)
+    assert clock.add(10_000_400, "state 7", sim_ns=7 * tick) == [] and not clock.clock_behind
+    assert clock.add(12_000_000, "command 7") == []  # no sim time of its own: never held for it
+    assert clock.add(13_000_500, "state 8", sim_ns=8 * tick) == []  # its /clock not taken yet
+    assert clock.clock_behind
+    assert clock.flush(wait_for_clock=True) == []  # held, all of it: nothing out of order
+    assert [item for _, item in clock.add_clock(13_000_000, 8 * tick)] == ["state 7", "command 7"]
+    assert not clock.clock_behind
+    [(stamp, item)] = clock.flush(wait_for_clock=True)
+    assert item == "state 8" and 8 * tick <= stamp < 8 * tick + ORDER_SPAN_NS  # in its own tick
+    clock.add(20_000_000, "state 9", sim_ns=9 * tick)  # its /clock lost for good: an unheld flush
+    assert clock.flush() == [(8 * tick + 7_000, "state 9")]  # by the newest /clock, as before

@@ -519,3 +519,62 @@ def test_normalize_obs_learns_on_z_scored_rows_and_serves_raw_observations(offli
     assert not torch.equal(_flat(plain.weights()), _flat(one.weights()))
     with pytest.raises(ValueError, match="normalize_obs: no offline transitions"):
         OnlineLearner(offline.select(np.arange(0)), cfg, OnlineSettings(offline_ratio=0.0), seed=3)
+
+
+def test_a_state_taken_before_its_clock_waits_for_it_and_the_lockstep_steps_stay_whole(tmp_path):
+    """On a sim's /clock, the learner stamps each raw message by the tick it was published in
+    and, once the stream falls quiet (a lockstep sim waiting for the next weights), flushes
+    what waits for a later /clock. A state taken before the /clock published just before it
+    must wait for that /clock: stamped by the tick before, the step before it would be handed
+    out without its next state, the learner one step short of the sim, and a paced session
+    would wait for that step forever."""
+    import time
+
+    import velocity_arm as va
+
+    from offline_rl_core.nodes.learner_service import LearnerService, LearnerServiceConfig
+    from offline_rl_core.task.spec import load_task
+
+    n = 3
+    task_file = tmp_path / "arm.yaml"
+    task_file.write_text(va.task_yaml(n))
+    task = load_task(str(task_file))
+    va.record_bag(tmp_path / "offline.db3", task, n, episodes=4, expert_frac=0.5, seed=0)
+    service = LearnerService(LearnerServiceConfig(
+        bags=[str(tmp_path / "offline.db3")], out=str(tmp_path / "learner"), task=str(task_file), seed=0,
+        from_topics=True, sim_time=True, settings=OnlineSettings(publish_every=5),
+        train=TrainConfig(algo="sac", **SMALL)), log=lambda s: None)
+    msgs, names = va._Messages(), va.joint_names(n)
+    rng = np.random.default_rng(0)
+    q0, goal = va.sample_reset(n, 11)
+    sim0, wall0, tick = va.START_NS, 10**12, va.CONTROL_NS
+
+    def clock(k):
+        assert service.receive_clock(wall0 + k * 10**7, sim0 + k * tick) is None
+
+    def state(k):
+        q = q0 + 0.01 * k
+        raw = msgs.joint_state(sim0 + k * tick, names, q, np.zeros(n))
+        assert service.receive_message("/joint_states", "sensor_msgs/msg/JointState", raw, 0,
+                                       wall0 + k * 10**7 + 20_000) is None
+
+    def command(k):
+        raw = msgs.command(rng.uniform(-1.0, 1.0, n))
+        assert service.receive_message("/velocity_controller/commands", "std_msgs/msg/Float64MultiArray", raw, 0,
+                                       wall0 + k * 10**7 + 300_000) is None
+
+    def fall_quiet():  # the sim waits for the learner: nothing comes for a while (under quiet_missing)
+        service.last_poll = service.last_arrival = service.idle_since = time.monotonic() - 0.2
+        service.take_steps()
+
+    service.receive_message("/goal_joints", "sensor_msgs/msg/JointState",
+                            msgs.joint_state(sim0, names, goal), 0, wall0 + 10_000)
+    for k in range(5):
+        clock(k), state(k), command(k)
+    state(5)  # before its /clock, published before it: DDS keeps no order between writers
+    fall_quiet()
+    assert service.publication_clock.clock_behind and service.publication_clock.waiting
+    clock(5)
+    fall_quiet()
+    assert service.learner.n_steps == 5 and service.learner.n_online == 5  # steps 0-4, each with its next state
+    assert service.status()["join"]["late"] == 0

@@ -58,6 +58,7 @@ from ..serving.checkpoint import checkpoint_task, load_checkpoint, save_checkpoi
 from ..serving.policy import policy_for_task
 from ..common.rejections import Rejection, RejectionCounter
 from ..data.raw_topics.live import LiveJoin, LiveSettings
+from ..data.raw_topics.messages import header_stamp_ns
 from ..data.transitions import PUSHER_LAYOUT, SOURCE_NAMES, Layout, Transitions
 from ..task.spec import TaskSpec
 
@@ -261,7 +262,9 @@ class LearnerService:
         if self.publication_clock is None or published_ns is None:
             return self._join(topic, msgtype, raw, recv_ns)
         self.last_arrival = time.monotonic()
-        return self._join_released(self.publication_clock.add(published_ns, (topic, msgtype, raw, recv_ns)))
+        # a sim's state and goal say their tick (header stamps): not flushed before its /clock
+        said = header_stamp_ns(raw, msgtype)
+        return self._join_released(self.publication_clock.add(published_ns, (topic, msgtype, raw, recv_ns), said))
 
     def receive_clock(self, published_ns: int, sim_ns: int) -> Rejection | None:
         """A /clock message (``sim_ns``, published at ``published_ns``): the messages published
@@ -299,10 +302,14 @@ class LearnerService:
             # nothing came while idle (a lockstep arm waits for the learner): every /clock
             # published has arrived, so the messages still waiting for a later one (the
             # latest state, its goal) are stamped by the newest
+            silent = now - max(self.last_arrival, self.idle_since)
             if quiet is None:
-                quiet = now - max(self.last_arrival, self.idle_since) >= self.cfg.live.quiet
+                quiet = silent >= self.cfg.live.quiet
             if (quiet or ended) and self.publication_clock.waiting:
-                self._join_released(self.publication_clock.flush())
+                # a state ahead of the newest /clock: its /clock is still on its way (held
+                # for up to quiet_missing: a /clock lost for good must not stop the session)
+                wait = not (ended or told or silent >= self.cfg.live.quiet_missing)
+                self._join_released(self.publication_clock.flush(wait_for_clock=wait))
         steps = self.live.poll(now, self.idle_since, ended=ended, quiet=quiet, all_arrived=told)
         if len(steps) == 0:
             return 0

@@ -16,6 +16,14 @@ published at or before it, plus a nanosecond per microsecond of wall time since 
 ``ORDER_SPAN_NS``), so the stamps of one tick order its messages as they were published,
 far inside any join tolerance. A message waits until a /clock published after it has come
 (only then is the clock current at its publication known for sure), or until ``flush``.
+
+A message that says its own sim time (a sim's state and goal: their header stamps) is not
+flushed into an earlier tick: while it is ahead of the newest /clock taken, that /clock is
+still on its way (DDS delivers different writers in no order, and a busy process can fall
+quiet between taking the state and taking the /clock published before it), and ``flush``
+with ``wait_for_clock`` holds it. Stamped by the previous tick's /clock a state lands a
+millisecond after the state before it: that step loses its next state and a lockstep
+session paced on the learner's steps waits for a step that never comes.
 """
 
 from __future__ import annotations
@@ -39,7 +47,8 @@ class PublicationClock:
     def __init__(self, kept: int = KEPT):
         self._published: deque[int] = deque(maxlen=kept)  # wall ns of each /clock, non-decreasing
         self._sim: deque[int] = deque(maxlen=kept)  # its sim ns
-        self._waiting: list[tuple[int, int, Any]] = []  # (published ns, arrival number, item): a heap
+        # (published ns, arrival number, the sim time it says or -1, item): a heap
+        self._waiting: list[tuple[int, int, int, Any]] = []
         self._arrivals = 0
 
     def add_clock(self, published_ns: int, sim_ns: int) -> list[tuple[int, Any]]:
@@ -51,22 +60,34 @@ class PublicationClock:
         self._sim.append(int(sim_ns))
         return self._release(lambda published: published < self._published[-1])
 
-    def add(self, published_ns: int, item: Any) -> list[tuple[int, Any]]:
-        """A message published at ``published_ns``; returns what is ready to write."""
+    def add(self, published_ns: int, item: Any, sim_ns: int | None = None) -> list[tuple[int, Any]]:
+        """A message published at ``published_ns``; returns what is ready to write.
+        ``sim_ns``: the sim time the message says it was published at (a header stamp on
+        the sim's clock), if it says one."""
         self._arrivals += 1
-        heapq.heappush(self._waiting, (int(published_ns), self._arrivals, item))
+        heapq.heappush(self._waiting, (int(published_ns), self._arrivals, -1 if sim_ns is None else int(sim_ns), item))
         if not self._published:
             return []
         return self._release(lambda published: published < self._published[-1])
 
-    def flush(self) -> list[tuple[int | None, Any]]:
-        """Every waiting item (the recording ends), stamped by the newest /clock; before
-        any /clock came, with stamp None."""
+    def flush(self, wait_for_clock: bool = False) -> list[tuple[int | None, Any]]:
+        """Every waiting item (the recording ends, or everything published has arrived),
+        stamped by the newest /clock; before any /clock came, with stamp None. With
+        ``wait_for_clock``, nothing while a waiting message says a sim time past the newest
+        /clock (``clock_behind``)."""
+        if wait_for_clock and self.clock_behind:
+            return []
         if not self._published:
-            items = [(None, item) for _, _, item in sorted(self._waiting)]
+            items = [(None, item) for *_, item in sorted(self._waiting, key=lambda w: w[:2])]
             self._waiting.clear()
             return items
         return self._release(lambda published: True)
+
+    @property
+    def clock_behind(self) -> bool:
+        """A waiting message says a sim time the /clock taken has not reached: that
+        message's /clock is on its way."""
+        return bool(self._published) and any(said > self._sim[-1] for _, _, said, _ in self._waiting)
 
     def stamp(self, published_ns: int) -> int | None:
         """The stamp of a message published at ``published_ns`` (None before any /clock)."""
@@ -85,7 +106,7 @@ class PublicationClock:
     def _release(self, ready) -> list[tuple[int, Any]]:
         out = []
         while self._waiting and ready(self._waiting[0][0]):
-            published, _, item = heapq.heappop(self._waiting)
+            published, _, _, item = heapq.heappop(self._waiting)
             stamp = self.stamp(published)
             out.append((self._sim[0] if stamp is None else stamp, item))
         return out

@@ -117,6 +117,15 @@ class _Walker:
         return at
 
 
+def header_stamp_ns(payload: bytes, msgtype: str) -> int | None:
+    """The header stamp (ns) of one message of a type that starts with a std_msgs/Header,
+    without decoding the rest; None for a type without one or a payload too short to hold it."""
+    if not HAS_HEADER.get(msgtype, False) or len(payload) < 12 or payload[0] != 0 or payload[1] not in (0, 1):
+        return None
+    sec, nanosec = struct.unpack_from("<iI" if payload[1] == 1 else ">iI", payload, 4)
+    return sec * 1_000_000_000 + nanosec
+
+
 def _walk_joint_state(w: _Walker) -> Layout:
     stamp = w.stamp()
     frame_id = w.string()
