@@ -3,6 +3,7 @@
     python bench/pusher7_online.py [--seeds 0 1 2] [--env-steps 20000] [--out runs/p7-online]
                                    [--json bench/pusher7_online.json] [--in-process]
                                    [--utd N] [--end-on-success] [--imitate-expert] [--normalize-obs]
+                                   [--bc-weight W] [--lr-decay]
                                    [--rescore]
 
 The stage as a user of a ros2_control arm runs it: ``offline-rl hil --online --from-topics
@@ -55,6 +56,10 @@ def main() -> int:
                    help="the actor's BC term also on the mix's expert episodes (offline-rl hil --imitate-expert)")
     p.add_argument("--normalize-obs", action="store_true",
                    help="actor and critic on observations z-scored by the mix's statistics (offline-rl hil --normalize-obs)")
+    p.add_argument("--bc-weight", type=float,
+                   help="the actor's BC weight (offline-rl hil --bc-weight; default: the stage's)")
+    p.add_argument("--lr-decay", action="store_true",
+                   help="learning rates along a cosine to zero over the budget (offline-rl hil --lr-decay)")
     p.add_argument("--rescore", action="store_true",
                    help="score each finished session's kept weights again, its final weights too (sessions scored "
                         "before the stage scored its final weights), rewriting its summary.json")
@@ -70,7 +75,9 @@ def main() -> int:
                         "--seed", "0", "--out", str(bag)], check=True)
     # an arm is named by where it ran and the options it changed, so one JSON holds several
     arm = "_".join(["online_in_process" if args.in_process else ARM,
-                    *(name for name in ("normalize_obs", "imitate_expert", "end_on_success") if getattr(args, name))])
+                    *(name for name in ("normalize_obs", "imitate_expert", "end_on_success") if getattr(args, name)),
+                    *([f"bc{args.bc_weight:g}"] if args.bc_weight is not None else []),
+                    *(["lr_decay"] if args.lr_decay else [])])
     previous = Path(args.json)
     store: dict = json.loads(previous.read_text()) if previous.exists() else {}
     add_run_facts(store)  # the file's arms come from several commands: each joins its `commands`
@@ -86,6 +93,8 @@ def main() -> int:
         cmd += ["--end-on-success"] if args.end_on_success else []
         cmd += ["--imitate-expert"] if args.imitate_expert else []
         cmd += ["--normalize-obs"] if args.normalize_obs else []
+        cmd += ["--bc-weight", str(args.bc_weight)] if args.bc_weight is not None else []
+        cmd += ["--lr-decay"] if args.lr_decay else []
         cmd += ["--in-process"] if args.in_process else ["--from-topics"]
         if args.rescore and (run_dir / "summary.json").exists() and not args.in_process:
             rescore(run_dir)

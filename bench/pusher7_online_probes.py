@@ -69,6 +69,12 @@ VARIANTS = {
                                  {"train": {"normalize_obs": True, "alpha": 0.003}}),
     "imitate_expert": ("the actor's BC term also on the mix's expert episodes (TD3+BC's anchor on demonstrations)",
                        {"online": {"imitate_expert": True}}),
+    **{f"normalize_obs_imitate_expert_bc{w:g}{'_lr_decay' if decay else ''}": (
+        f"z-scored observations, the expert's episodes imitated, BC weight {w:g}"
+        + (", learning rates along a cosine to zero over the budget" if decay else ""),
+        {"train": {"normalize_obs": True, "bc_weight": float(w)},
+         "online": {"imitate_expert": True, **({"lr_decay_steps": "budget"} if decay else {})}})
+       for w, decay in ((3, True), (10, True), (30, False), (30, True), (100, True))},
 }
 
 
@@ -76,7 +82,8 @@ def config_of(name: str, seed: int, env_steps: int) -> OnlineRunConfig:
     over = VARIANTS[name][1]
     return OnlineRunConfig(env_steps=env_steps, seed=seed, task=TASK, eval_every=2500,
                            train=TrainConfig(**{"algo": "sac", **over.get("train", {})}),
-                           settings=OnlineSettings(**over.get("online", {})),
+                           settings=OnlineSettings(**{k: env_steps if v == "budget" else v  # the decay: over the run
+                                                      for k, v in over.get("online", {}).items()}),
                            corrector=CorrectorParams(**over.get("corrector", {})), **over.get("run", {}))
 
 

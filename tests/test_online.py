@@ -578,3 +578,33 @@ def test_a_state_taken_before_its_clock_waits_for_it_and_the_lockstep_steps_stay
     fall_quiet()
     assert service.learner.n_steps == 5 and service.learner.n_online == 5  # steps 0-4, each with its next state
     assert service.status()["join"]["late"] == 0
+
+
+def test_lr_decay_brings_the_rates_to_zero_over_the_budget_and_resumes_exactly(offline, prior, tmp_path):
+    """``lr_decay_steps``: the optimisers' rates fall along a cosine to about zero at that many
+    environment steps (the stage's budget), so the session ends on settled weights; a function
+    of the update count alone, so a resumed learner ends on the same bytes."""
+    from offline_rl_core.learners.state import optimizers_of
+
+    rows = _stream(40)
+
+    def rates(learner):
+        return {float(g["lr"]) for opt in optimizers_of(learner.learner) for g in opt.param_groups}
+
+    one = _learner(offline, prior, lr_decay_steps=40)
+    _feed(one, rows, 0, 20)
+    assert sorted(rates(one)) == pytest.approx([0.5 * 3e-4], rel=0.05)  # half way: half the rate
+    _feed(one, rows, 20)
+    assert max(rates(one)) < 1e-6  # the budget's end: about nothing left
+    first = _learner(offline, prior, lr_decay_steps=40)
+    _feed(first, rows, 0, 17)
+    torch.save(first.state(), tmp_path / "state.pt")
+    resumed = _learner(offline, prior, lr_decay_steps=40)
+    resumed.restore(torch.load(tmp_path / "state.pt", weights_only=True))
+    _feed(resumed, rows, 17)
+    assert torch.equal(_flat(resumed.weights()), _flat(one.weights())) and rates(resumed) == rates(one)
+    constant = _learner(offline, prior)
+    _feed(constant, rows)
+    assert rates(constant) == {3e-4} and not torch.equal(_flat(constant.weights()), _flat(one.weights()))
+    with pytest.raises(ValueError, match="lr_decay_steps must be >= 0"):
+        OnlineSettings(lr_decay_steps=-1)

@@ -18,7 +18,7 @@ OFFLINE_ONLY = ("rounds", "episodes", "steps", "correction_ratio", "beta", "pati
                 "noise", "reaction_delay")
 ONLINE_ONLY = ("env_steps", "corrector", "mode", "prior_algo", "no_prior", "utd", "publish_every", "eval_every",
                "in_process", "from_topics", "success", "end_on_success", "actors", "imitate_expert",
-               "critic_warmup", "normalize_obs")
+               "critic_warmup", "normalize_obs", "bc_weight", "lr_decay")
 
 
 def _resolve_mode_flags(args) -> None:
@@ -63,7 +63,8 @@ def _run_online(args) -> int:
         publish_every=args.publish_every, eval_every=args.eval_every, eval_episodes=args.eval_episodes,
         eval_seed=args.eval_seed, in_process=args.in_process, from_topics=args.from_topics, success=args.success,
         end_on_success=args.end_on_success, actors=args.actors, imitate_expert=args.imitate_expert,
-        critic_warmup=args.critic_warmup, normalize_obs=args.normalize_obs)
+        critic_warmup=args.critic_warmup, normalize_obs=args.normalize_obs, bc_weight=args.bc_weight,
+        lr_decay=args.lr_decay)
     summary = run_hil_online(cfg, logger=args.logger)
     print(json.dumps({k: summary[k] for k in ("prior_success", "final_success", "final_ci", "to", "intervention_rate",
                                               "wall_seconds")}))
@@ -139,6 +140,12 @@ def register(subparsers) -> None:
                    help="actor and critic learn on observations z-scored by the bag's statistics (fixed for the "
                         "session; as --prior-algo auto trains the prior), folded into every weights version, so what "
                         "is served takes raw observations (default: raw observations)")
+    o.add_argument("--bc-weight", type=float, metavar="W",
+                   help="weight of the actor's squared error to a person's actions (and, with --imitate-expert, the "
+                        f"bag's expert actions) beside its SAC objective (default: {od.bc_weight})")
+    o.add_argument("--lr-decay", action="store_true", default=None,
+                   help="the learning rates fall along a cosine to zero over --env-steps, so the session ends on "
+                        "settled weights (default: constant rates)")
     o.add_argument("--publish-every", type=int,
                    help=f"environment steps between weights versions (default: {od.publish_every}, 1 s at 50 Hz)")
     o.add_argument("--eval-every", type=int,

@@ -51,6 +51,7 @@ from .data import MemberData
 from .loop import LEARNERS, seed_generators, torch_threads
 from .normalize import fold, normalized, obs_stats, unfold
 from .resume import learner_training_state, load_learner_training_state
+from .schedule import LearningRates
 from .stepper import EagerStep, intra_op_threads, make_step
 
 LAG_VERSIONS = 16  # weights versions the learner may lag the stream with its samples intact
@@ -70,12 +71,18 @@ class OnlineSettings:
     # random one (a prior without a critic, the filtered BC of --algo auto, is otherwise pulled
     # off its demonstrations in the stage's first thousands of steps)
     critic_warmup: int = 0
+    # environment steps over which the learning rates fall along a cosine to zero (0: constant):
+    # the stage's budget, so the last weights are the settled end of the run, not one draw of
+    # versions that swing by 0.1 success from one to the next
+    lr_decay_steps: int = 0
 
     def __post_init__(self) -> None:
         if self.utd < 1 or self.publish_every < 1 or self.capacity < 1:
             raise ValueError("utd, publish_every and capacity must be >= 1")
         if self.critic_warmup < 0:
             raise ValueError(f"critic_warmup must be >= 0, got {self.critic_warmup}")
+        if self.lr_decay_steps < 0:
+            raise ValueError(f"lr_decay_steps must be >= 0, got {self.lr_decay_steps}")
         if not 0.0 <= self.offline_ratio <= 1.0:
             raise ValueError(f"offline_ratio must be in [0, 1], got {self.offline_ratio}")
 
@@ -152,6 +159,7 @@ class OnlineLearner:
         self.sample_gen = sample_gen
         self.sampler = OnlineSampler(self.n_offline, cfg.batch_size, settings.offline_ratio, sample_gen,
                                      settings.capacity, ring)
+        self.rates = self._rates()
         self.step_once = make_step(self.learner.update, self.data, (1, cfg.batch_size), cfg.device, cfg.cuda_graph,
                                    cfg.threads)
         self.n_online = 0  # online transitions
@@ -222,12 +230,18 @@ class OnlineLearner:
         with torch_threads(intra_op_threads(self.cfg.threads)):
             self._warm_up_critic()
             for _ in range(todo):
+                self.rates.at(min(self.updates + 1, self.rates.total))
                 bound = self.rows_through(self.updates // self.settings.utd + 1)
                 losses = self.step_once(self.sampler.next(bound))
                 self.updates += 1
             self.losses = {k: float(v.float().mean()) for k, v in losses.items()}
         self.train_seconds += time.perf_counter() - t0
         return todo
+
+    def _rates(self) -> LearningRates:
+        """The optimisers' rates along the decay (its total in updates), or left constant."""
+        decay = self.settings.lr_decay_steps
+        return LearningRates(self.learner, "cosine" if decay else "constant", self.settings.utd * decay)
 
     def _warm_up_critic(self) -> None:
         """The critic alone, ``critic_warmup`` steps on offline batches, before the first update
@@ -313,6 +327,7 @@ class OnlineLearner:
         if self.updates:
             raise ValueError("restore into a learner that has not trained yet")
         load_learner_training_state(self.learner, state["learner"])
+        self.rates = self._rates()  # the optimisers' groups were loaded anew
         self.sample_gen.set_state(state["sample_generator"])
         n = int(state["n_online"])
         rows = state["online_rows"]

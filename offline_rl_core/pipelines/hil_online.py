@@ -73,6 +73,8 @@ class OnlineHilConfig:
     imitate_expert: bool = False  # the actor's BC term also on the offline expert rows (OnlineSettings)
     critic_warmup: int = 0  # critic-alone steps on the bag before the first update (OnlineSettings)
     normalize_obs: bool = False  # actor and critic on z-scored observations (TrainConfig, the online learner)
+    bc_weight: float = 3.0  # the actor's BC term on a person's actions (TrainConfig; sac)
+    lr_decay: bool = False  # learning rates along a cosine to zero over env_steps (OnlineSettings.lr_decay_steps)
     publish_every: int = 50
     eval_every: int = 2500
     eval_episodes: int = 100
@@ -219,6 +221,11 @@ def run_hil_online(cfg: OnlineHilConfig, log: Callable[[str], None] = lambda s: 
     return summary
 
 
+def _lr_decay_steps(cfg: OnlineHilConfig) -> int:
+    """The learner's ``lr_decay_steps``: the session's budget with ``lr_decay``, else 0 (constant)."""
+    return cfg.env_steps if cfg.lr_decay else 0
+
+
 # ------------------------------------------------------------------------ in one process
 def _in_process(cfg: OnlineHilConfig, task, prior_path: Path | None, log, curves) -> dict:
     from ..learners.config import TrainConfig
@@ -232,8 +239,8 @@ def _in_process(cfg: OnlineHilConfig, task, prior_path: Path | None, log, curves
         env_steps=cfg.env_steps, seed=cfg.seed, corrections=cfg.corrector != "none", eval_every=cfg.eval_every,
         eval_episodes=cfg.eval_episodes, eval_seed=cfg.eval_seed,
         settings=OnlineSettings(utd=cfg.utd, publish_every=cfg.publish_every, imitate_expert=cfg.imitate_expert,
-                                critic_warmup=cfg.critic_warmup),
-        train=TrainConfig(algo="sac", normalize_obs=cfg.normalize_obs),
+                                critic_warmup=cfg.critic_warmup, lr_decay_steps=_lr_decay_steps(cfg)),
+        train=TrainConfig(algo="sac", normalize_obs=cfg.normalize_obs, bc_weight=cfg.bc_weight),
         task=task, success=cfg.success, end_on_success=cfg.end_on_success),
         log=log, logger=curves)
     return {"curve": run["curve"], "counts": run["counts"], "learner_seconds": run["wall_s"], "where": "in process"}
@@ -254,6 +261,7 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
         "mode": cfg.mode, "paced_every": cfg.publish_every if lockstep else 0, "publish_every": cfg.publish_every,
         "utd": cfg.utd, "imitate_expert": "true" if cfg.imitate_expert else "false",
         "critic_warmup": cfg.critic_warmup, "normalize_obs": "true" if cfg.normalize_obs else "false",
+        "bc_weight": cfg.bc_weight, "lr_decay_steps": _lr_decay_steps(cfg),
         "seed": cfg.seed, "learner_nice": 0 if lockstep else 10,
         # realtime: the nodes that answer the arm go first (where the user may use SCHED_FIFO)
         "thread_priority": 0 if lockstep else REALTIME_THREAD_PRIORITY, "reset_seed": TRAIN_SEED_BASE + 10000 * cfg.seed, "episodes": episodes,

@@ -97,6 +97,8 @@ PARAMS = [
     Param("normalize_obs", _T.normalize_obs, "actor and critic learn on observations z-scored by the offline bag's "
           "statistics (fixed for the session), folded into every weights version", read_only=True,
           flag="--normalize-obs"),
+    Param("lr_decay_steps", _O.lr_decay_steps, "environment steps over which the learning rates fall along a cosine "
+          "to zero (the session's budget; 0: constant rates)", low=0, read_only=True, flag="--lr-decay-steps"),
     Param("capacity", _O.capacity, "live transitions the online buffer holds", low=1, read_only=True,
           flag="--capacity"),
     Param("alpha", _T.alpha, "entropy weight of the SAC objective", low=1e-8, read_only=True, flag="--alpha"),
@@ -156,7 +158,7 @@ class Learner(Node):
                             batch_size=s.batch_size, threads=s.threads, normalize_obs=s.normalize_obs)
         settings = OnlineSettings(utd=s.utd, offline_ratio=s.offline_ratio, publish_every=s.publish_every,
                                   capacity=s.capacity, imitate_expert=s.imitate_expert,
-                                  critic_warmup=s.critic_warmup)
+                                  critic_warmup=s.critic_warmup, lr_decay_steps=s.lr_decay_steps)
         self.service = LearnerService(LearnerServiceConfig(
             bags=list(s.bag), out=s.out, prior=s.prior or None, task=s.task or None, seed=s.seed,
             save_every=s.save_every, resume=s.resume, session_bag=s.session_bag or None,
