@@ -173,7 +173,8 @@ def test_hil_takes_its_defaults_by_mode_and_refuses_the_other_modes_flags(capsys
     from offline_rl_core.pipelines.hil import PROJECT_BAG
 
     for argv, flags in ((["hil", "--online", "--rounds", "2", "--beta", "0.2"], "--rounds, --beta: only without --online"),
-                        (["hil", "--utd", "2"], "--utd: only with --online")):
+                        (["hil", "--utd", "2"], "--utd: only with --online"),
+                        (["hil", "--bc-weight", "30", "--lr-decay"], "--bc-weight, --lr-decay: only with --online")):
         assert cli.main(argv) == 2
         _one_error_line(capsys, flags)
     monkeypatch.chdir(tmp_path)  # not the project: the default bag is still found
@@ -181,6 +182,7 @@ def test_hil_takes_its_defaults_by_mode_and_refuses_the_other_modes_flags(capsys
     explicit = parser.parse_args(["hil", "--online", "--out", "runs/hil"])
     _resolve_mode_flags(explicit)
     assert explicit.out == "runs/hil" and explicit.env_steps == 20000 and explicit.rounds is None
+    assert explicit.bc_weight == 3.0 and explicit.lr_decay is False  # the learner's own defaults
     default = parser.parse_args(["hil"])
     _resolve_mode_flags(default)
     assert default.out == "runs/hil" and default.rounds == 3 and default.bag == [str(PROJECT_BAG)]
