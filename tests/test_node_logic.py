@@ -212,4 +212,5 @@ def test_a_state_taken_before_its_clock_is_not_flushed_into_the_tick_before():
     [(stamp, item)] = clock.flush(wait_for_clock=True)
     assert item == "state 8" and 8 * tick <= stamp < 8 * tick + ORDER_SPAN_NS  # in its own tick
     clock.add(20_000_000, "state 9", sim_ns=9 * tick)  # its /clock lost for good: an unheld flush
-    assert clock.flush() == [(8 * tick + 7_000, "state 9")]  # by the newest /clock, as before
+    clock.add(20_000_300, "command 9")
+    assert clock.flush() == [(9 * tick, "state 9"), (9 * tick, "command 9")]  # never before the tick it says

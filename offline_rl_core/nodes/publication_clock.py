@@ -23,7 +23,9 @@ still on its way (DDS delivers different writers in no order, and a busy process
 quiet between taking the state and taking the /clock published before it), and ``flush``
 with ``wait_for_clock`` holds it. Stamped by the previous tick's /clock a state lands a
 millisecond after the state before it: that step loses its next state and a lockstep
-session paced on the learner's steps waits for a step that never comes.
+session paced on the learner's steps waits for a step that never comes. Flushed without
+waiting (the stream ended, or its /clock never came), such a message is stamped at the sim
+time it says, and what was published after it no earlier.
 """
 
 from __future__ import annotations
@@ -81,7 +83,15 @@ class PublicationClock:
             items = [(None, item) for *_, item in sorted(self._waiting, key=lambda w: w[:2])]
             self._waiting.clear()
             return items
-        return self._release(lambda published: True)
+        # a /clock that never came (unheld): a message is not stamped before the sim time it
+        # says, nor before one published ahead of it says (the order of publication kept)
+        said = [w[2] for w in sorted(self._waiting, key=lambda w: w[:2])]
+        floor = -1
+        out = []
+        for (stamp, item), sim in zip(self._release(lambda published: True), said):
+            floor = max(floor, sim)
+            out.append((max(stamp, floor), item))
+        return out
 
     @property
     def clock_behind(self) -> bool:

@@ -176,13 +176,15 @@ class Learner(Node):
         self.actor_estops = [EStopInput(self, latch=latch, namespace=ns)
                              for ns, latch in self.service.actor_estops.items()]
         self.raw_subs: dict[str, object] = {}  # topic -> subscription (raw topics)
+        self.raw_takers: list[tuple[object, type, object]] = []  # (subscription, message class, callback)
+        self.clock_sub = None
         self.first_published = False
         # wall-clock timers, also under use_sim_time: a timer on sim time would wait for a
         # clock that waits for these weights
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         if s.from_topics:
             if self.service.publication_clock is not None:  # before the raw topics' subscriptions
-                self.create_subscription(ClockMsg, "/clock", self.on_clock, QoSProfile(
+                self.clock_sub = self.create_subscription(ClockMsg, "/clock", self.on_clock, QoSProfile(
                     depth=100, reliability=ReliabilityPolicy.RELIABLE), raw=True)
             self.subscribe_raw_topics()
             self.create_timer(DISCOVERY_PERIOD_S, self.subscribe_raw_topics, clock=steady)
@@ -213,8 +215,10 @@ class Learner(Node):
             msg_class = message_class(msgtype) if msgtype else None
             if msg_class is None:
                 continue
-            self.raw_subs[role.topic] = self.create_subscription(
-                msg_class, role.given, self.raw_callback(role.topic, msgtype), TRANSITION_QOS, raw=True)
+            callback = self.raw_callback(role.topic, msgtype)
+            self.raw_subs[role.topic] = self.create_subscription(msg_class, role.given, callback, TRANSITION_QOS,
+                                                                 raw=True)
+            self.raw_takers.append((self.raw_subs[role.topic], msg_class, callback))
 
     def raw_callback(self, topic: str, msgtype: str):
         def on_raw(raw: bytes, info) -> None:  # with its MessageInfo: when it was published
@@ -250,7 +254,26 @@ class Learner(Node):
         if rejection is not None:
             self.status.warn(topic, rejection)
 
+    def take_pending(self) -> None:
+        """Take every message DDS already holds for us (each /clock first), before the live
+        join judges whether the stream fell quiet.
+
+        The quiet rule counts the time since a message was last taken. The executor takes one
+        message per subscription a turn, and a learner starved of CPU for a while (a busy
+        machine) has messages waiting that it has not taken: without this it would take a
+        stream still flowing for a quiet one, stamp a state by the /clock before its own and
+        lose that step for good, and a lockstep session would wait for the step forever.
+        """
+        if self.clock_sub is not None:
+            while (taken := self.clock_sub.handle.take_message(ClockMsg, True)) is not None:
+                self.on_clock(*taken)
+        for sub, msg_class, callback in self.raw_takers:
+            while (taken := sub.handle.take_message(msg_class, True)) is not None:
+                callback(*taken)
+
     def work(self) -> None:
+        if self.service.live is not None:
+            self.take_pending()
         if not self.first_published and self.service.live.heard_stream():
             self.publish_first()
         for weights in self.service.work(budget_s=0.02):
