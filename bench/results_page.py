@@ -399,7 +399,9 @@ def pusher7_online_section(name: str, payload: dict) -> list[str]:
              "(30 % expert); success without intervention of the deterministic policy on the task's held-out resets "
              "along the run. `online_raw_topics`: over ROS, the learner joining the arm's raw topics live "
              "(`--from-topics`); `online_in_process`: the same stage in one process; a suffix names an option the "
-             "arm changed (`_normalize_obs`: `--normalize-obs`, actor and critic on z-scored observations). Over raw "
+             "arm changed (`_normalize_obs`: `--normalize-obs`, actor and critic on z-scored observations; "
+             "`_imitate_expert`: `--imitate-expert`, the BC term also on the mix's expert episodes; `_bc30`: "
+             "`--bc-weight 30`; `_lr_decay`: `--lr-decay`, the learning rates along a cosine to zero over the budget). Over raw "
              "topics an episode's last step makes no transition, so 200 episodes train on 19,800 steps of the 20,000: "
              "the curve's last point is the learner's final weights.", ""]
     if payload.get("note"):
