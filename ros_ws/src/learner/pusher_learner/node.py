@@ -255,14 +255,14 @@ class Learner(Node):
             self.status.warn(topic, rejection)
 
     def take_pending(self) -> None:
-        """Take every message DDS already holds for us (each /clock first), before the live
-        join judges whether the stream fell quiet.
+        """Take every message DDS already holds for us, each /clock first.
 
-        The quiet rule counts the time since a message was last taken. The executor takes one
-        message per subscription a turn, and a learner starved of CPU for a while (a busy
-        machine) has messages waiting that it has not taken: without this it would take a
-        stream still flowing for a quiet one, stamp a state by the /clock before its own and
-        lose that step for good, and a lockstep session would wait for the step forever.
+        Called before the live join judges whether the stream fell quiet. The quiet rule
+        counts the time since a message was last taken. The executor takes one message per
+        subscription a turn, and a learner starved of CPU for a while (a busy machine) has
+        messages waiting that it has not taken: without this it would take a stream still
+        flowing for a quiet one, stamp a state by the /clock before its own and lose that
+        step for good, and a lockstep session would wait for the step forever.
         """
         if self.clock_sub is not None:
             while (taken := self.clock_sub.handle.take_message(ClockMsg, True)) is not None:
