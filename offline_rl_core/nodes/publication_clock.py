@@ -85,13 +85,7 @@ class PublicationClock:
             return items
         # a /clock that never came (unheld): a message is not stamped before the sim time it
         # says, nor before one published ahead of it says (the order of publication kept)
-        said = [w[2] for w in sorted(self._waiting, key=lambda w: w[:2])]
-        floor = -1
-        out = []
-        for (stamp, item), sim in zip(self._release(lambda published: True), said):
-            floor = max(floor, sim)
-            out.append((max(stamp, floor), item))
-        return out
+        return self._release(lambda published: True, by_said=True)
 
     @property
     def clock_behind(self) -> bool:
@@ -113,10 +107,14 @@ class PublicationClock:
     def waiting(self) -> int:
         return len(self._waiting)
 
-    def _release(self, ready) -> list[tuple[int, Any]]:
-        out = []
+    def _release(self, ready, by_said: bool = False) -> list[tuple[int, Any]]:
+        out, floor = [], -1
         while self._waiting and ready(self._waiting[0][0]):
-            published, _, _, item = heapq.heappop(self._waiting)
+            published, _, said, item = heapq.heappop(self._waiting)
             stamp = self.stamp(published)
-            out.append((self._sim[0] if stamp is None else stamp, item))
+            stamp = self._sim[0] if stamp is None else stamp
+            if by_said:
+                floor = max(floor, said)
+                stamp = max(stamp, floor)
+            out.append((stamp, item))
         return out

@@ -175,8 +175,8 @@ class Learner(Node):
         self.estop = EStopInput(self, latch=self.service.estop)
         self.actor_estops = [EStopInput(self, latch=latch, namespace=ns)
                              for ns, latch in self.service.actor_estops.items()]
-        self.raw_subs: dict[str, object] = {}  # topic -> subscription (raw topics)
-        self.raw_takers: list[tuple[object, type, object]] = []  # (subscription, message class, callback)
+        # topic -> (subscription, message class, callback) of each raw topic
+        self.raw_subs: dict[str, tuple[object, type, object]] = {}
         self.clock_sub = None
         self.first_published = False
         # wall-clock timers, also under use_sim_time: a timer on sim time would wait for a
@@ -216,9 +216,8 @@ class Learner(Node):
             if msg_class is None:
                 continue
             callback = self.raw_callback(role.topic, msgtype)
-            self.raw_subs[role.topic] = self.create_subscription(msg_class, role.given, callback, TRANSITION_QOS,
-                                                                 raw=True)
-            self.raw_takers.append((self.raw_subs[role.topic], msg_class, callback))
+            sub = self.create_subscription(msg_class, role.given, callback, TRANSITION_QOS, raw=True)
+            self.raw_subs[role.topic] = (sub, msg_class, callback)
 
     def raw_callback(self, topic: str, msgtype: str):
         def on_raw(raw: bytes, info) -> None:  # with its MessageInfo: when it was published
@@ -267,7 +266,7 @@ class Learner(Node):
         if self.clock_sub is not None:
             while (taken := self.clock_sub.handle.take_message(ClockMsg, True)) is not None:
                 self.on_clock(*taken)
-        for sub, msg_class, callback in self.raw_takers:
+        for sub, msg_class, callback in self.raw_subs.values():
             while (taken := sub.handle.take_message(msg_class, True)) is not None:
                 callback(*taken)
 
