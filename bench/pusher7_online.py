@@ -3,7 +3,7 @@
     python bench/pusher7_online.py [--seeds 0 1 2] [--env-steps 20000] [--out runs/p7-online]
                                    [--json bench/pusher7_online.json] [--in-process]
                                    [--utd N] [--end-on-success] [--imitate-expert] [--normalize-obs]
-                                   [--bc-weight W] [--lr-decay]
+                                   [--bc-weight W] [--lr-decay] [--offline-ratio R] [--steer stick]
                                    [--rescore]
 
 The stage as a user of a ros2_control arm runs it: ``offline-rl hil --online --from-topics
@@ -60,6 +60,10 @@ def main() -> int:
                    help="the actor's BC weight (offline-rl hil --bc-weight; default: the stage's)")
     p.add_argument("--lr-decay", action="store_true",
                    help="learning rates along a cosine to zero over the budget (offline-rl hil --lr-decay)")
+    p.add_argument("--offline-ratio", type=float,
+                   help="share of each batch from the mix (offline-rl hil --offline-ratio; default: the stage's)")
+    p.add_argument("--steer", choices=("expert", "stick"),
+                   help="how the scripted corrector takes over (offline-rl hil --steer; default: the stage's)")
     p.add_argument("--rescore", action="store_true",
                    help="score each finished session's kept weights again, its final weights too (sessions scored "
                         "before the stage scored its final weights), rewriting its summary.json")
@@ -77,7 +81,9 @@ def main() -> int:
     arm = "_".join(["online_in_process" if args.in_process else ARM,
                     *(name for name in ("normalize_obs", "imitate_expert", "end_on_success") if getattr(args, name)),
                     *([f"bc{args.bc_weight:g}"] if args.bc_weight is not None else []),
-                    *(["lr_decay"] if args.lr_decay else [])])
+                    *(["lr_decay"] if args.lr_decay else []),
+                    *([f"offline{args.offline_ratio:g}"] if args.offline_ratio is not None else []),
+                    *([args.steer] if args.steer and args.steer != "expert" else [])])
     previous = Path(args.json)
     store: dict = json.loads(previous.read_text()) if previous.exists() else {}
     add_run_facts(store)  # the file's arms come from several commands: each joins its `commands`
@@ -95,6 +101,8 @@ def main() -> int:
         cmd += ["--normalize-obs"] if args.normalize_obs else []
         cmd += ["--bc-weight", str(args.bc_weight)] if args.bc_weight is not None else []
         cmd += ["--lr-decay"] if args.lr_decay else []
+        cmd += ["--offline-ratio", str(args.offline_ratio)] if args.offline_ratio is not None else []
+        cmd += ["--steer", args.steer] if args.steer else []
         cmd += ["--in-process"] if args.in_process else ["--from-topics"]
         if args.rescore and (run_dir / "summary.json").exists() and not args.in_process:
             rescore(run_dir)

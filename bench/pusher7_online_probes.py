@@ -74,7 +74,24 @@ VARIANTS = {
         + (", learning rates along a cosine to zero over the budget" if decay else ""),
         {"train": {"normalize_obs": True, "bc_weight": float(w)},
          "online": {"imitate_expert": True, **({"lr_decay_steps": "budget"} if decay else {})}})
-       for w, decay in ((3, True), (10, True), (30, False), (30, True), (100, True))},
+       for w, decay in ((3, True), (10, True), (30, False), (30, True), (100, True), (300, True))},
+    "normalize_obs_imitate_expert_bc100_lr_decay_offline0.25": (
+        "z-scored observations, the expert's episodes imitated, BC weight 100, the decay, and a quarter of each "
+        "batch offline (more of the person's corrections in each batch)",
+        {"train": {"normalize_obs": True, "bc_weight": 100.0},
+         "online": {"imitate_expert": True, "lr_decay_steps": "budget", "offline_ratio": 0.25}}),
+    **{f"normalize_obs_{'imitate_expert_' if imitate else ''}bc{w:g}_lr_decay_stick": (
+        "z-scored observations, " + ("the expert's episodes imitated, " if imitate else "") + f"BC weight {w:g}, the decay, "
+        "and the corrector steering the fingertip straight at the goal (a Cartesian stick) instead of the expert's "
+        "joint-space swing",
+        {"train": {"normalize_obs": True, "bc_weight": float(w)}, "corrector": {"steer": "stick"},
+         "online": {"imitate_expert": imitate, "lr_decay_steps": "budget"}})
+       for w, imitate in ((30, True), (100, True), (100, False))},
+    "normalize_obs_imitate_expert_bc100_lr_decay_offline0.25_stick": (
+        "z-scored observations, the expert's episodes imitated, BC weight 100, the decay, a quarter of each batch "
+        "offline and the corrector steering the fingertip straight at the goal",
+        {"train": {"normalize_obs": True, "bc_weight": 100.0}, "corrector": {"steer": "stick"},
+         "online": {"imitate_expert": True, "lr_decay_steps": "budget", "offline_ratio": 0.25}}),
 }
 
 

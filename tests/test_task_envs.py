@@ -14,11 +14,12 @@ from offline_rl_core.common.seeds import HELD_OUT
 from offline_rl_core.data.transitions import SOURCE_EXPERT
 from offline_rl_core.nodes.joint_messages import action_from_command
 from offline_rl_core.nodes.sim_loop import SimLoop
-from offline_rl_core.task.envs import expert_action, make_env, task_expert, task_model
+from offline_rl_core.task.envs import expert_action, make_env, point_vectors, task_expert, task_model
 from offline_rl_core.task.expert import reach_action
 from offline_rl_core.task.kinematics import PointKinematics
 from offline_rl_core.task.mujoco_task import MujocoTaskEnv
 from offline_rl_core.task.pusher_reach import PusherReachEnv
+from offline_rl_core.task.corrector import CorrectorParams, ScriptedCorrector
 from offline_rl_core.task.spec import load_task
 
 PUSHER7 = load_task("pusher7_reach")
@@ -73,6 +74,40 @@ def test_the_expert_reaches_held_out_goals_and_the_fingertip_is_forward_kinemati
         # what a policy node computes from joint_states is the env's fingertip, bit for bit
         assert np.array_equal(kinematics.point(fingertip, env7.joint_positions), env7.point_positions()["fingertip"])
         assert np.array_equal(obs[14:], (env7.goal - env7.point_positions()["fingertip"]).astype(np.float32))
+
+
+@pytest.mark.parametrize("name", ["pusher7_reach", "pusher_reach"])
+def test_the_stick_corrector_steers_the_fingertip_straight_in_and_hands_back_on_success(name):
+    """--steer stick: a takeover jogs the fingertip along what separates it from the goal until
+    it is reached, and the corrector then hands back."""
+    task = load_task(name)
+    env = make_env(task, terminate_on_success=False)
+    corrector = ScriptedCorrector.for_task(task, CorrectorParams(patience=1, hold_steps=200, grace_steps=0,
+                                                                 steer="stick"))
+    assert corrector.expert is not task_expert(task)  # not the expert's joint-space swing
+    for seed in range(HELD_OUT, HELD_OUT + 3):
+        env.reset(seed)
+        corrections, dists, handed_back = 0, [], False
+        for _ in range(task.episodes.max_steps):
+            points = point_vectors(task, env.point_positions())  # as a robot's tracker or kinematics has them
+            action = corrector.decide(env.joint_positions.copy(), env.joint_velocities.copy(), env.goal.copy(), points)
+            if action is None:
+                handed_back = corrections > 0
+                action = np.zeros(task.act_dim, np.float32)  # the policy: a still arm
+            else:
+                assert handed_back is False and np.all(np.abs(action) <= 1.0)
+                corrections += 1
+            _, _, _, info = env.step(action)
+            dists.append(info["dist"])
+        assert info["success"] and handed_back and corrections > 5
+        assert min(dists) < task.reward.success_within
+
+
+def test_a_stick_for_a_task_that_is_no_reach_is_refused_in_one_line():
+    with pytest.raises(UserError, match="pusher_push.*reach task.*goal - puck"):
+        ScriptedCorrector.for_task("pusher_push", CorrectorParams(steer="stick"))
+    with pytest.raises(ValueError, match="steer must be one of expert, stick"):
+        CorrectorParams(steer="joystick")
 
 
 def test_pusher_reach_is_the_chapters_env_and_expert():

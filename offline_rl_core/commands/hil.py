@@ -9,6 +9,7 @@ from ..common.output_paths import check_output_dir
 from ..pipelines.hil import EVAL_SEED, HilConfig, default_bag, run_hil
 from ..pipelines.hil_online import OnlineHilConfig, run_hil_online
 from ..common.seeds import seed_arg
+from ..task.corrector import STEERS
 from ..runs.loggers import DEFAULT_LOGGER, LOGGERS
 
 
@@ -18,7 +19,7 @@ OFFLINE_ONLY = ("rounds", "episodes", "steps", "correction_ratio", "beta", "pati
                 "noise", "reaction_delay")
 ONLINE_ONLY = ("env_steps", "corrector", "mode", "prior_algo", "no_prior", "utd", "publish_every", "eval_every",
                "in_process", "from_topics", "success", "end_on_success", "actors", "imitate_expert",
-               "critic_warmup", "normalize_obs", "bc_weight", "lr_decay")
+               "critic_warmup", "normalize_obs", "bc_weight", "lr_decay", "steer", "offline_ratio")
 
 
 def _resolve_mode_flags(args) -> None:
@@ -59,7 +60,8 @@ def _run_online(args) -> int:
         out=args.out, env_steps=args.env_steps,
         seed=args.seed, prior=args.prior, no_prior=args.no_prior, prior_steps=args.prior_steps,
         prior_algo=args.prior_algo,
-        bags=args.bag, task=args.task, corrector=args.corrector, mode=args.mode, utd=args.utd,
+        bags=args.bag, task=args.task, corrector=args.corrector, steer=args.steer, mode=args.mode, utd=args.utd,
+        offline_ratio=args.offline_ratio,
         publish_every=args.publish_every, eval_every=args.eval_every, eval_episodes=args.eval_episodes,
         eval_seed=args.eval_seed, in_process=args.in_process, from_topics=args.from_topics, success=args.success,
         end_on_success=args.end_on_success, actors=args.actors, imitate_expert=args.imitate_expert,
@@ -123,6 +125,10 @@ def register(subparsers) -> None:
     o.add_argument("--corrector", choices=("scripted", "keyboard", "none"),
                    help="who takes over: the scripted stand-in, a person at this terminal (realtime), or nobody "
                         f"(default: {od.corrector})")
+    o.add_argument("--steer", choices=STEERS,
+                   help="how the scripted corrector takes over: expert (the task's scripted expert) or stick (the "
+                        "fingertip steered straight at the goal, as a person with a Cartesian stick or SpaceMouse "
+                        f"does; reach tasks) (default: {od.steer})")
     o.add_argument("--mode", choices=("lockstep", "realtime"),
                    help=f"lockstep: paced by the learner, reproducible; realtime: 50 Hz, as a robot (default: {od.mode})")
     o.add_argument("--prior-algo", choices=("auto", "awac"),
@@ -130,6 +136,9 @@ def register(subparsers) -> None:
                         f"'The best prior') or the chapter's AWAC for --prior-steps (default: {od.prior_algo})")
     o.add_argument("--no-prior", action="store_true", default=None, help="the learner starts from scratch (an ablation)")
     o.add_argument("--utd", type=int, help=f"gradient steps per environment step (default: {od.utd})")
+    o.add_argument("--offline-ratio", type=float, metavar="R",
+                   help="share of each batch drawn from the bag, the rest from the session's own steps and a "
+                        f"person's takeovers (default: {od.offline_ratio}, RLPD's symmetric sampling)")
     o.add_argument("--imitate-expert", action="store_true", default=None,
                    help="the actor's BC term also on the bag's expert episodes (its demonstrations), as TD3+BC keeps "
                         "an actor near them (default: only on a person's corrections)")

@@ -45,6 +45,7 @@ from ..serving.policy import load_policy
 from ..serving.signing import make_session_keys
 from ..evaluation.stats import wilson_ci
 from ..data.transitions import SOURCE_HUMAN
+from ..task.corrector import STEERS, CorrectorParams
 from ..task.spec import DEFAULT_TASK, TaskSpec, load_task
 
 DEFAULT_BAG = "bags/mix.db3"
@@ -68,8 +69,10 @@ class OnlineHilConfig:
     bags: list[str] = field(default_factory=lambda: [DEFAULT_BAG])
     task: str | None = None  # a built-in task or a task file; None: the one the bags record, else pusher_reach
     corrector: str = "scripted"  # scripted | keyboard | none
+    steer: str = "expert"  # how the scripted corrector takes over (task.corrector.STEERS)
     mode: str = "lockstep"  # lockstep (paced, reproducible) | realtime (50 Hz)
     utd: int = 2
+    offline_ratio: float = 0.5  # share of each batch from the offline bag (OnlineSettings; RLPD's symmetric half)
     imitate_expert: bool = False  # the actor's BC term also on the offline expert rows (OnlineSettings)
     critic_warmup: int = 0  # critic-alone steps on the bag before the first update (OnlineSettings)
     normalize_obs: bool = False  # actor and critic on z-scored observations (TrainConfig, the online learner)
@@ -110,6 +113,8 @@ class OnlineHilConfig:
                             "`offline-rl classifier train`)")
         if self.critic_warmup < 0:
             raise UserError(f"--critic-warmup must be >= 0, got {self.critic_warmup}")
+        if not 0.0 <= self.offline_ratio <= 1.0:
+            raise UserError(f"--offline-ratio must be in [0, 1], got {self.offline_ratio}")
         for name in ("utd", "publish_every", "eval_every", "eval_episodes"):
             if int(getattr(self, name)) < 1:
                 raise UserError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
@@ -118,6 +123,11 @@ class OnlineHilConfig:
                             f"({self.publish_every})")
         if self.corrector not in ("scripted", "keyboard", "none"):
             raise UserError(f"--corrector must be scripted, keyboard or none, got {self.corrector!r}")
+        if self.steer not in STEERS:
+            raise UserError(f"--steer must be one of {', '.join(STEERS)}, got {self.steer!r}")
+        if self.steer != "expert" and self.corrector != "scripted":
+            raise UserError(f"--steer {self.steer}: how the scripted corrector takes over; only with --corrector "
+                            f"scripted, got --corrector {self.corrector}")
         if self.mode not in ("lockstep", "realtime"):
             raise UserError(f"--mode must be lockstep or realtime, got {self.mode!r}")
         if self.corrector == "keyboard" and (self.mode != "realtime" or self.in_process):
@@ -162,6 +172,10 @@ class OnlineHilConfig:
         if self.env_steps % (steps * self.actors):
             raise UserError(f"--env-steps is the total over the actors: with --actors {self.actors} a multiple of "
                             f"{steps * self.actors} (whole episodes of task {task.name} each), got {self.env_steps}")
+        if self.steer == "stick":
+            from ..task.envs import task_stick
+
+            task_stick(task)  # UserError naming the task when it is no reach
 
 
 def run_hil_online(cfg: OnlineHilConfig, log: Callable[[str], None] = lambda s: print(s, file=sys.stderr, flush=True),
@@ -237,8 +251,9 @@ def _in_process(cfg: OnlineHilConfig, task, prior_path: Path | None, log, curves
     prior = load_checkpoint(prior_path) if prior_path else None
     run = run_online(offline, prior, OnlineRunConfig(
         env_steps=cfg.env_steps, seed=cfg.seed, corrections=cfg.corrector != "none", eval_every=cfg.eval_every,
-        eval_episodes=cfg.eval_episodes, eval_seed=cfg.eval_seed,
-        settings=OnlineSettings(utd=cfg.utd, publish_every=cfg.publish_every, imitate_expert=cfg.imitate_expert,
+        eval_episodes=cfg.eval_episodes, eval_seed=cfg.eval_seed, corrector=CorrectorParams(steer=cfg.steer),
+        settings=OnlineSettings(utd=cfg.utd, offline_ratio=cfg.offline_ratio, publish_every=cfg.publish_every,
+                                imitate_expert=cfg.imitate_expert,
                                 critic_warmup=cfg.critic_warmup, lr_decay_steps=_lr_decay_steps(cfg)),
         train=TrainConfig(algo="sac", normalize_obs=cfg.normalize_obs, bc_weight=cfg.bc_weight),
         task=task, success=cfg.success, end_on_success=cfg.end_on_success),
@@ -259,13 +274,13 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
         # until the learner's first weights, the policy serves the prior (or the learner's initial weights)
         "checkpoint": prior_path or learner_dir / "policy.pt",
         "mode": cfg.mode, "paced_every": cfg.publish_every if lockstep else 0, "publish_every": cfg.publish_every,
-        "utd": cfg.utd, "imitate_expert": "true" if cfg.imitate_expert else "false",
+        "utd": cfg.utd, "offline_ratio": cfg.offline_ratio, "imitate_expert": "true" if cfg.imitate_expert else "false",
         "critic_warmup": cfg.critic_warmup, "normalize_obs": "true" if cfg.normalize_obs else "false",
         "bc_weight": cfg.bc_weight, "lr_decay_steps": _lr_decay_steps(cfg),
         "seed": cfg.seed, "learner_nice": 0 if lockstep else 10,
         # realtime: the nodes that answer the arm go first (where the user may use SCHED_FIFO)
         "thread_priority": 0 if lockstep else REALTIME_THREAD_PRIORITY, "reset_seed": TRAIN_SEED_BASE + 10000 * cfg.seed, "episodes": episodes,
-        "snapshot_every": cfg.eval_every, "corrector": cfg.corrector, "logger": logger,
+        "snapshot_every": cfg.eval_every, "corrector": cfg.corrector, "steer": cfg.steer, "logger": logger,
         "from_topics": "true" if cfg.raw_topics else "false",
         "success": str(Path(cfg.success).resolve()) if cfg.success else "",
         "record_topics": _record_topics(cfg) if cfg.raw_topics else "",

@@ -20,6 +20,8 @@ publishes: progress is every reward distance, weighted, so the fingertip nearing
 counts as much as the puck nearing the goal, and success is not latched where the task judges
 it at the episode's end: a puck pushed off the goal again is worth a takeover). pusher_reach's
 are the chapter's (the fingertip's planar distance to the target, ``expert.expert_action``).
+``steer="stick"`` takes over as a person steering the fingertip with a Cartesian stick
+would instead (``STEERS``; a reach task's only).
 Another task's expert comes with its env (``offline_rl_core.task.envs.task_expert``); without
 it, a corrector for that task is refused in one line.
 """
@@ -51,20 +53,31 @@ def pusher_expert(qpos, qvel, target_xy, points=None) -> np.ndarray:
     return expert_action(qpos, qvel, np.asarray(target_xy, np.float64)[:2])
 
 
-def task_rule(task: TaskSpec, distance: Distance | None = None) -> tuple[Expert, Distance]:
+def task_rule(task: TaskSpec, distance: Distance | None = None, steer: str = "expert") -> tuple[Expert, Distance]:
     """The expert and the distance a corrector of ``task`` uses. ``distance``: the task's
     reward distance from joint positions and goal (e.g. ``ObservationBuilder.distance``),
-    for tasks other than pusher_reach."""
-    if task.digest == load_task(DEFAULT_TASK).digest:
+    for tasks other than pusher_reach; ``steer``: how it takes over (``STEERS``)."""
+    chapter = task.digest == load_task(DEFAULT_TASK).digest
+    if chapter and steer == "expert":
         return pusher_expert, pusher_distance
     try:
-        from .envs import task_expert
+        from .envs import task_expert, task_stick
     except ImportError:  # the task envs are not part of this build
         raise UserError(f"the scripted corrector knows pusher_reach's expert only; task {task.name} "
                         f"({task.source_file()}) has none in this build (offline_rl_core.task.envs)") from None
+    if chapter:
+        return task_stick(task), pusher_distance
     if distance is None:
         raise ValueError(f"a corrector of task {task.name} needs its reward distance")
-    return task_expert(task), distance
+    return (task_stick(task) if steer == "stick" else task_expert(task)), distance
+
+
+# How a takeover moves the arm. expert: the task's scripted expert (a joint-space swing to an
+# inverse-kinematics pose); stick: the reward's point jogged straight at the goal every state
+# (envs.task_stick), as a person steers with a Cartesian stick (HIL-SERL's SpaceMouse): a
+# proportional law whose actions near the goal are small and follow the error, so a learner
+# that imitates them is taught the last centimetres (reach tasks only)
+STEERS = ("expert", "stick")
 
 
 @dataclass
@@ -76,6 +89,7 @@ class CorrectorParams:
     noise: float = 0.0  # std of Gaussian noise added to the expert's torque (then clipped)
     reaction_delay: int = 0  # steps between deciding to take over and the first correction
     seed: int = 0
+    steer: str = "expert"  # how a takeover moves the arm (STEERS)
 
     def __post_init__(self) -> None:
         if self.grace_steps < 0:
@@ -84,6 +98,8 @@ class CorrectorParams:
             raise ValueError(f"patience and hold_steps must be >= 1, got {self.patience}, {self.hold_steps}")
         if self.reaction_delay < 0 or self.noise < 0 or self.min_progress < 0:
             raise ValueError("reaction_delay, noise and min_progress must be >= 0")
+        if self.steer not in STEERS:
+            raise ValueError(f"steer must be one of {', '.join(STEERS)}, got {self.steer!r}")
 
 
 class TaskDistances:
@@ -139,12 +155,12 @@ class ScriptedCorrector:
         """The corrector of ``task``: pusher_reach's is the chapter's; another task's judges its
         reward distances and acts with its scripted expert (``task.envs.task_expert``)."""
         task = load_task(task)
+        params = params or CorrectorParams()
         if task.digest == load_task(DEFAULT_TASK).digest:
-            return cls(params)
-        from .envs import task_expert
-
+            return cls(params, *task_rule(task, steer=params.steer))
         measure = TaskDistances(task)
-        return cls(params, task_expert(task), measure.progress, task.reward.success_within, measure.success,
+        expert, _ = task_rule(task, measure.progress, params.steer)
+        return cls(params, expert, measure.progress, task.reward.success_within, measure.success,
                    latch=task.reward.success_at != "end")
 
     def new_episode(self, goal) -> None:

@@ -12,6 +12,9 @@
   ``expert_action(env)`` asks it about an env's current state.
 - ``task_jog(task, point)``: the action that moves a tracked point by a small Cartesian step
   (a gamepad's Cartesian mode), by damped least squares on the task's Jacobian.
+- ``task_stick(task)``: an expert-shaped function that jogs the reward's point straight at
+  the goal (a person steering the fingertip with a Cartesian stick, as HIL-SERL's operators
+  do with a SpaceMouse): a reach task's other way for the scripted corrector to take over.
 
 Every env has the same face: ``reset(seed) -> obs``; ``step(action) -> (obs, reward, done,
 info)``; ``observation()``; ``steps``, ``success``, ``terminate_on_success``, ``obs_dim``,
@@ -29,7 +32,7 @@ from typing import Callable
 import numpy as np
 
 from ..common.errors import UserError
-from .spec import TaskSpec, load_task
+from .spec import JOINT_STATE, TaskSpec, load_task
 
 Expert = Callable[..., np.ndarray]  # (positions, velocities, goal, points=None) -> action
 SIM_ENVS = ("pusher_reach", "pusher_push")
@@ -156,3 +159,29 @@ def expert_action(env) -> np.ndarray:
     """The task's expert's action for an env's current state."""
     return task_expert(env.task)(env.joint_positions, env.joint_velocities, env.goal,
                                  point_vectors(env.task, env.point_positions()))
+
+
+def task_stick(task: TaskSpec | str | os.PathLike | None) -> Expert:
+    """``stick(positions, velocities, goal, points=None) -> action``: the jog (``task_jog``) that
+    moves the reward distance's tracked point by what separates it from the goal, every state:
+    a proportional Cartesian law, unlike the expert's joint-space swing to an inverse-kinematics
+    pose. Only for a reach: the reward distance is the goal against a point of the arm's
+    kinematics in the goal's axes; UserError naming the task otherwise."""
+    task = load_task(task)
+    pair = tuple(task.reward.distance)
+    point = next((v for v in pair if v != "goal"), None)
+    spec = task.point(point) if point in [p.name for p in task.points] else None
+    if ("goal" not in pair or spec is None or spec.kinematics is None or task.goal.type == JOINT_STATE
+            or list(spec.axes) != list(task.goal.axes) or task.reward.terms):
+        raise UserError(f"{task.source_file()}: steering with a Cartesian stick needs a reach task, its reward "
+                        f"distance the goal against a point of the arm's kinematics in the goal's axes; task "
+                        f"{task.name}'s is {' - '.join(pair)}")
+    if _kind(task) == "pusher_reach":
+        from .expert import jog_action
+        from .pusher_reach import fingertip_from_joints
+
+        return lambda q, qdot, goal, points=None: jog_action(
+            q, qdot, np.asarray(goal, np.float64)[:2] - fingertip_from_joints(q)).astype(np.float32)
+    from .jacobian_expert import CartesianJog, ReachExpert
+
+    return CartesianJog(ReachExpert(task, task_model(task)), point).toward

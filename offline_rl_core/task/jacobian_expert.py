@@ -163,9 +163,17 @@ class CartesianJog:
         self.rows = [AXES.index(a) for a in expert.task.point(point).axes]
 
     def __call__(self, positions, velocities, delta) -> np.ndarray:
+        return self._jog(positions, velocities, lambda here: np.asarray(delta, np.float64))
+
+    def toward(self, positions, velocities, goal, points=None) -> np.ndarray:
+        """The jog that moves the point by all of what separates it from ``goal`` (its axes):
+        a stick held toward the goal, pushed the further the further the point is."""
+        return self._jog(positions, velocities, lambda here: np.asarray(goal, np.float64) - here)
+
+    def _jog(self, positions, velocities, delta_at) -> np.ndarray:
         e = self.expert
         positions, velocities, q, qdot = e.command_joints(positions, velocities)
         e.data.qpos[e.index.qpos] = positions
-        e.point_at(q, self.point, self.rows)
-        step = damped_least_squares(e.jacobian(self.point, self.rows), np.asarray(delta, np.float64), e.gains.damping)
+        delta = delta_at(e.point_at(q, self.point, self.rows))
+        step = damped_least_squares(e.jacobian(self.point, self.rows), delta, e.gains.damping)
         return e.action_toward(positions, velocities, q, qdot, np.clip(q + step, e.low, e.high))

@@ -16,7 +16,9 @@ has not got closer to the target for ``patience`` steps, hands back after
 (``-p name:=value`` or the flags): ``patience`` (8), ``hold_steps`` (25),
 ``grace_steps`` (20: states at an episode's start before progress is judged),
 ``min_progress`` (0.002 m), ``noise`` (0.0, std of torque noise), ``reaction_delay``
-(0 steps), ``seed`` (0).
+(0 steps), ``seed`` (0), ``steer`` (expert: the scripted expert's joint-space swing; stick:
+the fingertip steered straight at the goal, as a person with a Cartesian stick would; a
+reach task's only).
 
 ``--mode keyboard``: a person drives from the terminal (raw mode; needs a tty):
   a / d  shoulder torque -1 / +1      j / l  elbow torque -1 / +1
@@ -71,7 +73,7 @@ from offline_rl_core.nodes.diagnostics import StatusDiagnosis
 from offline_rl_core.nodes.gamepad import LABEL_TOPIC, GamepadTeleop, label_json, load_mapping
 from offline_rl_core.common.rejections import RejectionCounter
 
-from offline_rl_core.task.corrector import CorrectorParams, ScriptedCorrector, task_rule
+from offline_rl_core.task.corrector import STEERS, CorrectorParams, ScriptedCorrector, task_rule
 
 KEEP_ANSWERS = 64
 KEYS = {
@@ -153,6 +155,9 @@ PARAMS = (
     Param("noise", 0.0, "std of Gaussian noise on the corrections' torques (a shaky hand)", low=0.0, flag="--noise"),
     Param("reaction_delay", 0, "states between deciding to take over and acting", low=0, flag="--reaction-delay"),
     Param("seed", 0, "seed of the correction noise", low=0, read_only=True, flag="--seed"),
+    Param("steer", "expert", "how a takeover moves the arm: expert (the task's scripted expert) or stick (the "
+          "fingertip steered straight at the goal, as with a Cartesian stick; reach tasks)", choices=STEERS,
+          read_only=True, flag="--steer"),
 )
 RULE_PARAMS = tuple(p.name for p in PARAMS if p.name not in ("mode", "task", "gamepad"))
 
@@ -171,7 +176,8 @@ class Corrector(Node):
             if heard:  # this node hears no points: the rule's distance must come from the joints
                 raise UserError(f"{task.source_file()}: the scripted corrector computes reward.distance from the "
                                 f"joints, but point {heard[0]} has no kinematics it can compute")
-            expert, distance = task_rule(task, self.builder.distance)  # UserError: no expert for the task
+            # UserError: no expert for the task, or a stick for a task that is no reach
+            expert, distance = task_rule(task, self.builder.distance, values["steer"])
             try:
                 self.teleop = ScriptedCorrector(CorrectorParams(**values), expert, distance, task.reward.success_within)
             except ValueError as exc:
