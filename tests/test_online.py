@@ -608,3 +608,46 @@ def test_lr_decay_brings_the_rates_to_zero_over_the_budget_and_resumes_exactly(o
     assert rates(constant) == {3e-4} and not torch.equal(_flat(constant.weights()), _flat(one.weights()))
     with pytest.raises(ValueError, match="lr_decay_steps must be >= 0"):
         OnlineSettings(lr_decay_steps=-1)
+
+
+def test_an_actor_blind_to_the_velocities_serves_a_policy_they_do_not_move(offline, prior):
+    """``actor_ignores=("velocities",)``: from the first version on, the served policy's action
+    is the same whatever the joint velocities say (the actor's first-layer columns for them
+    stay zero through training, the fast step's included), while the critic still reads them;
+    the other features still move it."""
+    from offline_rl_core.serving.policy import LoadedPolicy
+    from offline_rl_core.task.features import feature_columns
+    from offline_rl_core.task.spec import load_task
+
+    task = load_task("pusher_reach")
+    velocities = feature_columns(task, ("velocities",))
+    assert velocities == [4, 5]  # pusher_reach: cos, sin of both joints, then their velocities
+    cfg = TrainConfig(algo="sac", **SMALL)
+    blind = OnlineLearner(offline, cfg, OnlineSettings(publish_every=10, actor_ignores=("velocities",)), seed=3,
+                          prior=prior, task=task)
+    seeing = OnlineLearner(offline, cfg, OnlineSettings(publish_every=10), seed=3, prior=prior, task=task)
+    obs = offline.obs[:64].copy()
+    moved = obs.copy()
+    moved[:, velocities] += np.random.default_rng(0).normal(0.0, 2.0, (64, len(velocities))).astype(np.float32)
+    for versions in ([blind.weights()], _feed(blind, _stream(30))):
+        policy = LoadedPolicy(versions[-1])
+        assert np.array_equal(policy.act(obs), policy.act(moved))
+    assert not np.array_equal(policy.act(obs[:, ::-1].copy()), policy.act(obs))
+    _feed(seeing, _stream(30))
+    sees = LoadedPolicy(seeing.weights())
+    assert not np.array_equal(sees.act(obs), sees.act(moved))
+    critic = blind.weights()["learner_state"]
+    assert all(float(w[:, velocities].abs().sum()) > 0 for _, w in _first_layers(critic))
+    with pytest.raises(ValueError, match="actor_ignores: 'speeds' is no observation feature"):
+        OnlineSettings(actor_ignores=("speeds",))
+    with pytest.raises(ValueError, match="actor_ignores: the learner needs the task"):
+        OnlineLearner(offline, cfg, OnlineSettings(actor_ignores=("velocities",)), seed=3, prior=prior)
+
+
+def _first_layers(state: dict, prefix: str = ""):
+    """(name, weight) of every network's first layer in a learner state."""
+    for key, value in state.items():
+        if isinstance(value, dict):
+            yield from _first_layers(value, f"{prefix}{key}.")
+        elif key == "0.weight":
+            yield prefix + key, value
