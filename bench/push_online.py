@@ -23,10 +23,7 @@ same environment-step budget (a whole number of 150-step episodes near 50,000):
 - ``critic_warmup`` (when named): the online arm with 5,000 steps of the critic alone on the
   log, the prior's actor fixed, before the first update (``--critic-warmup 5000``);
 - ``normalize_obs`` (when named): the online arm with actor and critic on observations z-scored
-  by the log's statistics (``--normalize-obs``), as the auto prior was trained;
-- ``anchored`` (when named): pusher7_reach's best setting: z-scored observations, the expert's
-  episodes imitated with BC weight 100, the rates decaying over the budget, a quarter of each
-  batch offline (``--normalize-obs --imitate-expert --bc-weight 100 --lr-decay --offline-ratio 0.25``).
+  by the log's statistics (``--normalize-obs``), as the auto prior was trained.
 
 The curve: success without intervention of the deterministic policy on the task's 100
 held-out resets every ``--eval-every`` steps, the intervention rate of each window, robot
@@ -52,7 +49,7 @@ from results_page import hil_table
 
 TASK = "pusher_push"
 ARMS = ("online", "classifier", "no_prior", "no_corrections")
-VARIANTS = ("imitate_expert", "critic_warmup", "normalize_obs", "anchored")  # run when named: the stage with one setting changed
+VARIANTS = ("imitate_expert", "critic_warmup", "normalize_obs")  # run when named: the stage with one setting changed
 BAGS = Path("runs/prior/pusher_push/bags")  # bench/prior_report.py --task pusher_push's logs
 
 
@@ -92,9 +89,7 @@ def main() -> int:
             cmd += {"no_prior": ["--no-prior"], "no_corrections": ["--corrector", "none"],
                     "imitate_expert": ["--imitate-expert"],
                     "critic_warmup": ["--critic-warmup", "5000"],
-                    "normalize_obs": ["--normalize-obs"],
-                    "anchored": ["--normalize-obs", "--imitate-expert", "--bc-weight", "100", "--lr-decay",
-                                 "--offline-ratio", "0.25"]}.get(arm, [])
+                    "normalize_obs": ["--normalize-obs"]}.get(arm, [])
             results.setdefault(arm, {})[str(seed)] = run(cmd, run_dir / "summary.json")
             task = load_task(TASK)
             write_json_atomic(args.json, {"task": task.name, "task_digest": task.digest, "arms": results,

@@ -4,7 +4,6 @@
                                    [--json bench/pusher7_online.json] [--in-process]
                                    [--utd N] [--end-on-success] [--imitate-expert] [--normalize-obs]
                                    [--bc-weight W] [--lr-decay] [--offline-ratio R] [--steer stick]
-                                   [--actor-ignores velocities]
                                    [--rescore]
 
 The stage as a user of a ros2_control arm runs it: ``offline-rl hil --online --from-topics
@@ -63,8 +62,6 @@ def main() -> int:
                    help="learning rates along a cosine to zero over the budget (offline-rl hil --lr-decay)")
     p.add_argument("--offline-ratio", type=float,
                    help="share of each batch from the mix (offline-rl hil --offline-ratio; default: the stage's)")
-    p.add_argument("--actor-ignores", nargs="+", metavar="FEATURE",
-                   help="observation features the actor is blind to (offline-rl hil --actor-ignores)")
     p.add_argument("--steer", choices=("expert", "stick"),
                    help="how the scripted corrector takes over (offline-rl hil --steer; default: the stage's)")
     p.add_argument("--rescore", action="store_true",
@@ -86,7 +83,6 @@ def main() -> int:
                     *([f"bc{args.bc_weight:g}"] if args.bc_weight is not None else []),
                     *(["lr_decay"] if args.lr_decay else []),
                     *([f"offline{args.offline_ratio:g}"] if args.offline_ratio is not None else []),
-                    *(f"blind_{kind}" for kind in args.actor_ignores or ()),
                     *([args.steer] if args.steer and args.steer != "expert" else [])])
     previous = Path(args.json)
     store: dict = json.loads(previous.read_text()) if previous.exists() else {}
@@ -107,7 +103,6 @@ def main() -> int:
         cmd += ["--lr-decay"] if args.lr_decay else []
         cmd += ["--offline-ratio", str(args.offline_ratio)] if args.offline_ratio is not None else []
         cmd += ["--steer", args.steer] if args.steer else []
-        cmd += ["--actor-ignores", *args.actor_ignores] if args.actor_ignores else []
         cmd += ["--in-process"] if args.in_process else ["--from-topics"]
         if args.rescore and (run_dir / "summary.json").exists() and not args.in_process:
             rescore(run_dir)

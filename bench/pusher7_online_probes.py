@@ -92,17 +92,6 @@ VARIANTS = {
         "offline and the corrector steering the fingertip straight at the goal",
         {"train": {"normalize_obs": True, "bc_weight": 100.0}, "corrector": {"steer": "stick"},
          "online": {"imitate_expert": True, "lr_decay_steps": "budget", "offline_ratio": 0.25}}),
-    "normalize_obs_imitate_expert_bc100_lr_decay_offline0.25_blind_velocities": (
-        "z-scored observations, the expert's episodes imitated, BC weight 100, the decay, a quarter of each batch "
-        "offline, and the actor blind to the joint velocities (they echo its last command: the copycat problem)",
-        {"train": {"normalize_obs": True, "bc_weight": 100.0},
-         "online": {"imitate_expert": True, "lr_decay_steps": "budget", "offline_ratio": 0.25,
-                    "actor_ignores": ("velocities",)}}),
-    "normalize_obs_imitate_expert_bc100_lr_decay_offline0.25_stick0.1": (
-        "z-scored observations, the expert's episodes imitated, BC weight 100, the decay, a quarter of each batch "
-        "offline and the stick held over by at least 0.1 m toward the goal (no easing off near it)",
-        {"train": {"normalize_obs": True, "bc_weight": 100.0}, "corrector": {"steer": "stick", "stick_floor": 0.1},
-         "online": {"imitate_expert": True, "lr_decay_steps": "budget", "offline_ratio": 0.25}}),
 }
 
 

@@ -179,9 +179,6 @@ def test_hil_takes_its_defaults_by_mode_and_refuses_the_other_modes_flags(capsys
                          "--steer, --offline-ratio: only with --online"),
                         (["hil", "--online", "--offline-ratio", "1.5", "--out", str(tmp_path / "o")],
                          "--offline-ratio must be in [0, 1], got 1.5"),
-                        (["hil", "--actor-ignores", "velocities"], "--actor-ignores: only with --online"),
-                        (["hil", "--online", "--actor-ignores", "vector", "--in-process", "--out", str(tmp_path / "o")],
-                         "--actor-ignores vector: task pusher_reach's observation"),
                         (["hil", "--online", "--steer", "stick", "--corrector", "none", "--out", str(tmp_path / "o")],
                          "--steer stick: how the scripted corrector takes over; only with --corrector scripted"),
                         (["hil", "--online", "--steer", "stick", "--task", "pusher_push", "--env-steps", "150",
@@ -195,7 +192,7 @@ def test_hil_takes_its_defaults_by_mode_and_refuses_the_other_modes_flags(capsys
     _resolve_mode_flags(explicit)
     assert explicit.out == "runs/hil" and explicit.env_steps == 20000 and explicit.rounds is None
     assert explicit.bc_weight == 3.0 and explicit.lr_decay is False  # the learner's own defaults
-    assert explicit.steer == "expert" and explicit.offline_ratio == 0.5 and explicit.actor_ignores == ()
+    assert explicit.steer == "expert" and explicit.offline_ratio == 0.5
     default = parser.parse_args(["hil"])
     _resolve_mode_flags(default)
     assert default.out == "runs/hil" and default.rounds == 3 and default.bag == [str(PROJECT_BAG)]

@@ -10,7 +10,6 @@ from ..pipelines.hil import EVAL_SEED, HilConfig, default_bag, run_hil
 from ..pipelines.hil_online import OnlineHilConfig, run_hil_online
 from ..common.seeds import seed_arg
 from ..task.corrector import STEERS
-from ..task.spec import FEATURES
 from ..runs.loggers import DEFAULT_LOGGER, LOGGERS
 
 
@@ -20,7 +19,7 @@ OFFLINE_ONLY = ("rounds", "episodes", "steps", "correction_ratio", "beta", "pati
                 "noise", "reaction_delay")
 ONLINE_ONLY = ("env_steps", "corrector", "mode", "prior_algo", "no_prior", "utd", "publish_every", "eval_every",
                "in_process", "from_topics", "success", "end_on_success", "actors", "imitate_expert",
-               "critic_warmup", "normalize_obs", "bc_weight", "lr_decay", "steer", "offline_ratio", "actor_ignores")
+               "critic_warmup", "normalize_obs", "bc_weight", "lr_decay", "steer", "offline_ratio")
 
 
 def _resolve_mode_flags(args) -> None:
@@ -62,7 +61,7 @@ def _run_online(args) -> int:
         seed=args.seed, prior=args.prior, no_prior=args.no_prior, prior_steps=args.prior_steps,
         prior_algo=args.prior_algo,
         bags=args.bag, task=args.task, corrector=args.corrector, steer=args.steer, mode=args.mode, utd=args.utd,
-        offline_ratio=args.offline_ratio, actor_ignores=tuple(args.actor_ignores),
+        offline_ratio=args.offline_ratio,
         publish_every=args.publish_every, eval_every=args.eval_every, eval_episodes=args.eval_episodes,
         eval_seed=args.eval_seed, in_process=args.in_process, from_topics=args.from_topics, success=args.success,
         end_on_success=args.end_on_success, actors=args.actors, imitate_expert=args.imitate_expert,
@@ -140,11 +139,6 @@ def register(subparsers) -> None:
     o.add_argument("--offline-ratio", type=float, metavar="R",
                    help="share of each batch drawn from the bag, the rest from the session's own steps and a "
                         f"person's takeovers (default: {od.offline_ratio}, RLPD's symmetric sampling)")
-    o.add_argument("--actor-ignores", nargs="+", choices=FEATURES, metavar="FEATURE",
-                   help="observation features (the task's kinds: " + ", ".join(FEATURES) + ") the actor is blind "
-                        "to; the critic still reads them. velocities: under a velocity or position controller the "
-                        "joint velocities echo the last command, and an actor that reads them learns to carry on "
-                        "its own motion (the copycat problem), easing off short of the goal (default: none)")
     o.add_argument("--imitate-expert", action="store_true", default=None,
                    help="the actor's BC term also on the bag's expert episodes (its demonstrations), as TD3+BC keeps "
                         "an actor near them (default: only on a person's corrections)")

@@ -46,8 +46,6 @@ import torch
 
 from ..serving.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, task_field
 from ..data.transitions import SOURCE_EXPERT, SOURCE_HUMAN, Transitions
-from ..task.features import feature_columns
-from ..task.spec import FEATURES
 from .config import TrainConfig
 from .data import MemberData
 from .loop import LEARNERS, seed_generators, torch_threads
@@ -77,18 +75,8 @@ class OnlineSettings:
     # the stage's budget, so the last weights are the settled end of the run, not one draw of
     # versions that swing by 0.1 success from one to the next
     lr_decay_steps: int = 0
-    # observation features (the task's kinds, e.g. ("velocities",)) the actor is blind to: its
-    # first layer's columns for them held at zero, so the served policy ignores them while the
-    # critic still sees them. Under a velocity (or position) controller the joint velocities
-    # echo the last command, and an actor that reads them learns to continue its own motion
-    # (the copycat problem of imitation): it slows near the goal and stays slow, short of it
-    actor_ignores: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
-        self.actor_ignores = tuple(self.actor_ignores)
-        unknown = [k for k in self.actor_ignores if k not in FEATURES]
-        if unknown:
-            raise ValueError(f"actor_ignores: {unknown[0]!r} is no observation feature (one of {', '.join(FEATURES)})")
         if self.utd < 1 or self.publish_every < 1 or self.capacity < 1:
             raise ValueError("utd, publish_every and capacity must be >= 1")
         if self.critic_warmup < 0:
@@ -161,7 +149,6 @@ class OnlineLearner:
                     reason = str(exc).strip().splitlines()[0][:160] if str(exc).strip() else type(exc).__name__
                     raise PriorMismatch(f"the prior's learner_state does not fit a {cfg.algo} learner "
                                         f"of hidden width {cfg.hidden} ({reason})") from None
-        self.blind = self._blind_columns(task)
         self.prior_algorithm = None if prior is None else prior.get("algorithm")
         ring = settings.capacity + LAG_VERSIONS * settings.publish_every
         self.data = MemberData([offline], capacity=len(offline) + ring, fifo_from=len(offline))
@@ -175,7 +162,6 @@ class OnlineLearner:
         self.rates = self._rates()
         self.step_once = make_step(self.learner.update, self.data, (1, cfg.batch_size), cfg.device, cfg.cuda_graph,
                                    cfg.threads)
-        self._blind_actor()
         self.n_online = 0  # online transitions
         self.n_human_seen = 0  # live transitions a person chose, evicted ones included
         self.n_steps = 0  # environment steps (transitions, and steps that made none)
@@ -247,31 +233,10 @@ class OnlineLearner:
                 self.rates.at(min(self.updates + 1, self.rates.total))
                 bound = self.rows_through(self.updates // self.settings.utd + 1)
                 losses = self.step_once(self.sampler.next(bound))
-                self._blind_actor()
                 self.updates += 1
             self.losses = {k: float(v.float().mean()) for k, v in losses.items()}
         self.train_seconds += time.perf_counter() - t0
         return todo
-
-    def _blind_columns(self, task) -> torch.Tensor | None:
-        """The observation columns the actor must not see (``actor_ignores``), or None."""
-        if not self.settings.actor_ignores:
-            return None
-        if task is None:
-            raise ValueError("actor_ignores: the learner needs the task to find its observation's features")
-        columns = feature_columns(task, self.settings.actor_ignores)
-        if not columns:
-            raise ValueError(f"actor_ignores: task {task.name}'s observation has no "
-                             f"{' or '.join(self.settings.actor_ignores)} feature")
-        return torch.tensor(columns, device=self.learner.policy.weights[0].device)
-
-    def _blind_actor(self) -> None:
-        """Zero the actor's first-layer weights of the ignored columns (after every update:
-        the optimiser's step moves them; zero inputs weights give the same outputs whatever
-        those features say)."""
-        if self.blind is not None:
-            with torch.no_grad():
-                self.learner.policy.weights[0][:, self.blind, :] = 0.0
 
     def _rates(self) -> LearningRates:
         """The optimisers' rates along the decay (its total in updates), or left constant."""

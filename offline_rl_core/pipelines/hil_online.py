@@ -46,8 +46,7 @@ from ..serving.signing import make_session_keys
 from ..evaluation.stats import wilson_ci
 from ..data.transitions import SOURCE_HUMAN
 from ..task.corrector import STEERS, CorrectorParams
-from ..task.features import feature_columns
-from ..task.spec import DEFAULT_TASK, FEATURES, TaskSpec, load_task
+from ..task.spec import DEFAULT_TASK, TaskSpec, load_task
 
 DEFAULT_BAG = "bags/mix.db3"
 THRESHOLDS = (0.5, 0.8, 0.9, 0.95)
@@ -74,7 +73,6 @@ class OnlineHilConfig:
     mode: str = "lockstep"  # lockstep (paced, reproducible) | realtime (50 Hz)
     utd: int = 2
     offline_ratio: float = 0.5  # share of each batch from the offline bag (OnlineSettings; RLPD's symmetric half)
-    actor_ignores: tuple[str, ...] = ()  # observation features the actor is blind to (OnlineSettings)
     imitate_expert: bool = False  # the actor's BC term also on the offline expert rows (OnlineSettings)
     critic_warmup: int = 0  # critic-alone steps on the bag before the first update (OnlineSettings)
     normalize_obs: bool = False  # actor and critic on z-scored observations (TrainConfig, the online learner)
@@ -117,10 +115,6 @@ class OnlineHilConfig:
             raise UserError(f"--critic-warmup must be >= 0, got {self.critic_warmup}")
         if not 0.0 <= self.offline_ratio <= 1.0:
             raise UserError(f"--offline-ratio must be in [0, 1], got {self.offline_ratio}")
-        self.actor_ignores = tuple(self.actor_ignores or ())
-        unknown = [k for k in self.actor_ignores if k not in FEATURES]
-        if unknown:
-            raise UserError(f"--actor-ignores {unknown[0]}: no such observation feature (one of {', '.join(FEATURES)})")
         for name in ("utd", "publish_every", "eval_every", "eval_episodes"):
             if int(getattr(self, name)) < 1:
                 raise UserError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
@@ -178,10 +172,6 @@ class OnlineHilConfig:
         if self.env_steps % (steps * self.actors):
             raise UserError(f"--env-steps is the total over the actors: with --actors {self.actors} a multiple of "
                             f"{steps * self.actors} (whole episodes of task {task.name} each), got {self.env_steps}")
-        missing = [k for k in self.actor_ignores if not feature_columns(task, (k,))]
-        if missing:
-            raise UserError(f"--actor-ignores {missing[0]}: task {task.name}'s observation ({task.source_file()}) has "
-                            f"no {missing[0]} feature")
         if self.steer == "stick":
             from ..task.envs import task_stick
 
@@ -263,7 +253,7 @@ def _in_process(cfg: OnlineHilConfig, task, prior_path: Path | None, log, curves
         env_steps=cfg.env_steps, seed=cfg.seed, corrections=cfg.corrector != "none", eval_every=cfg.eval_every,
         eval_episodes=cfg.eval_episodes, eval_seed=cfg.eval_seed, corrector=CorrectorParams(steer=cfg.steer),
         settings=OnlineSettings(utd=cfg.utd, offline_ratio=cfg.offline_ratio, publish_every=cfg.publish_every,
-                                imitate_expert=cfg.imitate_expert, actor_ignores=cfg.actor_ignores,
+                                imitate_expert=cfg.imitate_expert,
                                 critic_warmup=cfg.critic_warmup, lr_decay_steps=_lr_decay_steps(cfg)),
         train=TrainConfig(algo="sac", normalize_obs=cfg.normalize_obs, bc_weight=cfg.bc_weight),
         task=task, success=cfg.success, end_on_success=cfg.end_on_success),
@@ -284,8 +274,7 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
         # until the learner's first weights, the policy serves the prior (or the learner's initial weights)
         "checkpoint": prior_path or learner_dir / "policy.pt",
         "mode": cfg.mode, "paced_every": cfg.publish_every if lockstep else 0, "publish_every": cfg.publish_every,
-        "utd": cfg.utd, "offline_ratio": cfg.offline_ratio, "actor_ignores": ", ".join(cfg.actor_ignores),
-        "imitate_expert": "true" if cfg.imitate_expert else "false",
+        "utd": cfg.utd, "offline_ratio": cfg.offline_ratio, "imitate_expert": "true" if cfg.imitate_expert else "false",
         "critic_warmup": cfg.critic_warmup, "normalize_obs": "true" if cfg.normalize_obs else "false",
         "bc_weight": cfg.bc_weight, "lr_decay_steps": _lr_decay_steps(cfg),
         "seed": cfg.seed, "learner_nice": 0 if lockstep else 10,

@@ -84,7 +84,7 @@ def run_online(offline: Transitions, prior: dict | None, cfg: OnlineRunConfig,
         from ..learners.success_classifier import load_classifier
 
         judge = load_classifier(cfg.success, task)
-    learner = OnlineLearner(offline, cfg.train, cfg.settings, cfg.seed, prior, task)
+    learner = OnlineLearner(offline, cfg.train, cfg.settings, cfg.seed, prior)
     actor = Actor(LoadedPolicy(learner.weights()), explore=cfg.explore, seed=cfg.seed,
                   paced_every=cfg.settings.publish_every)
     env = make_env(task, terminate_on_success=False)

@@ -53,12 +53,10 @@ def pusher_expert(qpos, qvel, target_xy, points=None) -> np.ndarray:
     return expert_action(qpos, qvel, np.asarray(target_xy, np.float64)[:2])
 
 
-def task_rule(task: TaskSpec, distance: Distance | None = None, steer: str = "expert",
-              stick_floor: float = 0.0) -> tuple[Expert, Distance]:
+def task_rule(task: TaskSpec, distance: Distance | None = None, steer: str = "expert") -> tuple[Expert, Distance]:
     """The expert and the distance a corrector of ``task`` uses. ``distance``: the task's
     reward distance from joint positions and goal (e.g. ``ObservationBuilder.distance``),
-    for tasks other than pusher_reach; ``steer``: how it takes over (``STEERS``; with the
-    stick, ``stick_floor``: ``envs.task_stick``'s ``floor``)."""
+    for tasks other than pusher_reach; ``steer``: how it takes over (``STEERS``)."""
     chapter = task.digest == load_task(DEFAULT_TASK).digest
     if chapter and steer == "expert":
         return pusher_expert, pusher_distance
@@ -68,10 +66,10 @@ def task_rule(task: TaskSpec, distance: Distance | None = None, steer: str = "ex
         raise UserError(f"the scripted corrector knows pusher_reach's expert only; task {task.name} "
                         f"({task.source_file()}) has none in this build (offline_rl_core.task.envs)") from None
     if chapter:
-        return task_stick(task, stick_floor), pusher_distance
+        return task_stick(task), pusher_distance
     if distance is None:
         raise ValueError(f"a corrector of task {task.name} needs its reward distance")
-    return (task_stick(task, stick_floor) if steer == "stick" else task_expert(task)), distance
+    return (task_stick(task) if steer == "stick" else task_expert(task)), distance
 
 
 # How a takeover moves the arm. expert: the task's scripted expert (a joint-space swing to an
@@ -92,15 +90,14 @@ class CorrectorParams:
     reaction_delay: int = 0  # steps between deciding to take over and the first correction
     seed: int = 0
     steer: str = "expert"  # how a takeover moves the arm (STEERS)
-    stick_floor: float = 0.0  # m: the stick asks for at least this toward the goal (held over, not eased off)
 
     def __post_init__(self) -> None:
         if self.grace_steps < 0:
             raise ValueError(f"grace_steps must be >= 0, got {self.grace_steps}")
         if self.patience < 1 or self.hold_steps < 1:
             raise ValueError(f"patience and hold_steps must be >= 1, got {self.patience}, {self.hold_steps}")
-        if self.reaction_delay < 0 or self.noise < 0 or self.min_progress < 0 or self.stick_floor < 0:
-            raise ValueError("reaction_delay, noise, min_progress and stick_floor must be >= 0")
+        if self.reaction_delay < 0 or self.noise < 0 or self.min_progress < 0:
+            raise ValueError("reaction_delay, noise and min_progress must be >= 0")
         if self.steer not in STEERS:
             raise ValueError(f"steer must be one of {', '.join(STEERS)}, got {self.steer!r}")
 
@@ -160,9 +157,9 @@ class ScriptedCorrector:
         task = load_task(task)
         params = params or CorrectorParams()
         if task.digest == load_task(DEFAULT_TASK).digest:
-            return cls(params, *task_rule(task, steer=params.steer, stick_floor=params.stick_floor))
+            return cls(params, *task_rule(task, steer=params.steer))
         measure = TaskDistances(task)
-        expert, _ = task_rule(task, measure.progress, params.steer, params.stick_floor)
+        expert, _ = task_rule(task, measure.progress, params.steer)
         return cls(params, expert, measure.progress, task.reward.success_within, measure.success,
                    latch=task.reward.success_at != "end")
 

@@ -161,14 +161,12 @@ def expert_action(env) -> np.ndarray:
                                  point_vectors(env.task, env.point_positions()))
 
 
-def task_stick(task: TaskSpec | str | os.PathLike | None, floor: float = 0.0) -> Expert:
+def task_stick(task: TaskSpec | str | os.PathLike | None) -> Expert:
     """``stick(positions, velocities, goal, points=None) -> action``: the jog (``task_jog``) that
     moves the reward distance's tracked point by what separates it from the goal, every state:
     a proportional Cartesian law, unlike the expert's joint-space swing to an inverse-kinematics
-    pose; nearer than ``floor`` (m) the jog still asks for ``floor`` toward the goal (a person
-    holds the stick over until the point is there, rather than easing off as it nears). Only
-    for a reach: the reward distance is the goal against a point of the arm's kinematics in the
-    goal's axes; UserError naming the task otherwise."""
+    pose. Only for a reach: the reward distance is the goal against a point of the arm's
+    kinematics in the goal's axes; UserError naming the task otherwise."""
     task = load_task(task)
     pair = tuple(task.reward.distance)
     point = next((v for v in pair if v != "goal"), None)
@@ -180,12 +178,10 @@ def task_stick(task: TaskSpec | str | os.PathLike | None, floor: float = 0.0) ->
                         f"{task.name}'s is {' - '.join(pair)}")
     if _kind(task) == "pusher_reach":
         from .expert import jog_action
-        from .kinematics import at_least
         from .pusher_reach import fingertip_from_joints
 
         return lambda q, qdot, goal, points=None: jog_action(
-            q, qdot, at_least(np.asarray(goal, np.float64)[:2] - fingertip_from_joints(q), floor)).astype(np.float32)
+            q, qdot, np.asarray(goal, np.float64)[:2] - fingertip_from_joints(q)).astype(np.float32)
     from .jacobian_expert import CartesianJog, ReachExpert
 
-    return CartesianJog(ReachExpert(task, task_model(task)), point, floor).toward
-
+    return CartesianJog(ReachExpert(task, task_model(task)), point).toward

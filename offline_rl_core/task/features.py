@@ -93,16 +93,6 @@ def feature_widths(spec: TaskSpec) -> list[int]:
     return widths
 
 
-def feature_columns(spec: TaskSpec, kinds) -> list[int]:
-    """The observation's columns given by the features of ``kinds`` (e.g. ``("velocities",)``)."""
-    columns, start = [], 0
-    for f, width in zip(spec.observation, feature_widths(spec)):
-        if f.kind in kinds:
-            columns.extend(range(start, start + width))
-        start += width
-    return columns
-
-
 def success_columns(spec: TaskSpec) -> slice | None:
     """The observation's columns that hold the success distance's difference (``reward.distance``,
     either way round), or None where the observation has no such feature."""

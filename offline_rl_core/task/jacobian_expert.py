@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 import mujoco
 
-from .kinematics import at_least, damped_least_squares
+from .kinematics import damped_least_squares
 from .mujoco_task import ArmIndex, SimSettings
 from .spec import AXES, JOINT_STATE, TaskSpec
 
@@ -157,8 +157,8 @@ class CartesianJog:
     (the expert's damping), kept inside the joints' ranges, then the expert's law toward that
     pose in the task's interface. A person's stick, not a goal: no restarts, no convergence."""
 
-    def __init__(self, expert: ReachExpert, point: str, floor: float = 0.0):
-        self.expert, self.floor = expert, float(floor)
+    def __init__(self, expert: ReachExpert, point: str):
+        self.expert = expert
         self.point = expert.index.points[point]
         self.rows = [AXES.index(a) for a in expert.task.point(point).axes]
 
@@ -166,10 +166,9 @@ class CartesianJog:
         return self._jog(positions, velocities, lambda here: np.asarray(delta, np.float64))
 
     def toward(self, positions, velocities, goal, points=None) -> np.ndarray:
-        """The jog that moves the point by all of what separates it from ``goal`` (its axes), and
-        by at least ``floor`` toward it: a stick held toward the goal, pushed the further the
-        further the point is."""
-        return self._jog(positions, velocities, lambda here: at_least(np.asarray(goal, np.float64) - here, self.floor))
+        """The jog that moves the point by all of what separates it from ``goal`` (its axes):
+        a stick held toward the goal, pushed the further the further the point is."""
+        return self._jog(positions, velocities, lambda here: np.asarray(goal, np.float64) - here)
 
     def _jog(self, positions, velocities, delta_at) -> np.ndarray:
         e = self.expert

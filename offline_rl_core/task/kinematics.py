@@ -80,10 +80,3 @@ class PointKinematics:
     def all(self, positions) -> dict[str, np.ndarray]:
         """Every point with kinematics, for one state."""
         return {p.name: self.point(p, positions) for p in self.points}
-
-
-def at_least(delta: np.ndarray, floor: float) -> np.ndarray:
-    """``delta`` lengthened to ``floor`` where it is shorter (its direction kept): a Cartesian
-    jog that does not ease off near its goal."""
-    norm = float(np.sqrt(delta @ delta))
-    return delta * (floor / norm) if 0.0 < norm < floor else delta

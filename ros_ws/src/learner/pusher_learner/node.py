@@ -99,9 +99,6 @@ PARAMS = [
           flag="--normalize-obs"),
     Param("lr_decay_steps", _O.lr_decay_steps, "environment steps over which the learning rates fall along a cosine "
           "to zero (the session's budget; 0: constant rates)", low=0, read_only=True, flag="--lr-decay-steps"),
-    Param("actor_ignores", [], "observation features (the task's kinds, e.g. [velocities]) the actor is blind to: "
-          "the served policy ignores them, the critic still reads them; none: it sees all", read_only=True,
-          flag="--actor-ignores", kind=list),
     Param("capacity", _O.capacity, "live transitions the online buffer holds", low=1, read_only=True,
           flag="--capacity"),
     Param("alpha", _T.alpha, "entropy weight of the SAC objective", low=1e-8, read_only=True, flag="--alpha"),
@@ -159,13 +156,9 @@ class Learner(Node):
         self.signer = load_signer(s.signing_key)
         train = TrainConfig(algo="sac", alpha=s.alpha, bc_weight=s.bc_weight, init_log_std=s.init_log_std, lr=s.lr,
                             batch_size=s.batch_size, threads=s.threads, normalize_obs=s.normalize_obs)
-        try:
-            settings = OnlineSettings(utd=s.utd, offline_ratio=s.offline_ratio, publish_every=s.publish_every,
-                                      capacity=s.capacity, imitate_expert=s.imitate_expert,
-                                      critic_warmup=s.critic_warmup, lr_decay_steps=s.lr_decay_steps,
-                                      actor_ignores=tuple(s.actor_ignores or ()))
-        except ValueError as exc:  # a feature kind the observation has no such thing as
-            raise UserError(str(exc)) from None
+        settings = OnlineSettings(utd=s.utd, offline_ratio=s.offline_ratio, publish_every=s.publish_every,
+                                  capacity=s.capacity, imitate_expert=s.imitate_expert,
+                                  critic_warmup=s.critic_warmup, lr_decay_steps=s.lr_decay_steps)
         self.service = LearnerService(LearnerServiceConfig(
             bags=list(s.bag), out=s.out, prior=s.prior or None, task=s.task or None, seed=s.seed,
             save_every=s.save_every, resume=s.resume, session_bag=s.session_bag or None,
