@@ -4,6 +4,7 @@
                                    [--json bench/pusher7_online.json] [--in-process]
                                    [--utd N] [--end-on-success] [--imitate-expert] [--normalize-obs]
                                    [--bc-weight W] [--lr-decay] [--offline-ratio R] [--steer stick]
+                                   [--corrector-noise STD]
                                    [--rescore]
 
 The stage as a user of a ros2_control arm runs it: ``offline-rl hil --online --from-topics
@@ -62,6 +63,8 @@ def main() -> int:
                    help="learning rates along a cosine to zero over the budget (offline-rl hil --lr-decay)")
     p.add_argument("--offline-ratio", type=float,
                    help="share of each batch from the mix (offline-rl hil --offline-ratio; default: the stage's)")
+    p.add_argument("--corrector-noise", type=float,
+                   help="std of noise on the scripted corrector's actions (offline-rl hil --corrector-noise)")
     p.add_argument("--steer", choices=("expert", "stick"),
                    help="how the scripted corrector takes over (offline-rl hil --steer; default: the stage's)")
     p.add_argument("--rescore", action="store_true",
@@ -83,6 +86,7 @@ def main() -> int:
                     *([f"bc{args.bc_weight:g}"] if args.bc_weight is not None else []),
                     *(["lr_decay"] if args.lr_decay else []),
                     *([f"offline{args.offline_ratio:g}"] if args.offline_ratio is not None else []),
+                    *([f"noise{args.corrector_noise:g}"] if args.corrector_noise else []),
                     *([args.steer] if args.steer and args.steer != "expert" else [])])
     previous = Path(args.json)
     store: dict = json.loads(previous.read_text()) if previous.exists() else {}
@@ -103,6 +107,7 @@ def main() -> int:
         cmd += ["--lr-decay"] if args.lr_decay else []
         cmd += ["--offline-ratio", str(args.offline_ratio)] if args.offline_ratio is not None else []
         cmd += ["--steer", args.steer] if args.steer else []
+        cmd += ["--corrector-noise", str(args.corrector_noise)] if args.corrector_noise else []
         cmd += ["--in-process"] if args.in_process else ["--from-topics"]
         if args.rescore and (run_dir / "summary.json").exists() and not args.in_process:
             rescore(run_dir)
@@ -111,33 +116,40 @@ def main() -> int:
         store.update(task=task.name, task_digest=task.digest)
         write_json_atomic(args.json, store)
     print(hil_table(results))
-    plot(results, Path(args.json).with_suffix(".png"))
+    plot(results, Path(args.json).with_suffix(".png"), newest=arm)
     return 0
 
 
-def plot(results: dict, path: Path) -> None:
+def plot(results: dict, path: Path, newest: str | None = None) -> None:
+    """Success (and the intervention rate) against environment steps per seed: the arm
+    ``newest`` (default: the last) drawn bold, the JSON's other arms faint beside it."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7.5, 4.5))
-    for arm, by_seed in results.items():
-        for i, (seed, summary) in enumerate(sorted(by_seed.items(), key=lambda kv: int(kv[0]))):
+    fig, ax = plt.subplots(figsize=(10.5, 5.0))
+    newest = newest or list(results)[-1]
+    for arm in results:
+        bold = arm == newest  # the arm this run measured stands out
+        short = arm.replace("online_raw_topics", "raw topics").replace("online_in_process", "in process")
+        for i, (seed, summary) in enumerate(sorted(results[arm].items(), key=lambda kv: int(kv[0]))):
             steps, success = curve_of(arm, summary)
-            ax.plot(steps, success, "o-", color=f"C{i}", lw=2, label=f"seed {seed}: success without intervention")
-            ax.plot(steps, [p["intervention_rate"] for p in summary["curve"]], "s--", color=f"C{i}", lw=1,
-                    alpha=0.6, label=f"seed {seed}: intervention rate (window)")
+            ax.plot(steps, success, "o-" if bold else ".:", color=f"C{i}", lw=2 if bold else 1,
+                    alpha=1.0 if bold else 0.35, label=f"{short}, seed {seed}")
+            if bold:
+                ax.plot(steps, [p["intervention_rate"] for p in summary["curve"]], "s--", color=f"C{i}", lw=1,
+                        alpha=0.6, label=f"seed {seed}: intervention rate (window)")
     ax.axhline(0.95, color="grey", ls=":", lw=1)
     period = load_task(TASK).control_period
     ax.set_xlabel(f"environment steps ({1 / period:g} Hz: 20,000 = {20_000 * period:g} s of robot time)")
     ax.set_ylabel("100 held-out resets / share of steps")
     ax.set_ylim(0, 1.02)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, loc="center right")
+    ax.legend(fontsize=6, loc="center left", bbox_to_anchor=(1.01, 0.5))
     ax.set_title(f"{TASK}: the online stage over raw topics (auto prior, scripted corrector, lockstep)", fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, bbox_inches="tight")  # the legend beside the axes
     print(f"wrote {path}", file=sys.stderr)
 
 

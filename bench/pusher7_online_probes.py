@@ -87,6 +87,18 @@ VARIANTS = {
         {"train": {"normalize_obs": True, "bc_weight": float(w)}, "corrector": {"steer": "stick"},
          "online": {"imitate_expert": imitate, "lr_decay_steps": "budget"}})
        for w, imitate in ((30, True), (100, True), (100, False))},
+    **{f"normalize_obs_imitate_expert_bc100_lr_decay_offline{r:g}{'_utd4' if utd == 4 else ''}": (
+        f"z-scored observations, the expert's episodes imitated, BC weight 100, the decay, {share} of each batch "
+        "offline" + (" and 4 gradient steps per environment step" if utd == 4 else ""),
+        {"train": {"normalize_obs": True, "bc_weight": 100.0},
+         "online": {"imitate_expert": True, "lr_decay_steps": "budget", "offline_ratio": r, "utd": utd}})
+       for r, share, utd in ((0.25, "a quarter", 4), (0.1, "a tenth", 2))},
+    "normalize_obs_imitate_expert_bc100_lr_decay_offline0.25_noise0.2": (
+        "z-scored observations, the expert's episodes imitated, BC weight 100, the decay, a quarter of each batch "
+        "offline, and a shaky hand: Gaussian noise of std 0.2 on the corrector's actions (its states' velocities "
+        "then tell less of the next action, DART's remedy for an imitator that copies its own motion)",
+        {"train": {"normalize_obs": True, "bc_weight": 100.0}, "corrector": {"noise": 0.2},
+         "online": {"imitate_expert": True, "lr_decay_steps": "budget", "offline_ratio": 0.25}}),
     "normalize_obs_imitate_expert_bc100_lr_decay_offline0.25_stick": (
         "z-scored observations, the expert's episodes imitated, BC weight 100, the decay, a quarter of each batch "
         "offline and the corrector steering the fingertip straight at the goal",

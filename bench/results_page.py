@@ -403,6 +403,7 @@ def pusher7_online_section(name: str, payload: dict) -> list[str]:
              "`_imitate_expert`: `--imitate-expert`, the BC term also on the mix's expert episodes; `_bc30`: "
              "`--bc-weight 30`; `_lr_decay`: `--lr-decay`, the learning rates along a cosine to zero over the budget; "
              "`_offline0.25`: `--offline-ratio 0.25`, a quarter of each batch from the mix; "
+             "`_noise0.2`: `--corrector-noise 0.2`, noise of std 0.2 on the corrector's actions; "
              "`_stick`: `--steer stick`, the corrector steering the fingertip straight at the goal). Over raw "
              "topics an episode's last step makes no transition, so 200 episodes train on 19,800 steps of the 20,000: "
              "the curve's last point is the learner's final weights.", ""]

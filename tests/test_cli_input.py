@@ -175,8 +175,10 @@ def test_hil_takes_its_defaults_by_mode_and_refuses_the_other_modes_flags(capsys
     for argv, flags in ((["hil", "--online", "--rounds", "2", "--beta", "0.2"], "--rounds, --beta: only without --online"),
                         (["hil", "--utd", "2"], "--utd: only with --online"),
                         (["hil", "--bc-weight", "30", "--lr-decay"], "--bc-weight, --lr-decay: only with --online"),
-                        (["hil", "--steer", "stick", "--offline-ratio", "0.25"],
-                         "--steer, --offline-ratio: only with --online"),
+                        (["hil", "--steer", "stick", "--offline-ratio", "0.25", "--corrector-noise", "0.2"],
+                         "--steer, --offline-ratio, --corrector-noise: only with --online"),
+                        (["hil", "--online", "--corrector-noise", "0.2", "--corrector", "none", "--out",
+                          str(tmp_path / "o")], "--corrector-noise: the scripted corrector's shaky hand"),
                         (["hil", "--online", "--offline-ratio", "1.5", "--out", str(tmp_path / "o")],
                          "--offline-ratio must be in [0, 1], got 1.5"),
                         (["hil", "--online", "--steer", "stick", "--corrector", "none", "--out", str(tmp_path / "o")],
@@ -192,7 +194,7 @@ def test_hil_takes_its_defaults_by_mode_and_refuses_the_other_modes_flags(capsys
     _resolve_mode_flags(explicit)
     assert explicit.out == "runs/hil" and explicit.env_steps == 20000 and explicit.rounds is None
     assert explicit.bc_weight == 3.0 and explicit.lr_decay is False  # the learner's own defaults
-    assert explicit.steer == "expert" and explicit.offline_ratio == 0.5
+    assert explicit.steer == "expert" and explicit.offline_ratio == 0.5 and explicit.corrector_noise == 0.0
     default = parser.parse_args(["hil"])
     _resolve_mode_flags(default)
     assert default.out == "runs/hil" and default.rounds == 3 and default.bag == [str(PROJECT_BAG)]

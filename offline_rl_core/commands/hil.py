@@ -19,7 +19,7 @@ OFFLINE_ONLY = ("rounds", "episodes", "steps", "correction_ratio", "beta", "pati
                 "noise", "reaction_delay")
 ONLINE_ONLY = ("env_steps", "corrector", "mode", "prior_algo", "no_prior", "utd", "publish_every", "eval_every",
                "in_process", "from_topics", "success", "end_on_success", "actors", "imitate_expert",
-               "critic_warmup", "normalize_obs", "bc_weight", "lr_decay", "steer", "offline_ratio")
+               "critic_warmup", "normalize_obs", "bc_weight", "lr_decay", "steer", "offline_ratio", "corrector_noise")
 
 
 def _resolve_mode_flags(args) -> None:
@@ -61,7 +61,7 @@ def _run_online(args) -> int:
         seed=args.seed, prior=args.prior, no_prior=args.no_prior, prior_steps=args.prior_steps,
         prior_algo=args.prior_algo,
         bags=args.bag, task=args.task, corrector=args.corrector, steer=args.steer, mode=args.mode, utd=args.utd,
-        offline_ratio=args.offline_ratio,
+        offline_ratio=args.offline_ratio, corrector_noise=args.corrector_noise,
         publish_every=args.publish_every, eval_every=args.eval_every, eval_episodes=args.eval_episodes,
         eval_seed=args.eval_seed, in_process=args.in_process, from_topics=args.from_topics, success=args.success,
         end_on_success=args.end_on_success, actors=args.actors, imitate_expert=args.imitate_expert,
@@ -129,6 +129,10 @@ def register(subparsers) -> None:
                    help="how the scripted corrector takes over: expert (the task's scripted expert) or stick (the "
                         "fingertip steered straight at the goal, as a person with a Cartesian stick or SpaceMouse "
                         f"does; reach tasks) (default: {od.steer})")
+    o.add_argument("--corrector-noise", type=float, metavar="STD",
+                   help="a shaky hand: std of Gaussian noise on the scripted corrector's actions, in [-1, 1] units; "
+                        "the velocities of the states after a correction then echo its actions less, so an actor "
+                        f"that imitates them copies its own motion less (DART) (default: {od.corrector_noise})")
     o.add_argument("--mode", choices=("lockstep", "realtime"),
                    help=f"lockstep: paced by the learner, reproducible; realtime: 50 Hz, as a robot (default: {od.mode})")
     o.add_argument("--prior-algo", choices=("auto", "awac"),

@@ -70,6 +70,7 @@ class OnlineHilConfig:
     task: str | None = None  # a built-in task or a task file; None: the one the bags record, else pusher_reach
     corrector: str = "scripted"  # scripted | keyboard | none
     steer: str = "expert"  # how the scripted corrector takes over (task.corrector.STEERS)
+    corrector_noise: float = 0.0  # std of Gaussian noise on the scripted corrector's actions (a shaky hand)
     mode: str = "lockstep"  # lockstep (paced, reproducible) | realtime (50 Hz)
     utd: int = 2
     offline_ratio: float = 0.5  # share of each batch from the offline bag (OnlineSettings; RLPD's symmetric half)
@@ -125,6 +126,11 @@ class OnlineHilConfig:
             raise UserError(f"--corrector must be scripted, keyboard or none, got {self.corrector!r}")
         if self.steer not in STEERS:
             raise UserError(f"--steer must be one of {', '.join(STEERS)}, got {self.steer!r}")
+        if not self.corrector_noise >= 0.0:
+            raise UserError(f"--corrector-noise must be >= 0, got {self.corrector_noise}")
+        if self.corrector_noise > 0 and self.corrector != "scripted":
+            raise UserError(f"--corrector-noise: the scripted corrector's shaky hand; only with --corrector scripted, "
+                            f"got --corrector {self.corrector}")
         if self.steer != "expert" and self.corrector != "scripted":
             raise UserError(f"--steer {self.steer}: how the scripted corrector takes over; only with --corrector "
                             f"scripted, got --corrector {self.corrector}")
@@ -251,7 +257,7 @@ def _in_process(cfg: OnlineHilConfig, task, prior_path: Path | None, log, curves
     prior = load_checkpoint(prior_path) if prior_path else None
     run = run_online(offline, prior, OnlineRunConfig(
         env_steps=cfg.env_steps, seed=cfg.seed, corrections=cfg.corrector != "none", eval_every=cfg.eval_every,
-        eval_episodes=cfg.eval_episodes, eval_seed=cfg.eval_seed, corrector=CorrectorParams(steer=cfg.steer),
+        eval_episodes=cfg.eval_episodes, eval_seed=cfg.eval_seed, corrector=CorrectorParams(steer=cfg.steer, noise=cfg.corrector_noise),
         settings=OnlineSettings(utd=cfg.utd, offline_ratio=cfg.offline_ratio, publish_every=cfg.publish_every,
                                 imitate_expert=cfg.imitate_expert,
                                 critic_warmup=cfg.critic_warmup, lr_decay_steps=_lr_decay_steps(cfg)),
@@ -280,7 +286,7 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
         "seed": cfg.seed, "learner_nice": 0 if lockstep else 10,
         # realtime: the nodes that answer the arm go first (where the user may use SCHED_FIFO)
         "thread_priority": 0 if lockstep else REALTIME_THREAD_PRIORITY, "reset_seed": TRAIN_SEED_BASE + 10000 * cfg.seed, "episodes": episodes,
-        "snapshot_every": cfg.eval_every, "corrector": cfg.corrector, "steer": cfg.steer, "logger": logger,
+        "snapshot_every": cfg.eval_every, "corrector": cfg.corrector, "steer": cfg.steer, "corrector_noise": cfg.corrector_noise, "logger": logger,
         "from_topics": "true" if cfg.raw_topics else "false",
         "success": str(Path(cfg.success).resolve()) if cfg.success else "",
         "record_topics": _record_topics(cfg) if cfg.raw_topics else "",
