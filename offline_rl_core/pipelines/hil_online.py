@@ -257,7 +257,8 @@ def _in_process(cfg: OnlineHilConfig, task, prior_path: Path | None, log, curves
     prior = load_checkpoint(prior_path) if prior_path else None
     run = run_online(offline, prior, OnlineRunConfig(
         env_steps=cfg.env_steps, seed=cfg.seed, corrections=cfg.corrector != "none", eval_every=cfg.eval_every,
-        eval_episodes=cfg.eval_episodes, eval_seed=cfg.eval_seed, corrector=CorrectorParams(steer=cfg.steer, noise=cfg.corrector_noise),
+        eval_episodes=cfg.eval_episodes, eval_seed=cfg.eval_seed,
+        corrector=CorrectorParams(steer=cfg.steer, noise=cfg.corrector_noise),
         settings=OnlineSettings(utd=cfg.utd, offline_ratio=cfg.offline_ratio, publish_every=cfg.publish_every,
                                 imitate_expert=cfg.imitate_expert,
                                 critic_warmup=cfg.critic_warmup, lr_decay_steps=_lr_decay_steps(cfg)),
@@ -280,13 +281,15 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
         # until the learner's first weights, the policy serves the prior (or the learner's initial weights)
         "checkpoint": prior_path or learner_dir / "policy.pt",
         "mode": cfg.mode, "paced_every": cfg.publish_every if lockstep else 0, "publish_every": cfg.publish_every,
-        "utd": cfg.utd, "offline_ratio": cfg.offline_ratio, "imitate_expert": "true" if cfg.imitate_expert else "false",
+        "utd": cfg.utd, "offline_ratio": cfg.offline_ratio,
+        "imitate_expert": "true" if cfg.imitate_expert else "false",
         "critic_warmup": cfg.critic_warmup, "normalize_obs": "true" if cfg.normalize_obs else "false",
         "bc_weight": cfg.bc_weight, "lr_decay_steps": _lr_decay_steps(cfg),
         "seed": cfg.seed, "learner_nice": 0 if lockstep else 10,
         # realtime: the nodes that answer the arm go first (where the user may use SCHED_FIFO)
         "thread_priority": 0 if lockstep else REALTIME_THREAD_PRIORITY, "reset_seed": TRAIN_SEED_BASE + 10000 * cfg.seed, "episodes": episodes,
-        "snapshot_every": cfg.eval_every, "corrector": cfg.corrector, "steer": cfg.steer, "corrector_noise": cfg.corrector_noise, "logger": logger,
+        "snapshot_every": cfg.eval_every, "corrector": cfg.corrector, "steer": cfg.steer,
+        "corrector_noise": cfg.corrector_noise, "logger": logger,
         "from_topics": "true" if cfg.raw_topics else "false",
         "success": str(Path(cfg.success).resolve()) if cfg.success else "",
         "record_topics": _record_topics(cfg) if cfg.raw_topics else "",

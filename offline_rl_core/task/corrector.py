@@ -75,8 +75,7 @@ def task_rule(task: TaskSpec, distance: Distance | None = None, steer: str = "ex
 # How a takeover moves the arm. expert: the task's scripted expert (a joint-space swing to an
 # inverse-kinematics pose); stick: the reward's point jogged straight at the goal every state
 # (envs.task_stick), as a person steers with a Cartesian stick (HIL-SERL's SpaceMouse): a
-# proportional law whose actions near the goal are small and follow the error, so a learner
-# that imitates them is taught the last centimetres (reach tasks only)
+# proportional law in the point's space, its actions following the error (reach tasks only)
 STEERS = ("expert", "stick")
 
 
