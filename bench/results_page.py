@@ -84,6 +84,11 @@ def machine_of(payload: dict) -> dict:
     return {"cpu_model": payload.get("cpu"), "cpu_flags": payload.get("cpu_flags"), "cpu_count": payload.get("cores")}
 
 
+def note_lines(payload: dict) -> list[str]:
+    """A section's note (what bounded its measurement), as a paragraph, or nothing."""
+    return [str(payload["note"]), ""] if payload.get("note") else []
+
+
 def source_lines(name: str, payload: dict) -> list[str]:
     m = machine_of(payload)
     lines = [f"- [{name}]({name}), {when(payload)}: " + "; ".join(f"`{c}`" for c in commands_of(payload))]
@@ -407,8 +412,7 @@ def pusher7_online_section(name: str, payload: dict) -> list[str]:
              "`_stick`: `--steer stick`, the corrector steering the fingertip straight at the goal). Over raw "
              "topics an episode's last step makes no transition, so 200 episodes train on 19,800 steps of the 20,000: "
              "the curve's last point is the learner's final weights.", ""]
-    if payload.get("note"):
-        lines += [str(payload["note"]), ""]
+    lines += note_lines(payload)
     return lines + source_lines(name, payload) + ["", hil_table(payload["arms"]), "",
                                                   "![success against environment steps](pusher7_online.png)", ""]
 
@@ -481,8 +485,7 @@ def push_online_section(name: str, payload: dict) -> list[str]:
              "simulator counted beside it; `no_prior`: from scratch; `no_corrections`: no corrector. Curves of success "
              "and of the intervention rate against environment steps and robot time: "
              "[pusher_push_online.png](pusher_push_online.png).", ""]
-    if payload.get("note"):
-        lines += [str(payload["note"]), ""]
+    lines += note_lines(payload)
     lines += source_lines(name, payload) + ["", hil_table(payload["arms"]), ""]
     judged = payload["arms"].get("classifier", {})
     if judged:
@@ -513,8 +516,7 @@ def pusher7_probes_section(name: str, payload: dict) -> list[str]:
              "(BC weight 300, a tenth offline, 4 gradient steps per environment step, the corrector steering with "
              "a Cartesian stick, a shaky hand) the stage ends between 0.86 and 0.95: weights versions swing by a "
              "few points on the same 100 resets, and the failures stay near misses.", ""]
-    if payload.get("note"):
-        lines += [str(payload["note"]), ""]
+    lines += note_lines(payload)
     return lines + source_lines(name, payload) + ["", probes_table(payload), ""]
 
 
@@ -666,8 +668,7 @@ def flat_section(name: str, payload: dict) -> list[str]:
         elif flat_value(value) is not None:
             rows.append((key, flat_value(value)))
     lines = [f"## {title[0].upper()}{title[1:]}", "", *source_lines(name, payload), ""]
-    if payload.get("note"):
-        lines += [str(payload["note"]), ""]
+    lines += note_lines(payload)
     lines += ["| figure | value |", "| --- | --- |", *(f"| {k} | {v} |" for k, v in rows), ""]
     return lines
 
