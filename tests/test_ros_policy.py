@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import subprocess
 import time
@@ -225,9 +226,9 @@ def test_trainer_node_from_the_card_command_publishes_progress(spawn, data, tmp_
     assert bad.output().strip().splitlines()[-1].startswith("trainer: error:")
 
 
-@pytest.mark.slow
-def test_trainer_stops_on_ctrl_c_when_started_with_it_ignored(ros_env, data, tmp_path):
-    """A script's background job (`trainer ... &`) starts with SIGINT ignored; Ctrl-C / kill -INT still stops it."""
+def _ctrl_c_stops_the_trainer(ros_env, data, tmp_path, when: str) -> None:
+    """Start a long trainer with SIGINT ignored (as a script's background job is), wait
+    for a log line matching ``when``, send SIGINT: it must stop with 130 and say so."""
     import signal
 
     from ros2_shim.ament_index import ros2_run
@@ -241,7 +242,7 @@ def test_trainer_stops_on_ctrl_c_when_started_with_it_ignored(ros_env, data, tmp
             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
     try:
         deadline = time.monotonic() + 120
-        while "step" not in log.read_text() and proc.poll() is None and time.monotonic() < deadline:
+        while not re.search(when, log.read_text(), re.M) and proc.poll() is None and time.monotonic() < deadline:
             time.sleep(0.1)
         assert proc.poll() is None, log.read_text()
         proc.send_signal(signal.SIGINT)
@@ -258,6 +259,21 @@ def test_trainer_stops_on_ctrl_c_when_started_with_it_ignored(ros_env, data, tmp
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+@pytest.mark.slow
+def test_trainer_stops_on_ctrl_c_when_started_with_it_ignored(ros_env, data, tmp_path):
+    """A script's background job (`trainer ... &`) starts with SIGINT ignored; Ctrl-C / kill -INT
+    still stops it mid-training."""
+    _ctrl_c_stops_the_trainer(ros_env, data, tmp_path, when=r"^\s*step\s+\d+/")
+
+
+@pytest.mark.slow
+def test_trainer_stops_on_ctrl_c_during_set_up(ros_env, data, tmp_path):
+    """Ctrl-C while the trainer is still setting up (imports, the learner, the fast path)
+    stops it with 130 and one line, never a traceback of whatever import it landed in."""
+    _ctrl_c_stops_the_trainer(ros_env, data, tmp_path, when=r"^training bc on ")
+    assert "Traceback" not in (tmp_path / "trainer.log").read_text()
 
 
 @pytest.mark.slow

@@ -14,6 +14,25 @@ def raise_keyboard_interrupt(signum, frame) -> None:
     raise KeyboardInterrupt
 
 
+_received: list[int] = []  # the signals ``interrupt_and_remember`` has handled in this process
+
+
+def interrupt_and_remember(signum, frame) -> None:
+    """A signal handler that remembers the signal came, then raises KeyboardInterrupt.
+
+    The memory is for where the exception goes astray: raised inside an import's C code,
+    CPython can turn it into another error (a TypeError out of ``ImportError``), and a
+    library's ``except Exception`` fallback can swallow that. ``interrupt_received()``
+    still says a person asked to stop."""
+    _received.append(signum)
+    raise KeyboardInterrupt
+
+
+def interrupt_received() -> bool:
+    """Whether ``interrupt_and_remember`` has handled a signal in this process."""
+    return bool(_received)
+
+
 @contextmanager
 def sigterm_as_interrupt() -> Iterator[None]:
     """Within the block, SIGTERM raises KeyboardInterrupt; the previous handler comes back

@@ -11,9 +11,10 @@
   (``PROG: error: cannot parse --ros-args: REASON``).
 - Ctrl-C and SIGTERM end the node cleanly (exit 0 for a node that serves until stopped):
   rclpy's signal handlers shut the context down and the spin returns. A node whose work
-  runs in ``main`` itself (``runs_in_main``: ``node.run()``, the trainer) gets Python's signals instead, so
-  Ctrl-C interrupts that work as a KeyboardInterrupt (also when started with SIGINT
-  ignored, as a script's background job is); SIGTERM does the same.
+  runs in ``main`` itself (``runs_in_main``: ``node.run()``, the trainer) gets Python-level
+  handlers instead, so Ctrl-C interrupts that work as a KeyboardInterrupt (also when started
+  with SIGINT ignored, as a script's background job is) and is remembered
+  (``offline_rl_core.common.interrupts.interrupt_received``); SIGTERM does the same.
 - The spin ends when the node's ``finished`` future (if it has one) completes.
 - Before spinning, what set-up allocated is moved out of the garbage collector's reach
   (``gc.freeze``), so no collection pauses a node for tens of milliseconds.
@@ -40,7 +41,7 @@ from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
 from offline_rl_core.common.errors import UserError, caused_by_interrupt
-from offline_rl_core.common.interrupts import raise_keyboard_interrupt
+from offline_rl_core.common.interrupts import interrupt_and_remember
 
 from .params import Param, add_flags, overrides_from_flags
 from .shutdown import quiet_signals
@@ -86,10 +87,11 @@ def run_node(
     overrides = overrides_from_flags(flags, args)
     if runs_in_main:
         rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
-        # Python's own handler, also where the shell started this with SIGINT ignored (a
-        # background job of a script): Ctrl-C interrupts the work as a KeyboardInterrupt.
-        previous_int = signal.signal(signal.SIGINT, signal.default_int_handler)
-        previous_term = signal.signal(signal.SIGTERM, raise_keyboard_interrupt)
+        # A handler of our own, also where the shell started this with SIGINT ignored (a
+        # background job of a script): Ctrl-C interrupts the work as a KeyboardInterrupt,
+        # and the node can ask ``interrupt_received()`` where that exception went astray.
+        previous_int = signal.signal(signal.SIGINT, interrupt_and_remember)
+        previous_term = signal.signal(signal.SIGTERM, interrupt_and_remember)
     else:
         rclpy.init(args=argv)
     node = None

@@ -30,6 +30,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile
 from std_msgs.msg import String
 
 from offline_rl_core.common.errors import UserError
+from offline_rl_core.common.interrupts import interrupt_received
 from offline_rl_core.nodes.diagnostics import StatusDiagnosis
 from offline_rl_core.runs.training_run import (
     add_train_arguments, console_progress, run_training_from_args, summary_line,
@@ -68,6 +69,8 @@ class Trainer(Node):
         self.diagnosed_at = -float("inf")
 
     def report(self, p) -> None:
+        if interrupt_received():  # a Ctrl-C during set-up whose exception a library swallowed
+            raise KeyboardInterrupt
         self.console(p)
         report = {
             "step": int(p.step),
@@ -89,7 +92,10 @@ class Trainer(Node):
         args = argparse.Namespace(**self.settings.as_dict())
         try:
             out = run_training_from_args(args, progress=self.report)
-        except KeyboardInterrupt:
+        except (KeyboardInterrupt, Exception) as exc:
+            # a Ctrl-C that lands in an import's C code can come out as another error
+            if not (isinstance(exc, KeyboardInterrupt) or interrupt_received()):
+                raise
             print("trainer: interrupted; no checkpoint written", file=sys.stderr)
             return 130
         self.publish({"done": True, "out": str(out), "checkpoint": str(out / "policy.pt")})
