@@ -17,7 +17,9 @@ task's 100 held-out resets every ``--eval-every`` environment steps, with the in
 of each window. ``--in-process`` runs the same stage without ROS (no topics: a quicker look).
 A seed whose ``summary.json`` exists is not run again, so the script can be resumed. An arm is
 named by where it ran and the options it changed (``online_raw_topics_normalize_obs``); the JSON
-keeps the other arms it already holds, and the commands that made them. Writes the JSON (each seed's summary, the command and the machine), the plot beside it, and prints the
+keeps the other arms it already holds, and the commands that made them, with the digest of the
+task each arm ran on (``arm_task_digests``): once the task file changes, the arms measured
+on its earlier version stay as ``ARM@DIGEST``. Writes the JSON (each seed's summary, the command and the machine), the plot beside it, and prints the
 table of bench/RESULTS.md's section.
 """
 
@@ -92,6 +94,8 @@ def main() -> int:
     store: dict = json.loads(previous.read_text()) if previous.exists() else {}
     add_run_facts(store)  # the file's arms come from several commands: each joins its `commands`
     results: dict = store.setdefault("arms", {})
+    task = load_task(args.task)
+    mark_older_task_records(results, store.setdefault("arm_task_digests", {}), task.digest, store.get("task_digest"))
     results.pop(arm, None)  # this arm's seeds come from their summaries (a seed already run is read back)
     for seed in args.seeds:
         run_dir = out / f"seed{seed}" / arm
@@ -112,12 +116,24 @@ def main() -> int:
         if args.rescore and (run_dir / "summary.json").exists() and not args.in_process:
             rescore(run_dir)
         results.setdefault(arm, {})[str(seed)] = run(cmd, run_dir / "summary.json")
-        task = load_task(args.task)
         store.update(task=task.name, task_digest=task.digest)
+        store.setdefault("arm_task_digests", {})[arm] = task.digest
         write_json_atomic(args.json, store)
     print(hil_table(results))
     plot(results, Path(args.json).with_suffix(".png"), newest=arm)
     return 0
+
+
+def mark_older_task_records(records: dict, digests: dict, digest: str, default: str | None = None) -> None:
+    """A record (an arm, a probe) is its settings on one version of the task: one measured on
+    another (``digests[name]``, else ``default``: the file's digest from before they were
+    kept per record) stays as ``NAME@DIGEST``, so that it is neither overwritten by nor read
+    as the same settings on this task file."""
+    for name in list(records):
+        older = digests.setdefault(name, default)
+        if older not in (None, digest) and "@" not in name:
+            records[f"{name}@{older}"] = records.pop(name)
+            digests[f"{name}@{older}"] = digests.pop(name)
 
 
 def plot(results: dict, path: Path, newest: str | None = None) -> None:

@@ -11,8 +11,9 @@ with the scripted corrector, lockstep, the deterministic policy scored on the 10
 resets every 2,500 steps. Each variant changes one thing against ``baseline`` (the stage's
 defaults); a variant whose record is in the JSON is not run again. The final policy's
 failures are looked at too (``failures``: how near each failed episode came). Writes the JSON (each
-variant's curve, counts, settings, the command and the machine) and prints the table of
-bench/RESULTS.md's section.
+variant's curve, counts, settings, the command and the machine, with the digest of the task
+it ran on: once the task file changes, earlier variants stay as ``NAME@DIGEST``) and prints the
+table of bench/RESULTS.md's section.
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ from offline_rl_core.serving.policy import LoadedPolicy
 from offline_rl_core.task.corrector import CorrectorParams
 from offline_rl_core.task.envs import make_env
 from offline_rl_core.task.spec import load_task
+from pusher7_online import mark_older_task_records
 from results_page import probes_table
 
 TASK = "pusher7_reach"
@@ -127,7 +129,8 @@ def main() -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     offline_rl = [sys.executable, "-m", "offline_rl_core"]
-    bag, prior = out / "pusher7.db3", out / "prior" / "policy.pt"
+    digest = load_task(TASK).digest  # a changed task file records a new mix and trains a new prior
+    bag, prior = out / f"pusher7-{digest}.db3", out / f"prior-{digest}" / "policy.pt"
     if not bag.exists():
         subprocess.run([*offline_rl, "collect", "--task", TASK, "--episodes", "200", "--expert-frac", "0.3",
                         "--seed", "0", "--out", str(bag)], check=True)
@@ -140,6 +143,9 @@ def main() -> int:
 
     data = json.loads(path.read_text()) if path.exists() else {"task": TASK, "variants": {}}
     data.update(run_facts())
+    mark_older_task_records(data["variants"], data.setdefault("variant_task_digests", {}), digest,
+                            data.get("task_digest"))
+    data["task_digest"] = digest
     offline, checkpoint = read_transitions(bag), load_checkpoint(prior)
     for name in args.variants:
         if name in data["variants"]:
@@ -154,6 +160,7 @@ def main() -> int:
                                   "failures": failures(weights),
                                   "settings": {"online": asdict(cfg.settings), "corrector": asdict(cfg.corrector),
                                                "end_on_success": cfg.end_on_success}}
+        data["variant_task_digests"][name] = digest
         write_json_atomic(path, data)
     print(probes_table(data))
     return 0

@@ -61,7 +61,7 @@ def test_collect_another_task_records_it_in_the_bag(tmp_path, capsys):
     assert "200 transitions, 2 episodes" in capsys.readouterr().out
     assert recorded_task(out).digest == load_task("pusher7_reach").digest  # a bag that needs no --task
     data = read_transitions(out)
-    assert (data.obs.shape[1], data.action.shape[1]) == (17, 7)
+    assert (data.obs.shape[1], data.action.shape[1]) == (20, 7)
     assert data.success[data.episode == 0][-1] and list(np.unique(data.source)) == [0, 1]  # the expert reached
     assert cli.main(["bag-info", str(out)]) == 0
     assert "expert:      1 episodes" in capsys.readouterr().out

@@ -88,7 +88,7 @@ def test_eval_on_another_task_the_expert_and_a_checkpoint_of_its_size(tmp_path, 
     assert "obs_dim=8, act_dim=2); the task here is pusher7_reach (digest" in one_error_line(capsys)
     from offline_rl_core.task.spec import load_task
 
-    ckpt = make_checkpoint(tmp_path / "p7.pt", obs_dim=17, act_dim=7, task=load_task("pusher7_reach"))
+    ckpt = make_checkpoint(tmp_path / "p7.pt", obs_dim=20, act_dim=7, task=load_task("pusher7_reach"))
     assert main(["eval", "--task", "pusher7_reach", "--checkpoint", str(ckpt), "--episodes", "1", "--json",
                  str(out)]) == 0
     assert json.loads(out.read_text())["episodes"] == 1

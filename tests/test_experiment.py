@@ -192,4 +192,4 @@ def test_an_experiment_on_another_task_collects_and_evaluates_there(tmp_path):
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     assert metrics["task"] == "pusher7_reach" and tuple(sorted(set(metrics) - {"task", "task_digest"})) == METRIC_KEYS
     assert metrics["n_pooled"] == 2 and 0 <= metrics["bc_success_rate"] <= 1
-    assert torch.load(tmp_path / "bc.pt", weights_only=False)["obs_dim"] == 17
+    assert torch.load(tmp_path / "bc.pt", weights_only=False)["obs_dim"] == 20

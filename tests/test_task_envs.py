@@ -31,7 +31,7 @@ def env7() -> MujocoTaskEnv:
 
 
 def test_pusher7_is_gymnasiums_seven_joint_pusher_as_a_ros2_control_arm(env7):
-    assert (PUSHER7.obs_dim, PUSHER7.act_dim) == (17, 7)
+    assert (PUSHER7.obs_dim, PUSHER7.act_dim) == (20, 7)
     assert PUSHER7.state.topic == "joint_states" and PUSHER7.command.topic == "velocity_controller/commands"
     assert PUSHER7.command.interface == "velocity"  # the joints' own loop closed by the controller
     model = task_model(PUSHER7)
@@ -73,7 +73,9 @@ def test_the_expert_reaches_held_out_goals_and_the_fingertip_is_forward_kinemati
         assert info["success"] and info["dist"] < PUSHER7.reward.success_within / 10
         # what a policy node computes from joint_states is the env's fingertip, bit for bit
         assert np.array_equal(kinematics.point(fingertip, env7.joint_positions), env7.point_positions()["fingertip"])
-        assert np.array_equal(obs[14:], (env7.goal - env7.point_positions()["fingertip"]).astype(np.float32))
+        difference = env7.goal - env7.point_positions()["fingertip"]
+        assert np.array_equal(obs[14:17], difference.astype(np.float32))
+        assert np.array_equal(obs[17:], (difference / np.sqrt((difference ** 2).sum())).astype(np.float32))
 
 
 @pytest.mark.parametrize("name", ["pusher7_reach", "pusher_reach"])

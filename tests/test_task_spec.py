@@ -127,3 +127,21 @@ def test_a_joint_space_goal_meets_each_joint_in_its_own_order():
     np.testing.assert_allclose(obs[-2:], np.array([0.5 - 0.3, 0.4 - 0.1], np.float32))
     scored = features.score(task, positions, {"goal": goal}, [1], [False])
     assert scored.dist[0] == pytest.approx(np.hypot(0.2, 0.3))
+
+
+def test_a_direction_feature_is_the_unit_vector_and_zero_where_the_two_meet():
+    """``direction: [goal, joints]``: (goal - joints) / |goal - joints|, the same at a
+    centimetre as at a metre; exactly on the goal it is zero, never NaN."""
+    task = task_from_yaml(VELOCITY_ARM.replace("  - difference: [goal, joints]\n",
+                                                "  - difference: [goal, joints]\n  - direction: [goal, joints]\n"))
+    assert task.obs_dim == 3 * 2 + 3 + 3 + 3
+    assert task.observation_labels()[-3:] == ("dir(goal(j0)-pos(j0))", "dir(goal(j1)-pos(j1))", "dir(goal(j2)-pos(j2))")
+    positions = np.array([[0.1, -0.2, 0.3], [0.1, -0.2, 0.3], [0.5, 0.5, 0.5]])
+    goal = np.array([[0.4, 0.2, 0.3], [0.103, -0.196, 0.3], [0.5, 0.5, 0.5]])  # 0.5 rad, 5 mrad, on it
+    obs = features.observe(task, positions, np.zeros((3, 3)), {"goal": goal})
+    np.testing.assert_allclose(obs[0, -3:], [0.6, 0.8, 0.0], atol=1e-6)
+    np.testing.assert_allclose(obs[1, -3:], [0.6, 0.8, 0.0], atol=1e-4)
+    assert obs[2, -3:].tolist() == [0.0, 0.0, 0.0] and np.isfinite(obs).all()
+    with pytest.raises(UserError, match="field observation\\[3\\].direction: expected two vector names"):
+        task_from_yaml(VELOCITY_ARM.replace("  - difference: [goal, joints]\n",
+                                            "  - difference: [goal, joints]\n  - direction: [goal]\n"))

@@ -74,7 +74,13 @@ def observe(spec: TaskSpec, positions, velocities, vectors: dict[str, np.ndarray
             parts.append(vector(spec, f.args[0], positions, vectors))
         else:
             va, vb = pair(spec, *f.args, positions, vectors)
-            parts.append(va - vb)
+            delta = va - vb
+            if f.kind == "direction":
+                # a unit vector: as telling a centimetre from the goal as a metre, where the
+                # difference shrinks toward the resolution an MLP gives its inputs
+                length = distances(va, vb)[:, None]
+                delta = np.divide(delta, length, out=np.zeros_like(delta), where=length > 0)
+            parts.append(delta)
     return np.concatenate(parts, axis=1).astype(np.float32)
 
 

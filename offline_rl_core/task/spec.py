@@ -44,7 +44,7 @@ COMMAND_TYPES = (FLOAT64_MULTI_ARRAY, JOINT_STATE)
 GOAL_TYPES = (POINT_STAMPED, POSE_STAMPED, JOINT_STATE)
 POINT_TYPES = (POINT_STAMPED, POSE_STAMPED)
 AXES = ("x", "y", "z")
-FEATURES = ("positions", "cos_sin", "velocities", "vector", "difference")
+FEATURES = ("positions", "cos_sin", "velocities", "vector", "difference", "direction")
 STAMP_SOURCES = ("header", "receive")
 MATCH_MODES = ("exact", "nearest")
 SOURCE_CHOICES = ("auto", "expert", "random", "policy", "human")
@@ -248,7 +248,8 @@ class TaskSpec:
                 labels += self._vector_labels(f.args[0])
             else:
                 a, b = f.args
-                labels += [f"{x}-{y}" for x, y in zip(self._vector_labels(a, b), self._vector_labels(b, a))]
+                form = "{}-{}" if f.kind == "difference" else "dir({}-{})"
+                labels += [form.format(x, y) for x, y in zip(self._vector_labels(a, b), self._vector_labels(b, a))]
         return tuple(labels)
 
     def _vector_labels(self, name: str, partner: str | None = None) -> list[str]:
@@ -547,8 +548,7 @@ class _Reader:
 
     def observation(self, doc, spec: TaskSpec) -> tuple[Feature, ...]:
         if not isinstance(doc, list) or not doc:
-            raise self.error("observation", "a list of features (positions, cos_sin, velocities, vector, difference)",
-                             doc)
+            raise self.error("observation", "a list of features (" + ", ".join(FEATURES) + ")", doc)
         out = []
         for i, item in enumerate(doc):
             label = f"observation[{i}]"
@@ -570,14 +570,15 @@ class _Reader:
             elif kind == "vector":
                 self.vector_name(f"{label}.vector", args, spec)
                 out.append(Feature(kind, (args,)))
-            else:
-                pair = self.names(f"{label}.difference", args)
+            else:  # difference, direction: a pair of vectors
+                field = f"{label}.{kind}"
+                pair = self.names(field, args)
                 if len(pair) != 2:
-                    raise self.error(f"{label}.difference", "two vector names [a, b] (a - b)", args)
+                    raise self.error(field, "two vector names [a, b] (a - b)", args)
                 for v in pair:
-                    self.vector_name(f"{label}.difference", v, spec)
+                    self.vector_name(field, v, spec)
                 if spec.vector_size(pair[0], pair[1]) != spec.vector_size(pair[1], pair[0]):
-                    raise UserError(f"{self.where}: field {label}.difference: {pair[0]} has "
+                    raise UserError(f"{self.where}: field {field}: {pair[0]} has "
                                     f"{spec.vector_size(pair[0], pair[1])} values, {pair[1]} {spec.vector_size(pair[1], pair[0])}")
                 out.append(Feature(kind, pair))
         return tuple(out)
