@@ -392,6 +392,7 @@ class LearnerService:
         self.take_steps(quiet=True)
         path = self.save()
         if self.live is not None:
+            self._write_live_file()  # what close took too: live.json agrees with learner_state.pt
             self.log(f"learner: closed at {self.learner.n_steps} environment steps, {self.learner.n_online} "
                      f"transitions; live join {json.dumps(self.live.counts.as_dict())}")
         self.curves.hparams(self._settings(), {f"train/{k}": v for k, v in self.learner.losses.items()

@@ -62,6 +62,7 @@ from offline_rl_core.task.spec import DEFAULT_TASK, load_task
 from offline_rl_core.nodes.pairing import check_stamp
 from pusher_common.node_main import run_node
 from pusher_common.params import Param, Settings
+from pusher_common.readers import ReadersGate
 from pusher_common.scheduling import THREAD_PRIORITY, apply_thread_priority
 from pusher_common.stamps import stamp_key
 from pusher_common.status import NodeStatus
@@ -113,7 +114,7 @@ class Mux(Node):
         self.velocity = None  # and their speeds, for the soft limits
         self.last_sent = (None, None)  # (stamp, action) of the latest command sent
         # lockstep: nodes that must read the commands before the first goes (then never again)
-        self.wait_for_readers = set(self.settings.wait_for_readers or ()) if self.mode == "lockstep" else set()
+        self.readers_gate = ReadersGate(self, (self.settings.wait_for_readers or ()) if self.mode == "lockstep" else ())
         self.held: tuple | None = None  # (command, msg) decided while the readers were not there
         self.status = NodeStatus(self, fields=lambda: {"forwarded": dict(self.arbiter.counts),
                                                        "intervening": self.intervening,
@@ -132,9 +133,10 @@ class Mux(Node):
         self.policy_sub = self.create_subscription(JointState, "policy/action", self.on_policy, 10)
         self.teleop_sub = self.create_subscription(JointState, "teleop/action", self.on_teleop, 10)
         self.hold_timer = None
-        self.readers_timer = (self.create_timer(READERS_CHECK_PERIOD_S, self.send_held,
-                                                clock=Clock(clock_type=ClockType.STEADY_TIME)) if self.wait_for_readers
-                              else None)
+        self.readers_timer = None
+        if self.readers_gate.waiting:
+            self.readers_timer = self.create_timer(READERS_CHECK_PERIOD_S, self.send_held,
+                                                   clock=Clock(clock_type=ClockType.STEADY_TIME))
         if self.mode == "realtime":
             self.hold_timer = self.create_timer(hold_check_period(self.hold_s), self.check_hold)
             # wall time: a controller gone silent is a fault whatever the sim clock does
@@ -206,15 +208,13 @@ class Mux(Node):
     def readers_matched(self) -> bool:
         """Tell whether the nodes of ``wait_for_readers`` read both command topics.
 
-        A reader this node's graph lists is one its writer has matched: both come from one discovery.
+        And whether the writers have matched those readers (``pusher_common.readers``).
         """
-        if self.wait_for_readers:
-            for pub in self.command_pubs.values():
-                reading = {info.node_name for info in self.get_subscriptions_info_by_topic(pub.topic_name)}
-                if not self.wait_for_readers <= reading:
-                    return False
-            self.wait_for_readers = set()
-            self.get_logger().info("the command topics' readers are matched: forwarding")
+        if not self.readers_gate.waiting:
+            return True
+        if not self.readers_gate.open(self.command_pubs.values()):
+            return False
+        self.get_logger().info("the command topics' readers are matched: forwarding")
         return True
 
     def send_held(self) -> None:

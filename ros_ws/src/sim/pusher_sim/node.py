@@ -104,6 +104,7 @@ from offline_rl_core.common.rejections import Rejection
 from pusher_common.estop import EStopInput
 from pusher_common.node_main import run_node
 from pusher_common.params import Param, Settings
+from pusher_common.readers import ReadersGate
 from pusher_common.scheduling import THREAD_PRIORITY, apply_thread_priority
 from pusher_common.spin import spin_node_fast
 from pusher_common.stamps import NS_PER_S, stamp_from_ns, stamp_key
@@ -169,7 +170,7 @@ class PusherSim(Node):
         start_ns = int(s.start_time * NS_PER_S) if s.start_time > 0 else time.time_ns() // NS_PER_S * NS_PER_S
         self.mode = s.mode
         self.wait_for_subscribers = s.wait_for_subscribers
-        self.wait_for_readers = set(s.wait_for_readers or ())
+        self.readers_gate = ReadersGate(self, s.wait_for_readers or ())
         self.finished = Future()  # done when `episodes` episodes have run
         self.last_publish = 0.0
         self.timing = TickTiming(task.control_period)
@@ -438,16 +439,9 @@ class PusherSim(Node):
             if self.transition_pub.get_subscription_count() < self.wait_for_subscribers:
                 return False
             self.wait_for_subscribers = 0
-        if self.wait_for_readers:
-            # a reader this node's graph lists is one its writer has matched (both come
-            # from the same endpoint discovery). Every topic a join needs from the sim: a
-            # reader of the state whose goal reader was not matched yet lost the first goal
-            for pub in [self.state_pub, self.goal_pub, *(p for _, p, _ in self.point_pubs)]:
-                reading = {info.node_name for info in self.get_subscriptions_info_by_topic(pub.topic_name)}
-                if not self.wait_for_readers <= reading:
-                    return False
-            self.wait_for_readers = set()
-        return True
+        # every topic a join needs from the sim: a reader of the state whose goal reader was
+        # not matched yet lost the first goal
+        return self.readers_gate.open([self.state_pub, self.goal_pub, *(p for _, p, _ in self.point_pubs)])
 
     def on_tick(self) -> None:
         if self.finished.done():
