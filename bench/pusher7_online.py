@@ -19,8 +19,9 @@ A seed whose ``summary.json`` exists is not run again, so the script can be resu
 named by where it ran and the options it changed (``online_raw_topics_normalize_obs``); the JSON
 keeps the other arms it already holds, and the commands that made them, with the digest of the
 task each arm ran on (``arm_task_digests``): once the task file changes, the arms measured
-on its earlier version stay as ``ARM@DIGEST``. Writes the JSON (each seed's summary, the command and the machine), the plot beside it, and prints the
-table of bench/RESULTS.md's section.
+on its earlier version stay as ``ARM@DIGEST``. Writes the JSON (each seed's summary, the
+command and the machine), the plot beside it, and prints the table of bench/RESULTS.md's
+section.
 """
 
 from __future__ import annotations
@@ -95,7 +96,8 @@ def main() -> int:
     add_run_facts(store)  # the file's arms come from several commands: each joins its `commands`
     results: dict = store.setdefault("arms", {})
     task = load_task(args.task)
-    mark_older_task_records(results, store.setdefault("arm_task_digests", {}), task.digest, store.get("task_digest"))
+    digests: dict = store.setdefault("arm_task_digests", {})
+    mark_older_task_records(results, digests, task.digest, store.get("task_digest"))
     results.pop(arm, None)  # this arm's seeds come from their summaries (a seed already run is read back)
     for seed in args.seeds:
         run_dir = out / f"seed{seed}" / arm
@@ -117,7 +119,7 @@ def main() -> int:
             rescore(run_dir)
         results.setdefault(arm, {})[str(seed)] = run(cmd, run_dir / "summary.json")
         store.update(task=task.name, task_digest=task.digest)
-        store.setdefault("arm_task_digests", {})[arm] = task.digest
+        digests[arm] = task.digest
         write_json_atomic(args.json, store)
     print(hil_table(results))
     plot(results, Path(args.json).with_suffix(".png"), newest=arm)
