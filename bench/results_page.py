@@ -504,6 +504,48 @@ def push_online_section(name: str, payload: dict) -> list[str]:
     return lines + ["![success against environment steps](pusher_push_online.png)", ""]
 
 
+def push_bound_section(name: str, payload: dict) -> list[str]:
+    """Behaviour cloning of pusher_push's expert alone: what bounds learning it from corrections
+    (bench/push_bound.py)."""
+    lines = ["## What bounds the HIL-SERL stage on pusher_push", "",
+             "The online stage's actor learns the corrector's actions by a BC term beside its SAC objective, so how "
+             "well a network of its width copies the scripted expert bounds what that term gives. Here it copies "
+             "nothing else: behaviour cloning (`offline-rl train --algo bc --normalize-obs`) on logs of the expert "
+             "alone (`offline-rl collect --expert-frac 1 --seed 1000`), for 30,000 gradient steps, then the "
+             "deterministic policy on the 100 held-out resets. Failures: `near`, the puck ends within "
+             f"{payload['near_within']:g} x success_within of the goal; `pushed`, it moved but ends further; "
+             "`untouched`, it never moved. Variants of the task file: `direction` adds the unit vectors puck - "
+             "fingertip and goal - puck to the observation; `rate20` commands the arm at 20 Hz (control_period "
+             "0.05 s, 60 steps: the same 3 s); `direction_rate20` both.", ""]
+    lines += note_lines(payload)
+    lines += source_lines(name, payload) + [""]
+    lines += ["| variant | digest | control period s | steps per episode | obs | expert's success |",
+              "|---|---|---|---|---|---|"]
+    for v, rec in payload["variants"].items():
+        lines.append(f"| {v} | `{rec['task_digest']}` | {rec['control_period_s']:g} | {rec['max_steps']} "
+                     f"| {rec['obs_dim']} | {rec['expert_success']:.2f} |")
+    lines += ["", "| variant | expert episodes (transitions) | width | success [95 % Wilson] | failures: near / pushed "
+              "/ untouched | final distance m, median / p75 |", "|---|---|---|---|---|---|"]
+    for rec in payload["cells"].values():
+        f, d = rec["failures"], rec["final_dist_m"]
+        lines.append(f"| {rec['variant']} | {rec['expert_episodes']} ({rec['transitions']}) | {rec['hidden']} "
+                     f"| {rec['success']:.2f} [{rec['ci'][0]:.2f}, {rec['ci'][1]:.2f}] | {f['near']} / {f['pushed']} / "
+                     f"{f['untouched']} | {d['median']:.4f} / {d['p75']:.4f} |")
+    online = payload.get("online", {})
+    if online:
+        lines += ["", "The online stage itself on the same variants (`offline-rl hil --online --in-process`, seed 0, "
+                  "from each variant's `--algo auto` prior on its own 200-episode mix, 30 % expert, the scripted "
+                  "corrector; success without intervention on the 100 held-out resets):", "",
+                  "| variant | options | prior (its learner) | success along the run | best | at the end "
+                  "| corrector's steps |", "|---|---|---|---|---|---|---|"]
+        for v, rec in online.items():
+            along = ", ".join(f"{p['success']:.2f}" for p in rec["curve"])
+            lines.append(f"| {v} | `{rec['options']}` | {rec['prior_success']:.2f} ({rec['prior_algorithm']}) "
+                         f"| {along} (every {rec['curve'][1]['env_steps']:,} steps) | {rec['best']:.2f} "
+                         f"| {rec['final_success']:.2f} after {rec['env_steps']:,} | {rec['human_steps']:,} |")
+    return lines + [""]
+
+
 def pusher7_probes_section(name: str, payload: dict) -> list[str]:
     lines = ["## What bounds the HIL-SERL stage on pusher7_reach", "",
              "The in-process stage on seed 0 at the full budget (20,000 environment steps), one setting changed at a "
@@ -690,6 +732,7 @@ SECTIONS = {  # file -> its section, in the page's order (the speed sections fol
     "pusher7_online_probes.json": pusher7_probes_section,
     "pusher_push_report.json": push_experiment_section,
     "pusher_push_online.json": push_online_section,
+    "pusher_push_bound.json": push_bound_section,
     "crash_safety.json": crash_section,
     "gpu_ensemble.json": gpu_ensemble_section,
     "pusher7_ros.json": ros_pipeline_section,

@@ -1,0 +1,228 @@
+"""What bounds learning pusher_push from corrections: behaviour cloning of the scripted expert
+alone, on logs of N expert episodes, at the actor's width, on 100 held-out resets.
+
+The online stage's actor learns a person's (here the scripted corrector's) actions by a BC
+term beside its SAC objective. How well an MLP of the stage's width can copy the expert,
+given far more clean demonstrations than a session sees, bounds what that term can give:
+
+  .venv/bin/python bench/push_bound.py --variants pusher_push direction rate20 --json bench/pusher_push_bound.json
+
+A cell already in the --json file, measured on the same task file with the same steps, is
+kept, not trained again. ``--online-steps N`` also runs the online stage itself on each
+variant (``offline-rl hil --online --in-process``, seed 0, from the variant's auto prior on
+its own 200-episode mix, 30 % expert, with pusher7_reach's anchor: STAGE), to set beside
+what imitation alone gives.
+
+For each task variant, log size and width: `offline-rl collect --task T --episodes N
+--expert-frac 1 --seed 1000` (resets 1000.., far from the held-out 500000..), then `offline-rl
+train --algo bc --normalize-obs --hidden W --steps S`, then the deterministic policy on reset
+seeds 500000..500099, each failure put in one bin:
+
+- ``near``: the puck ends within 3 x success_within of the goal (precision);
+- ``pushed``: the puck moved (more than 3 mm) but ends further away;
+- ``untouched``: the puck never moved.
+
+Variants (copies of the task file written with its model into the work folder):
+``pusher_push`` as shipped; ``direction``: the observation adds ``direction: [puck,
+fingertip]`` and ``direction: [goal, puck]`` (the feature that lifted pusher7_reach);
+``rate20``: the arm commanded at 20 Hz instead of 50 (control_period 0.05 s, frame_skip 10,
+60 steps: the same 3 s), as HIL-SERL's arms act at 10 Hz; ``direction_rate20``: both.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from offline_rl_core.benchmarks.harness import add_run_facts
+from offline_rl_core.common.atomic import write_text_atomic
+from offline_rl_core.common.seeds import HELD_OUT
+from offline_rl_core.evaluation.rollouts import rollout_expert, round6
+from offline_rl_core.evaluation.stats import wilson_ci
+from offline_rl_core.serving.policy import load_policy
+from offline_rl_core.task.envs import make_env
+from offline_rl_core.task.spec import load_task
+
+BUILTIN = Path(__file__).resolve().parents[1] / "offline_rl_core" / "task" / "builtin"
+COLLECT_SEED = 1000
+MOVED_M = 0.003  # the puck moved this far: the arm pushed it
+NEAR = 3.0  # a failure within NEAR x success_within of the goal is one of precision
+DIRECTIONS = ("  - difference: [goal, puck]        # where it should go\n",
+              "  - direction: [puck, fingertip]\n  - direction: [goal, puck]\n")  # added after the first
+
+
+# variant -> the edits of pusher_push.yaml that make it (each must match the shipped file once)
+VARIANTS = {
+    "direction": [DIRECTIONS],
+    "rate20": [("control_period: 0.02", "control_period: 0.05"), ("  frame_skip: 4\n", "  frame_skip: 10\n"),
+               ("  max_steps: 150", "  max_steps: 60")],
+}
+VARIANTS["direction_rate20"] = VARIANTS["direction"] + VARIANTS["rate20"]
+
+
+def variant_task(name: str, work: Path) -> str:
+    """The task file (or built-in name) of a variant."""
+    if name == "pusher_push":
+        return name
+    if name not in VARIANTS:
+        raise SystemExit(f"push_bound: unknown variant {name!r} (pusher_push, {', '.join(VARIANTS)})")
+    text = (BUILTIN / "pusher_push.yaml").read_text().replace("name: pusher_push\n", f"name: pusher_push_{name}\n")
+    for old, new in VARIANTS[name]:
+        if text.count(old) != 1:
+            raise SystemExit(f"push_bound: pusher_push.yaml no longer holds {old.strip()!r} once; update VARIANTS")
+        text = text.replace(old, old + new if old == DIRECTIONS[0] else new)
+    folder = work / "tasks"
+    folder.mkdir(parents=True, exist_ok=True)
+    shutil.copy(BUILTIN / "pusher_push.xml", folder / "pusher_push.xml")
+    path = folder / f"pusher_push_{name}.yaml"
+    path.write_text(text)
+    return str(path)
+
+
+def offline_rl(*args: str) -> None:
+    cli = Path(sys.executable).with_name("offline-rl")
+    done = subprocess.run([str(cli), *args], capture_output=True, text=True)
+    if done.returncode != 0:
+        raise SystemExit(f"push_bound: offline-rl {' '.join(args)} failed:\n{done.stderr[-2000:]}")
+
+
+def score(policy_path: Path, task_arg: str, episodes: int) -> dict:
+    """The deterministic policy on the held-out resets, each failure binned (module docstring)."""
+    task = load_task(task_arg)
+    env, policy = make_env(task), load_policy(policy_path, task)
+    bins = {"success": 0, "near": 0, "pushed": 0, "untouched": 0}
+    finals = []
+    for seed in range(HELD_OUT, HELD_OUT + episodes):
+        obs, done, moved = env.reset(seed), False, False
+        start = env.puck.copy()
+        while not done:
+            obs, _, done, info = env.step(np.asarray(policy.act(obs[None]))[0])
+            moved = moved or float(np.linalg.norm(env.puck - start)) > MOVED_M
+        finals.append(info["dist"])
+        bins["success" if info["success"] else "near" if info["dist"] < NEAR * task.reward.success_within
+             else "pushed" if moved else "untouched"] += 1
+    lo, hi = wilson_ci(bins["success"], episodes)
+    return {"task_digest": task.digest, "success": round6(bins["success"] / episodes), "ci": [round6(lo), round6(hi)],
+            "failures": {k: v for k, v in bins.items() if k != "success"},
+            "final_dist_m": {"median": round6(np.median(finals)), "p75": round6(np.percentile(finals, 75))}}
+
+
+STAGE = ("--normalize-obs", "--imitate-expert", "--bc-weight", "100", "--lr-decay", "--offline-ratio", "0.25")
+
+
+def stage(task_arg: str, variant: str, args) -> dict:
+    """The online stage on the variant, in process, seed 0, from its own auto prior on its own
+    mixed log (200 episodes, 30 % expert), with the anchor that carried pusher7_reach (STAGE)."""
+    mix = args.work / f"{variant}-mix_s0_e0.3.db3"
+    if not mix.exists():
+        offline_rl("collect", "--task", task_arg, "--episodes", "200", "--expert-frac", "0.3", "--seed", "0",
+                   "--out", str(mix))
+    out = args.work / f"{variant}-online"
+    done = out / "summary.json"
+    if not (done.exists() and json.loads(done.read_text())["config"]["env_steps"] == args.online_steps):
+        offline_rl("hil", "--online", "--in-process", "--task", task_arg, "--bag", str(mix), "--seed", "0",
+                   "--env-steps", str(args.online_steps), "--eval-every", str(args.online_eval_every),
+                   "--logger", "none", "--out", str(out), *STAGE)  # a run already made is kept (resumes)
+    summary = json.loads(done.read_text())
+    curve = [{"env_steps": p["env_steps"], "success": p["success"], "intervention_rate": p["intervention_rate"]}
+             for p in summary["curve"]]
+    prior_metrics = Path(summary["prior"]).parent / "metrics.json"
+    algorithm = json.loads(prior_metrics.read_text())["algorithm"] if prior_metrics.exists() else None
+    return {"options": " ".join(STAGE), "prior_algorithm": algorithm,
+            "prior_success": summary["prior_success"], "best": max(p["success"] for p in curve),
+            "final_success": summary["final_success"], "human_steps": summary["counts"]["human"], "curve": curve}
+
+
+def without_note(command: str) -> str:
+    """The command that made the figures, without the page's note."""
+    words, kept = shlex.split(command), []
+    while words:
+        word = words.pop(0)
+        if word == "--note":
+            words = words[1:]
+        elif not word.startswith("--note="):
+            kept.append(word)
+    return shlex.join(kept)
+
+
+def write(args, store: dict) -> None:
+    """The JSON file, as it stands: after each cell, so a stopped run keeps what it measured."""
+    if args.json:
+        ordered = {**store, **{k: dict(sorted(store[k].items())) for k in ("variants", "cells")}}
+        write_text_atomic(args.json, json.dumps(ordered, indent=1) + "\n")
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--variants", nargs="+", default=["pusher_push", "direction"])
+    parser.add_argument("--episodes", nargs="+", type=int, default=[100, 400], help="expert episodes per log")
+    parser.add_argument("--widths", nargs="+", type=int, default=[256, 512], help="hidden widths")
+    parser.add_argument("--steps", type=int, default=30000, help="BC gradient steps")
+    parser.add_argument("--eval-episodes", type=int, default=100)
+    parser.add_argument("--work", type=Path, default=Path("runs/push-bound"))
+    parser.add_argument("--json", type=Path)
+    parser.add_argument("--online-steps", type=int, default=0,
+                        help="also run the online stage on each variant for this many environment steps (0: not)")
+    parser.add_argument("--note", help="what the figures say, for the page (kept until another note replaces it)")
+    parser.add_argument("--online-eval-every", type=int, default=2400, help="a multiple of every variant's episode")
+    args = parser.parse_args(argv)
+    store = json.loads(args.json.read_text()) if args.json and args.json.exists() else {}
+    add_run_facts(store)  # this command joins the file's; another CPU's figures are refused
+    store["commands"] = list(dict.fromkeys(without_note(c) for c in store["commands"]))
+    store.update(task="pusher_push", task_digest=load_task("pusher_push").digest, collect_seed=COLLECT_SEED,
+                 reset_seeds=[HELD_OUT, HELD_OUT + args.eval_episodes - 1], near_within=NEAR)
+    store.pop("command", None)
+    if args.note:
+        store["note"] = args.note
+    variants, cells = store.setdefault("variants", {}), store.setdefault("cells", {})
+    args.work.mkdir(parents=True, exist_ok=True)
+    for variant in args.variants:
+        task_arg = variant_task(variant, args.work)
+        task = load_task(task_arg)
+        expert = rollout_expert(task, range(HELD_OUT, HELD_OUT + args.eval_episodes))
+        variants[variant] = {"task_digest": task.digest, "control_period_s": task.control_period,
+                             "max_steps": task.episodes.max_steps, "obs_dim": task.obs_dim,
+                             "expert_success": round6(expert.successes / args.eval_episodes)}
+        for episodes in args.episodes:
+            bag = args.work / f"{variant}-expert{episodes}.db3"
+            if not bag.exists():
+                offline_rl("collect", "--task", task_arg, "--episodes", str(episodes), "--expert-frac", "1",
+                           "--seed", str(COLLECT_SEED), "--out", str(bag))
+            for width in args.widths:
+                key = f"{variant}/expert{episodes}/h{width}"
+                kept = cells.get(key, {})
+                if kept.get("task_digest") == task.digest and kept.get("bc_steps") == args.steps:
+                    continue  # measured by an earlier run on the same task file: kept (--json merges)
+                out = args.work / key.replace("/", "-")
+                start = time.perf_counter()
+                offline_rl("train", "--bag", str(bag), "--task", task_arg, "--algo", "bc", "--normalize-obs",
+                           "--hidden", str(width), "--steps", str(args.steps), "--eval-episodes", "0",
+                           "--out", str(out))
+                cells[key] = {"variant": variant, "expert_episodes": episodes,
+                              "transitions": episodes * task.episodes.max_steps, "hidden": width,
+                              "bc_steps": args.steps, "train_wall_s": round(time.perf_counter() - start, 1),
+                              **score(out / "policy.pt", task_arg, args.eval_episodes)}
+                print(key, json.dumps(cells[key]), flush=True)
+                write(args, store)  # each cell as it is measured
+        if args.online_steps:
+            online = store.setdefault("online", {})
+            kept = online.get(variant, {})
+            if kept.get("task_digest") != task.digest or kept.get("env_steps") != args.online_steps:
+                online[variant] = {"task_digest": task.digest, "env_steps": args.online_steps,
+                                   **stage(task_arg, variant, args)}
+                print(variant, "online", json.dumps(online[variant]), flush=True)
+                write(args, store)
+    write(args, store)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

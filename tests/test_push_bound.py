@@ -1,0 +1,53 @@
+"""bench/push_bound.py writes its task variants by editing the shipped pusher_push.yaml: each
+variant must still apply to the file as it is, load as a valid task, change what it says it
+changes (and nothing the others change), and leave an expert that pushes the puck home."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+from offline_rl_core.task.envs import expert_action, make_env
+from offline_rl_core.task.spec import load_task
+
+BENCH = Path(__file__).resolve().parents[1] / "bench"
+
+
+@pytest.fixture(scope="module")
+def push_bound():
+    spec = importlib.util.spec_from_file_location("push_bound", BENCH / "push_bound.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_each_variant_is_the_shipped_task_with_its_own_change(push_bound, tmp_path):
+    shipped = load_task("pusher_push")
+    assert push_bound.variant_task("pusher_push", tmp_path) == "pusher_push"
+    tasks = {name: load_task(push_bound.variant_task(name, tmp_path)) for name in push_bound.VARIANTS}
+    assert len({t.digest for t in tasks.values()} | {shipped.digest}) == len(tasks) + 1
+    for name, task in tasks.items():
+        directions = "direction" in name
+        assert task.obs_dim == shipped.obs_dim + (4 if directions else 0), name
+        assert task.control_period == (0.05 if "rate20" in name else shipped.control_period), name
+        # the same 3 s per episode at either rate
+        assert task.episodes.max_steps * task.control_period == pytest.approx(
+            shipped.episodes.max_steps * shipped.control_period), name
+        assert task.reward.success_within == shipped.reward.success_within, name
+
+
+def test_the_expert_pushes_the_puck_home_at_20_hz(push_bound, tmp_path):
+    env = make_env(load_task(push_bound.variant_task("rate20", tmp_path)))
+    for seed in (500000, 500001, 500002):
+        env.reset(seed)
+        done = False
+        while not done:
+            _, _, done, info = env.step(expert_action(env))
+        assert info["success"], seed
+
+
+def test_an_unknown_variant_is_refused_by_name(push_bound, tmp_path):
+    with pytest.raises(SystemExit, match="unknown variant 'bigger'"):
+        push_bound.variant_task("bigger", tmp_path)
