@@ -88,15 +88,13 @@ def variant_task(name: str, work: Path) -> str:
 
 
 def offline_rl(*args: str) -> None:
-    cli = Path(sys.executable).with_name("offline-rl")
-    done = subprocess.run([str(cli), *args], capture_output=True, text=True)
+    done = subprocess.run([sys.executable, "-m", "offline_rl_core", *args], capture_output=True, text=True)
     if done.returncode != 0:
         raise SystemExit(f"push_bound: offline-rl {' '.join(args)} failed:\n{done.stderr[-2000:]}")
 
 
-def score(policy_path: Path, task_arg: str, episodes: int) -> dict:
+def score(policy_path: Path, task, episodes: int) -> dict:
     """The deterministic policy on the held-out resets, each failure binned (module docstring)."""
-    task = load_task(task_arg)
     env, policy = make_env(task), load_policy(policy_path, task)
     bins = {"success": 0, "near": 0, "pushed": 0, "untouched": 0}
     finals = []
@@ -209,7 +207,7 @@ def main(argv=None) -> int:
                 cells[key] = {"variant": variant, "expert_episodes": episodes,
                               "transitions": episodes * task.episodes.max_steps, "hidden": width,
                               "bc_steps": args.steps, "train_wall_s": round(time.perf_counter() - start, 1),
-                              **score(out / "policy.pt", task_arg, args.eval_episodes)}
+                              **score(out / "policy.pt", task, args.eval_episodes)}
                 print(key, json.dumps(cells[key]), flush=True)
                 write(args, store)  # each cell as it is measured
         if args.online_steps:

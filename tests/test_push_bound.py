@@ -4,23 +4,16 @@ changes (and nothing the others change), and leave an expert that pushes the puc
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import pytest
+from bench_scripts import bench_script
 
 from offline_rl_core.task.envs import expert_action, make_env
 from offline_rl_core.task.spec import load_task
 
-BENCH = Path(__file__).resolve().parents[1] / "bench"
-
 
 @pytest.fixture(scope="module")
 def push_bound():
-    spec = importlib.util.spec_from_file_location("push_bound", BENCH / "push_bound.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return bench_script("push_bound")
 
 
 def test_each_variant_is_the_shipped_task_with_its_own_change(push_bound, tmp_path):

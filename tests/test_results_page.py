@@ -5,12 +5,12 @@ command that measured its figures and the machine (CPU model and flags) it ran o
 from __future__ import annotations
 
 import copy
-import importlib.util
 import json
 import sys
 from pathlib import Path
 
 import pytest
+from bench_scripts import bench_script
 
 REPO = Path(__file__).resolve().parents[1]
 BENCH = REPO / "bench"
@@ -18,10 +18,7 @@ BENCH = REPO / "bench"
 
 @pytest.fixture(scope="module")
 def page():
-    spec = importlib.util.spec_from_file_location("results_page", BENCH / "results_page.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return bench_script("results_page")
 
 
 def test_the_committed_page_is_what_the_committed_json_gives(page):
