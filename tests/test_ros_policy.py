@@ -188,22 +188,26 @@ def test_policy_answers_rejects_and_hot_reloads(spawn, data, tmp_path):
 
 @pytest.mark.slow
 def test_trainer_node_from_the_card_command_publishes_progress(spawn, data, tmp_path):
-    # The type is given so the listener subscribes at once, and the run is long enough
-    # (a few seconds of reports) that discovery has matched before it ends.
+    # The type is given so the listener subscribes at once; both topics latch their last
+    # reports (transient local), so a reader that matches after a short run's last report,
+    # while the trainer is still up, still gets it.
     from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.qos import DurabilityPolicy, QoSProfile
 
     echo = spawn(ros2("topic", "echo", "/trainer/progress", "std_msgs/msg/String", "--once", "--full-length"), "echo")
     out = tmp_path / "run"
     with probe_node("trainer_diagnostics") as node:
         seen = []  # the trainer's /diagnostics entries
         node.create_subscription(DiagnosticArray, "/diagnostics",
-                                 lambda msg: seen.extend(s for s in msg.status if s.name == "/trainer"), 10)
+                                 lambda msg: seen.extend(s for s in msg.status if s.name == "/trainer"),
+                                 QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL))
         trainer = spawn(
             ros2("run", "trainer", "--bag", data["bag"], "--algo", "awac", "--steps", 1500, "--hidden", 16,
                  "--batch-size", 32, "--log-every", 25, "--eval-episodes", 2, "--out", out),
             "trainer",
         )
         assert node.spin_until(lambda: seen or trainer.poll() is not None, 150), trainer.output()
+        node.spin_until(lambda: seen, 2)  # what arrived as the trainer exited, still queued
     assert seen, trainer.output()
     entry = seen[-1]
     assert entry.level == b"\x00" and entry.message.startswith("training awac: step "), entry.message

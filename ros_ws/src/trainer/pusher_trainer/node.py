@@ -12,7 +12,8 @@ given on the command line wins. Progress goes to the console and to ``~/progress
 
 and a last one with ``"done": true, "out": DIR, "checkpoint": DIR/policy.pt``. The same
 reports reach ``/diagnostics`` at most once a second (OK, "training awac: step 400 of 8000",
-the step, rate and losses as key-values).
+the step, rate and losses as key-values), the last one latched (transient local) for a
+monitor that joins late, as the progress topic's are.
 Exits 0 once the checkpoint is written, 2 on a bad bag or setting (one line), 130 when
 interrupted (Ctrl-C or SIGTERM) before the checkpoint is written.
 """
@@ -41,6 +42,7 @@ from pusher_common.params import Settings, params_from_parser
 
 # Transient local: a monitor that starts late still gets the latest reports (and "done").
 PROGRESS_QOS = QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+LATEST_DIAGNOSIS_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 def train_params():
@@ -64,8 +66,10 @@ class Trainer(Node):
         # the training loop holds the main thread (no executor): reports go out as they come,
         # at most once a second
         algo = self.settings.algo
-        self.diagnostics = NodeDiagnostics(self, status=dict, period_s=None, diagnosis=StatusDiagnosis(
-            idle=lambda st: f"training {algo}: step {st['step']} of {st['total']}"))
+        # its last entry latched too: a run of a few seconds can end before a monitor has matched
+        self.diagnostics = NodeDiagnostics(self, status=dict, period_s=None, qos=LATEST_DIAGNOSIS_QOS,
+                                           diagnosis=StatusDiagnosis(
+                                               idle=lambda st: f"training {algo}: step {st['step']} of {st['total']}"))
         self.diagnosed_at = -float("inf")
 
     def report(self, p) -> None:
@@ -99,7 +103,8 @@ class Trainer(Node):
             print("trainer: interrupted; no checkpoint written", file=sys.stderr)
             return 130
         self.publish({"done": True, "out": str(out), "checkpoint": str(out / "policy.pt")})
-        self.progress_pub.wait_for_all_acked(rclpy.duration.Duration(seconds=1.0))
+        for pub in (self.progress_pub, self.diagnostics.publisher):  # the matched readers have the last reports
+            pub.wait_for_all_acked(rclpy.duration.Duration(seconds=1.0))
         print(summary_line(out))
         return 0
 
