@@ -174,7 +174,7 @@ def curves(store: Store, expert_frac: float, learners: list[str], fractions=FRAC
                 assert cfg.lr_schedule == "constant", "auto with a schedule needs one run per budget"
             else:
                 cfg = TrainConfig(**LEARNERS[label])
-            rate = step_rate(cfg, data, print)
+            rate = step_rate(cfg, data, print, task)
             marks = {steps_for_budget(budget * f, rate): f for f in fractions}
             kept = {}
             run = replace(cfg, steps=max(marks), log_every=100)

@@ -14,6 +14,7 @@ from offline_rl_core.learners import TrainConfig, train_seeds
 from offline_rl_core.learners.data import goal_episode_rows, top_episode_rows
 from offline_rl_core.learners.normalize import fold, unfold
 from offline_rl_core.learners.schedule import lr_factor
+from offline_rl_core.task.spec import load_task
 from offline_rl_core.runs.prior import choose_recipe, plan_training, profile_bag, step_rate, steps_for_budget
 
 TINY = ["--hidden", "32", "--batch-size", "32", "--eval-episodes", "2", "--log-every", "50"]
@@ -161,6 +162,20 @@ def test_auto_stops_when_the_cloned_rows_need_no_more_steps(own_cache):
     assert plan["max_steps"] == 15700 == cfg.steps < plan["budget_steps"]  # 1000 passes over 500 rows
     bc, _ = plan_training(data, TrainConfig(algo="bc", batch_size=32, hidden=32), False, 1.0, None)
     assert bc.steps == steps_for_budget(1.0, step_rate(bc, data))  # a learner given by name: the budget alone
+
+
+def test_the_step_rate_of_filtered_bc_by_goal_is_measured_on_the_datas_own_task(own_cache):
+    """On a machine that has not measured it yet, the step rate of an auto plan that clones the
+    episodes ending at the goal is timed on the data's task: pusher_push's episodes end at the
+    goal by its columns, not by pusher_reach's (the first `--algo auto` on a new machine failed so)."""
+    data = collect_transitions(4, 1.0, 0, task="pusher_push")
+    task = load_task("pusher_push")
+    cfg = TrainConfig(algo="filtered_bc", filter_by="goal", batch_size=32, hidden=32)
+    with pytest.raises(ValueError, match="no episode of the data ends at the goal"):
+        goal_episode_rows(data)  # pusher_reach's columns
+    assert len(goal_episode_rows(data, task)) == len(data)
+    assert step_rate(cfg, data, lambda s: None, task) > 0
+    assert (own_cache / "step_rates.json").is_file()
 
 
 def test_the_online_stage_reuses_an_auto_prior_only_of_the_same_data_and_seed(tmp_path, own_cache, monkeypatch):

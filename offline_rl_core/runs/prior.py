@@ -123,11 +123,12 @@ def _step_kind(cfg: TrainConfig) -> tuple:
             cfg.correction_ratio is not None)
 
 
-def _time_ours(cfg: TrainConfig, data: Transitions, steps: int, warm: int) -> float:
-    """Seconds per step of ``cfg``'s learner on ``data`` after ``warm`` steps (set-up and recording)."""
+def _time_ours(cfg: TrainConfig, data: Transitions, steps: int, warm: int, task=None) -> float:
+    """Seconds per step of ``cfg``'s learner on ``data`` after ``warm`` steps (set-up and recording);
+    ``task``: the data's, which says where its episodes end at the goal (filtered BC by goal)."""
     marks = {}
     run = replace(cfg, steps=warm + steps, log_every=warm)  # steps: a multiple of warm
-    train(data, run, seed=0, snapshot=lambda step, elapsed, _: marks.__setitem__(step, elapsed))
+    train(data, run, seed=0, snapshot=lambda step, elapsed, _: marks.__setitem__(step, elapsed), task=task)
     return (marks[warm + steps] - marks[warm]) / steps
 
 
@@ -151,14 +152,16 @@ def _time_chapter(data: Transitions, steps: int, threads: int) -> float:
     return (times[1] - times[0]) / steps
 
 
-def step_rate(cfg: TrainConfig, data: Transitions, log: Callable[[str], None] = lambda s: None) -> float:
-    """Steps per second of ``cfg``'s learner on this machine (measured once, then cached)."""
+def step_rate(cfg: TrainConfig, data: Transitions, log: Callable[[str], None] = lambda s: None,
+              task=None) -> float:
+    """Steps per second of ``cfg``'s learner on this machine (measured once, then cached), timed
+    on ``data`` of ``task`` (a ``TaskSpec``; default pusher_reach)."""
     key = machine_key("ours", *_step_kind(cfg))
     cache = read_cache(CACHE_FILE)
     if key not in cache:
         log("measuring this learner's step rate on this machine (once; cached in ~/.cache/pusher-rl)")
         bc_like = cfg.algo in ("bc", "filtered_bc")
-        samples = [_time_ours(cfg, data, 400 if bc_like else 100, 20) for _ in range(3)]
+        samples = [_time_ours(cfg, data, 400 if bc_like else 100, 20, task) for _ in range(3)]
         write_cache(key, {"steps_per_s": round(1.0 / statistics.median(samples), 3), "what": list(map(str, _step_kind(cfg))),
                           "measured": time.strftime("%Y-%m-%dT%H:%M:%S")}, CACHE_FILE)
         cache = read_cache(CACHE_FILE)
@@ -215,7 +218,7 @@ def plan_training(data: Transitions, cfg: TrainConfig, auto: bool, budget_s: flo
         if budget_s is None:
             budget_s = chapter_awac_seconds(data, log)
             budget_from = DEFAULT_BUDGET_FROM
-        rate = step_rate(cfg, data, log)
+        rate = step_rate(cfg, data, log, task)
         budget_steps = steps_for_budget(budget_s, rate)
         cap = recipe.max_steps(cfg.batch_size) if recipe is not None else None
         cfg = replace(cfg, steps=budget_steps if cap is None else min(cap, budget_steps))
