@@ -129,6 +129,37 @@ def test_a_joint_space_goal_meets_each_joint_in_its_own_order():
     assert scored.dist[0] == pytest.approx(np.hypot(0.2, 0.3))
 
 
+def test_along_across_is_the_offset_in_the_frame_of_the_line_whichever_way_it_runs():
+    """``along_across: [fingertip, puck, goal]``: the fingertip's offset from the puck, along
+    the line from the puck to the goal and across it (to its left); the same numbers when the
+    whole scene turns, zero where puck and goal meet, and only planar vectors."""
+    from pathlib import Path
+
+    import offline_rl_core.task as task_pkg
+
+    shipped = (Path(task_pkg.__file__).parent / "builtin" / "pusher_push.yaml").read_text()
+    line = "  - difference: [goal, puck]        # where it should go\n"
+    assert line in shipped
+    text = shipped.replace(line, line + "  - along_across: [fingertip, puck, goal]\n")
+    task = task_from_yaml(text, "push_frame.yaml")
+    assert task.obs_dim == load_task("pusher_push").obs_dim + 2
+    assert task.observation_labels()[-2:] == ("along(fingertip-puck|goal-puck)", "across(fingertip-puck|goal-puck)")
+
+    def frame(fingertip, puck, goal):
+        vectors = {"fingertip": np.array([fingertip]), "puck": np.array([puck]), "goal": np.array([goal])}
+        return features.observe(task, np.zeros((1, 2)), np.zeros((1, 2)), vectors)[0, -2:]
+
+    # behind the puck (1 cm) and 2 mm to the right of a line running along +x
+    np.testing.assert_allclose(frame([0.09, -0.002], [0.1, 0.0], [0.2, 0.0]), [-0.01, -0.002], atol=1e-7)
+    turned = lambda v: [-v[1], v[0]]  # noqa: E731 - the same scene a quarter turn round
+    np.testing.assert_allclose(frame(turned([0.09, -0.002]), turned([0.1, 0.0]), turned([0.2, 0.0])),
+                               [-0.01, -0.002], atol=1e-7)
+    assert frame([0.09, 0.0], [0.1, 0.0], [0.1, 0.0]).tolist() == [0.0, 0.0]
+    with pytest.raises(UserError, match="push_frame.yaml: field observation\\[4\\].along_across: "
+                                        "expected three vector names"):
+        task_from_yaml(shipped.replace(line, line + "  - along_across: [fingertip, puck]\n"), "push_frame.yaml")
+
+
 def test_a_direction_feature_is_the_unit_vector_and_zero_where_the_two_meet():
     """``direction: [goal, joints]``: (goal - joints) / |goal - joints|, the same at a
     centimetre as at a metre; exactly on the goal it is zero, never NaN."""

@@ -72,6 +72,8 @@ def observe(spec: TaskSpec, positions, velocities, vectors: dict[str, np.ndarray
             parts.append(velocities[:, [index[j] for j in f.args]])
         elif f.kind == "vector":
             parts.append(vector(spec, f.args[0], positions, vectors))
+        elif f.kind == "along_across":
+            parts.append(along_across(*(vector(spec, v, positions, vectors) for v in f.args)))
         else:
             va, vb = pair(spec, *f.args, positions, vectors)
             delta = va - vb
@@ -84,6 +86,18 @@ def observe(spec: TaskSpec, positions, velocities, vectors: dict[str, np.ndarray
     return np.concatenate(parts, axis=1).astype(np.float32)
 
 
+def along_across(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """(N, 2): ``a - b`` along the unit vector from ``b`` to ``c`` and across it (its left
+    normal), zero where ``b`` and ``c`` meet. A pusher's fingertip seen from the puck on the
+    line to the goal: behind it, or off it to one side, whichever way the line runs, which a
+    network reading the two differences must otherwise learn as a product of them."""
+    line = c - b
+    length = distances(c, b)[:, None]
+    u = np.divide(line, length, out=np.zeros_like(line), where=length > 0)
+    d = a - b
+    return np.stack([d[:, 0] * u[:, 0] + d[:, 1] * u[:, 1], d[:, 1] * u[:, 0] - d[:, 0] * u[:, 1]], axis=1)
+
+
 def feature_widths(spec: TaskSpec) -> list[int]:
     """How many observation values each feature of ``spec.observation`` gives, in order."""
     widths = []
@@ -94,6 +108,8 @@ def feature_widths(spec: TaskSpec) -> list[int]:
             widths.append(len(f.args))
         elif f.kind == "vector":
             widths.append(spec.vector_size(f.args[0]))
+        elif f.kind == "along_across":
+            widths.append(2)
         else:
             widths.append(spec.vector_size(f.args[0], f.args[1]))
     return widths

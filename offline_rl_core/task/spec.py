@@ -44,7 +44,7 @@ COMMAND_TYPES = (FLOAT64_MULTI_ARRAY, JOINT_STATE)
 GOAL_TYPES = (POINT_STAMPED, POSE_STAMPED, JOINT_STATE)
 POINT_TYPES = (POINT_STAMPED, POSE_STAMPED)
 AXES = ("x", "y", "z")
-FEATURES = ("positions", "cos_sin", "velocities", "vector", "difference", "direction")
+FEATURES = ("positions", "cos_sin", "velocities", "vector", "difference", "direction", "along_across")
 STAMP_SOURCES = ("header", "receive")
 MATCH_MODES = ("exact", "nearest")
 SOURCE_CHOICES = ("auto", "expert", "random", "policy", "human")
@@ -246,6 +246,9 @@ class TaskSpec:
                 labels += [f"vel({j})" for j in f.args]
             elif f.kind == "vector":
                 labels += self._vector_labels(f.args[0])
+            elif f.kind == "along_across":
+                a, b, c = f.args
+                labels += [f"along({a}-{b}|{c}-{b})", f"across({a}-{b}|{c}-{b})"]
             else:
                 a, b = f.args
                 form = "{}-{}" if f.kind == "difference" else "dir({}-{})"
@@ -570,6 +573,18 @@ class _Reader:
             elif kind == "vector":
                 self.vector_name(f"{label}.vector", args, spec)
                 out.append(Feature(kind, (args,)))
+            elif kind == "along_across":  # a - b in the frame of the line from b to c: planar vectors
+                field = f"{label}.{kind}"
+                names = self.names(field, args)
+                if len(names) != 3:
+                    raise self.error(field, "three vector names [a, b, c] (a - b along and across c - b)", args)
+                for v in names:
+                    self.vector_name(field, v, spec)
+                for v in names:
+                    if spec.vector_size(v) != 2:
+                        raise UserError(f"{self.where}: field {field}: {v} has {spec.vector_size(v)} values; "
+                                        "along_across takes planar vectors of two (x, y)")
+                out.append(Feature(kind, names))
             else:  # difference, direction: a pair of vectors
                 field = f"{label}.{kind}"
                 pair = self.names(field, args)
