@@ -4,6 +4,7 @@ expected, exit code 2, no traceback, and nothing already written lost or replace
 from __future__ import annotations
 
 import hashlib
+import json
 import shutil
 from pathlib import Path
 
@@ -181,6 +182,9 @@ def test_hil_takes_its_defaults_by_mode_and_refuses_the_other_modes_flags(capsys
                           str(tmp_path / "o")], "--corrector-noise: the scripted corrector's shaky hand"),
                         (["hil", "--online", "--offline-ratio", "1.5", "--out", str(tmp_path / "o")],
                          "--offline-ratio must be in [0, 1], got 1.5"),
+                        (["hil", "--online", "--patience", "0", "--out", str(tmp_path / "o")],
+                         "--patience must be >= 1, got 0"),
+                        (["hil", "--online", "--grace-steps", "3"], "--grace-steps: only without --online"),
                         (["hil", "--online", "--steer", "stick", "--corrector", "none", "--out", str(tmp_path / "o")],
                          "--steer stick: how the scripted corrector takes over; only with --corrector scripted"),
                         (["hil", "--online", "--steer", "stick", "--task", "pusher_push", "--env-steps", "150",
@@ -195,6 +199,7 @@ def test_hil_takes_its_defaults_by_mode_and_refuses_the_other_modes_flags(capsys
     assert explicit.out == "runs/hil" and explicit.env_steps == 20000 and explicit.rounds is None
     assert explicit.bc_weight == 3.0 and explicit.lr_decay is False  # the learner's own defaults
     assert explicit.steer == "expert" and explicit.offline_ratio == 0.5 and explicit.corrector_noise == 0.0
+    assert (explicit.patience, explicit.hold_steps) == (8, 25)  # the scripted corrector's, in either mode
     default = parser.parse_args(["hil"])
     _resolve_mode_flags(default)
     assert default.out == "runs/hil" and default.rounds == 3 and default.bag == [str(PROJECT_BAG)]
@@ -202,6 +207,24 @@ def test_hil_takes_its_defaults_by_mode_and_refuses_the_other_modes_flags(capsys
     online = parser.parse_args(["hil", "--online"])
     _resolve_mode_flags(online)
     assert online.out == "runs/hil-online"
+
+
+def test_the_online_stage_takes_the_correctors_patience_and_hold(tiny, tmp_path):
+    """--patience and --hold-steps reach the online stage's scripted corrector: one that waits
+    longer than an episode never takes over; one that holds for a whole episode takes over at
+    most once in it."""
+    def stage(name, *flags):
+        out = tmp_path / name
+        assert cli.main(["hil", "--online", "--in-process", "--no-prior", "--bag", str(tiny["bag"]), "--env-steps",
+                         "200", "--publish-every", "25", "--eval-every", "100", "--eval-episodes", "1",
+                         "--logger", "none", "--out", str(out), *flags]) == 0
+        summary = json.loads((out / "summary.json").read_text())
+        return summary["config"], summary["counts"]
+
+    config, never = stage("patient", "--patience", "1000")
+    assert config["patience"] == 1000 and never["human"] == never["takeovers"] == 0
+    config, held = stage("holding", "--patience", "2", "--hold-steps", "100")
+    assert config["hold_steps"] == 100 and 0 < held["takeovers"] <= held["episodes"] == 2 and held["human"] > 0
 
 
 def test_bad_actor_counts_are_one_line_before_anything_starts(capsys, tmp_path):

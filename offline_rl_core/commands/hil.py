@@ -15,8 +15,8 @@ from ..runs.loggers import DEFAULT_LOGGER, LOGGERS
 
 # Flags of one mode only: their defaults are filled in by mode, so that one given to the
 # other mode is refused instead of silently ignored.
-OFFLINE_ONLY = ("rounds", "episodes", "steps", "correction_ratio", "beta", "patience", "hold_steps", "grace_steps",
-                "noise", "reaction_delay")
+OFFLINE_ONLY = ("rounds", "episodes", "steps", "correction_ratio", "beta", "grace_steps", "noise", "reaction_delay")
+BOTH_MODES = ("patience", "hold_steps")  # the scripted corrector's, in either mode
 ONLINE_ONLY = ("env_steps", "corrector", "mode", "prior_algo", "no_prior", "utd", "publish_every", "eval_every",
                "in_process", "from_topics", "success", "end_on_success", "actors", "imitate_expert",
                "critic_warmup", "normalize_obs", "bc_weight", "lr_decay", "steer", "offline_ratio", "corrector_noise")
@@ -30,7 +30,7 @@ def _resolve_mode_flags(args) -> None:
         flags = ", ".join("--" + name.replace("_", "-") for name in given)
         raise UserError(f"{flags}: only with{'out' if args.online else ''} --online; "
                         f"{'the online stage' if args.online else 'the offline rounds'} do not use it")
-    for name in ours:
+    for name in ours + BOTH_MODES:
         if getattr(args, name) is None:
             setattr(args, name, getattr(defaults, name))
     if args.out is None:
@@ -61,8 +61,9 @@ def _run_online(args) -> int:
         seed=args.seed, prior=args.prior, no_prior=args.no_prior, prior_steps=args.prior_steps,
         prior_algo=args.prior_algo,
         bags=args.bag, task=args.task, corrector=args.corrector, steer=args.steer, mode=args.mode, utd=args.utd,
-        offline_ratio=args.offline_ratio, corrector_noise=args.corrector_noise,
-        publish_every=args.publish_every, eval_every=args.eval_every, eval_episodes=args.eval_episodes,
+        offline_ratio=args.offline_ratio, corrector_noise=args.corrector_noise, patience=args.patience,
+        hold_steps=args.hold_steps, publish_every=args.publish_every, eval_every=args.eval_every,
+        eval_episodes=args.eval_episodes,
         eval_seed=args.eval_seed, in_process=args.in_process, from_topics=args.from_topics, success=args.success,
         end_on_success=args.end_on_success, actors=args.actors, imitate_expert=args.imitate_expert,
         critic_warmup=args.critic_warmup, normalize_obs=args.normalize_obs, bc_weight=args.bc_weight,
@@ -110,9 +111,10 @@ def register(subparsers) -> None:
     r.add_argument("--correction-ratio", type=float,
                    help=f"share of each batch from correction runs (default: {d.correction_ratio})")
     r.add_argument("--beta", type=float, help=f"AWAC temperature of the retraining (default: {d.beta})")
-    c = p.add_argument_group("scripted corrector of the offline rounds")
+    c = p.add_argument_group("scripted corrector (--patience and --hold-steps also online; count the task's steps)")
     c.add_argument("--patience", type=int, help=f"k: steps without progress before a takeover (default: {d.patience})")
-    c.add_argument("--hold-steps", type=int, help=f"m: steps before handing back (default: {d.hold_steps})")
+    c.add_argument("--hold-steps", type=int, help=f"m: steps before handing back; online, a takeover's steps also "
+                   f"end at the episode's end (default: {d.hold_steps})")
     c.add_argument("--grace-steps", type=int,
                    help=f"states at an episode's start before progress is judged (default: {d.grace_steps})")
     c.add_argument("--noise", type=float, help=f"std of noise on the corrections (default: {d.noise})")

@@ -71,6 +71,10 @@ class OnlineHilConfig:
     corrector: str = "scripted"  # scripted | keyboard | none
     steer: str = "expert"  # how the scripted corrector takes over (task.corrector.STEERS)
     corrector_noise: float = 0.0  # std of Gaussian noise on the scripted corrector's actions (a shaky hand)
+    # the scripted corrector's rule (task.corrector.CorrectorParams), in the task's steps: a takeover after
+    # ``patience`` steps without progress, handed back after ``hold_steps``
+    patience: int = CorrectorParams.patience
+    hold_steps: int = CorrectorParams.hold_steps
     mode: str = "lockstep"  # lockstep (paced, reproducible) | realtime (50 Hz)
     utd: int = 2
     offline_ratio: float = 0.5  # share of each batch from the offline bag (OnlineSettings; RLPD's symmetric half)
@@ -128,6 +132,9 @@ class OnlineHilConfig:
             raise UserError(f"--steer must be one of {', '.join(STEERS)}, got {self.steer!r}")
         if not self.corrector_noise >= 0.0:
             raise UserError(f"--corrector-noise must be >= 0, got {self.corrector_noise}")
+        for name in ("patience", "hold_steps"):
+            if int(getattr(self, name)) < 1:
+                raise UserError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
         if self.corrector_noise > 0 and self.corrector != "scripted":
             raise UserError(f"--corrector-noise: the scripted corrector's shaky hand; only with --corrector scripted, "
                             f"got --corrector {self.corrector}")
@@ -258,7 +265,8 @@ def _in_process(cfg: OnlineHilConfig, task, prior_path: Path | None, log, curves
     run = run_online(offline, prior, OnlineRunConfig(
         env_steps=cfg.env_steps, seed=cfg.seed, corrections=cfg.corrector != "none", eval_every=cfg.eval_every,
         eval_episodes=cfg.eval_episodes, eval_seed=cfg.eval_seed,
-        corrector=CorrectorParams(steer=cfg.steer, noise=cfg.corrector_noise),
+        corrector=CorrectorParams(steer=cfg.steer, noise=cfg.corrector_noise, patience=cfg.patience,
+                                  hold_steps=cfg.hold_steps),
         settings=OnlineSettings(utd=cfg.utd, offline_ratio=cfg.offline_ratio, publish_every=cfg.publish_every,
                                 imitate_expert=cfg.imitate_expert,
                                 critic_warmup=cfg.critic_warmup, lr_decay_steps=_lr_decay_steps(cfg)),
@@ -289,7 +297,8 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
         # realtime: the nodes that answer the arm go first (where the user may use SCHED_FIFO)
         "thread_priority": 0 if lockstep else REALTIME_THREAD_PRIORITY, "reset_seed": TRAIN_SEED_BASE + 10000 * cfg.seed, "episodes": episodes,
         "snapshot_every": cfg.eval_every, "corrector": cfg.corrector, "steer": cfg.steer,
-        "corrector_noise": cfg.corrector_noise, "logger": logger,
+        "corrector_noise": cfg.corrector_noise, "patience": cfg.patience, "hold_steps": cfg.hold_steps,
+        "logger": logger,
         "from_topics": "true" if cfg.raw_topics else "false",
         "success": str(Path(cfg.success).resolve()) if cfg.success else "",
         "record_topics": _record_topics(cfg) if cfg.raw_topics else "",
