@@ -11,7 +11,8 @@ A cell already in the --json file, measured on the same task file with the same 
 kept, not trained again. ``--online-steps N`` also runs the online stage itself on each
 variant (``offline-rl hil --online --in-process``, seed 0, from the variant's auto prior on
 its own 200-episode mix, 30 % expert, with pusher7_reach's anchor: STAGE), to set beside
-what imitation alone gives.
+what imitation alone gives; ``--patience K --hold-steps M`` set its scripted corrector's rule
+(an entry of its own).
 
 For each task variant, log size and width: `offline-rl collect --task T --episodes N
 --expert-frac 1 --seed 1000` (resets 1000.., far from the held-out 500000..), then `offline-rl
@@ -26,7 +27,21 @@ Variants (copies of the task file written with its model into the work folder):
 ``pusher_push`` as shipped; ``direction``: the observation adds ``direction: [puck,
 fingertip]`` and ``direction: [goal, puck]`` (the feature that lifted pusher7_reach);
 ``rate20``: the arm commanded at 20 Hz instead of 50 (control_period 0.05 s, frame_skip 10,
-60 steps: the same 3 s), as HIL-SERL's arms act at 10 Hz; ``direction_rate20``: both.
+60 steps: the same 3 s), as HIL-SERL's arms act at 10 Hz; ``direction_rate20``: both;
+``direction_frame``: the directions and ``along_across: [fingertip, puck, goal]`` (the
+fingertip seen from the puck, along and across its line to the goal); ``direction_frame_rate20``:
+those at 20 Hz.
+
+``--dagger ROUNDS`` measures the most a corrector's labels can teach an actor of each width:
+DAgger with every state labelled, where a person takes over only some. BC (deterministic,
+fp32) on ``--dagger-demos`` expert episodes, then each round the policy acts for
+``--dagger-round-steps`` environment steps (whole episodes) while the expert labels every
+state it visits, and BC goes on from the last weights on all labels so far for
+``--dagger-steps``; success on the held-out resets every third round, against environment
+steps (the demonstrations' included), as the online stage's budget counts them:
+
+  .venv/bin/python bench/push_bound.py --variants pusher_push direction_frame direction_frame_rate20 \
+      --episodes --widths 256 --dagger 16 --json bench/pusher_push_dagger.json
 """
 
 from __future__ import annotations
@@ -38,6 +53,7 @@ import shutil
 import subprocess
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -45,10 +61,13 @@ import numpy as np
 from offline_rl_core.benchmarks.harness import add_run_facts
 from offline_rl_core.common.atomic import write_text_atomic
 from offline_rl_core.common.seeds import HELD_OUT
-from offline_rl_core.evaluation.rollouts import rollout_expert, round6
+from offline_rl_core.data.transitions import SOURCE_EXPERT, Transitions
+from offline_rl_core.evaluation.rollouts import rollout_expert, rollout_task, round6
 from offline_rl_core.evaluation.stats import wilson_ci
 from offline_rl_core.serving.policy import load_policy
-from offline_rl_core.task.envs import make_env
+from offline_rl_core.learners.config import TrainConfig
+from offline_rl_core.learners.loop import train as loop_train
+from offline_rl_core.task.envs import expert_action, make_env
 from offline_rl_core.task.spec import load_task
 
 BUILTIN = Path(__file__).resolve().parents[1] / "offline_rl_core" / "task" / "builtin"
@@ -66,6 +85,8 @@ VARIANTS = {
                ("  max_steps: 150", "  max_steps: 60")],
 }
 VARIANTS["direction_rate20"] = VARIANTS["direction"] + VARIANTS["rate20"]
+VARIANTS["direction_frame"] = [(DIRECTIONS[0], DIRECTIONS[1] + "  - along_across: [fingertip, puck, goal]\n")]
+VARIANTS["direction_frame_rate20"] = VARIANTS["direction_frame"] + VARIANTS["rate20"]
 
 
 def variant_task(name: str, work: Path) -> str:
@@ -78,7 +99,7 @@ def variant_task(name: str, work: Path) -> str:
     for old, new in VARIANTS[name]:
         if text.count(old) != 1:
             raise SystemExit(f"push_bound: pusher_push.yaml no longer holds {old.strip()!r} once; update VARIANTS")
-        text = text.replace(old, old + new if old == DIRECTIONS[0] else new)
+        text = text.replace(old, old + new if old == DIRECTIONS[0] else new)  # features go after the line
     folder = work / "tasks"
     folder.mkdir(parents=True, exist_ok=True)
     shutil.copy(BUILTIN / "pusher_push.xml", folder / "pusher_push.xml")
@@ -116,6 +137,18 @@ def score(policy_path: Path, task, episodes: int) -> dict:
 STAGE = ("--normalize-obs", "--imitate-expert", "--bc-weight", "100", "--lr-decay", "--offline-ratio", "0.25")
 
 
+def corrector_flags(args) -> tuple[str, ...]:
+    """The scripted corrector's rule where it is not the stage's default."""
+    return tuple(word for flag, value in (("--patience", args.patience), ("--hold-steps", args.hold_steps))
+                 if value for word in (flag, str(value)))
+
+
+def online_key(variant: str, args) -> str:
+    """The stage's entry: the variant, and the corrector's rule where it is not the default."""
+    flags = corrector_flags(args)
+    return variant + ("/" + "_".join(f.strip("-") for f in flags) if flags else "")
+
+
 def stage(task_arg: str, variant: str, args) -> dict:
     """The online stage on the variant, in process, seed 0, from its own auto prior on its own
     mixed log (200 episodes, 30 % expert), with the anchor that carried pusher7_reach (STAGE)."""
@@ -123,20 +156,75 @@ def stage(task_arg: str, variant: str, args) -> dict:
     if not mix.exists():
         offline_rl("collect", "--task", task_arg, "--episodes", "200", "--expert-frac", "0.3", "--seed", "0",
                    "--out", str(mix))
-    out = args.work / f"{variant}-online"
+    options = STAGE + corrector_flags(args)
+    out = args.work / f"{online_key(variant, args).replace('/', '-')}-online"
     done = out / "summary.json"
-    if not (done.exists() and json.loads(done.read_text())["config"]["env_steps"] == args.online_steps):
+    config = json.loads(done.read_text())["config"] if done.exists() else {}
+    if not (config.get("env_steps") == args.online_steps and all(
+            config.get(k) == v for k, v in (("patience", args.patience), ("hold_steps", args.hold_steps)) if v)):
         offline_rl("hil", "--online", "--in-process", "--task", task_arg, "--bag", str(mix), "--seed", "0",
                    "--env-steps", str(args.online_steps), "--eval-every", str(args.online_eval_every),
-                   "--logger", "none", "--out", str(out), *STAGE)  # a run already made is kept (resumes)
+                   "--logger", "none", "--out", str(out), *options)  # a run already made is kept (resumes)
     summary = json.loads(done.read_text())
     curve = [{"env_steps": p["env_steps"], "success": p["success"], "intervention_rate": p["intervention_rate"]}
              for p in summary["curve"]]
     prior_metrics = Path(summary["prior"]).parent / "metrics.json"
     algorithm = json.loads(prior_metrics.read_text())["algorithm"] if prior_metrics.exists() else None
-    return {"options": " ".join(STAGE), "prior_algorithm": algorithm,
+    return {"options": " ".join(options), "prior_algorithm": algorithm,
             "prior_success": summary["prior_success"], "best": max(p["success"] for p in curve),
             "final_success": summary["final_success"], "human_steps": summary["counts"]["human"], "curve": curve}
+
+
+def dagger(task, width: int, args) -> dict:
+    """Full DAgger on ``task`` at ``width`` (module docstring): the curve of success on the
+    held-out resets against environment steps."""
+    env = make_env(task)
+    rows: dict[str, list] = {k: [] for k in ("obs", "action", "reward", "next_obs", "terminated", "truncated",
+                                             "success", "episode", "step")}
+
+    def episode(seed: int, policy) -> int:
+        """One episode, the expert's action recorded at every state; ``policy`` (None: the
+        expert) acts. Returns its steps."""
+        obs, done, step = env.reset(seed), False, 0
+        while not done:
+            expert = expert_action(env)
+            act = expert if policy is None else np.asarray(policy.act(obs[None]))[0]
+            nxt, reward, done, info = env.step(act)
+            terminated = bool(info.get("terminated", False))
+            for k, v in (("obs", obs), ("action", expert), ("reward", reward), ("next_obs", nxt),
+                         ("terminated", terminated), ("truncated", done and not terminated),
+                         ("success", info["success"]), ("episode", seed), ("step", step)):
+                rows[k].append(v)
+            obs, step = nxt, step + 1
+        return step
+
+    def labelled() -> Transitions:
+        arrays = {k: np.asarray(v, np.float32 if k in ("obs", "action", "reward", "next_obs") else
+                                bool if k in ("terminated", "truncated", "success") else np.int64)
+                  for k, v in rows.items()}
+        return Transitions(**arrays, source=np.full(len(rows["obs"]), SOURCE_EXPERT, np.int64))
+
+    episodes_per_round = max(1, args.dagger_round_steps // task.episodes.max_steps)
+    cfg = TrainConfig(algo="bc", normalize_obs=True, hidden=width, deterministic=True, log_every=10**9)
+    seed = iter(range(COLLECT_SEED, COLLECT_SEED + 10**6))
+    env_steps = sum(episode(next(seed), None) for _ in range(args.dagger_demos))
+    result = loop_train(labelled(), replace(cfg, steps=3 * args.dagger_steps), 0, task=task)
+    held_out = range(HELD_OUT, HELD_OUT + args.eval_episodes)
+    curve = [{"round": 0, "env_steps": env_steps,
+              "success": round6(rollout_task(task, result.policy.act, held_out).successes / args.eval_episodes)}]
+    print(f"  dagger h{width} round 0: {curve[-1]}", flush=True)
+    for r in range(1, args.dagger + 1):
+        env_steps += sum(episode(next(seed), result.policy) for _ in range(episodes_per_round))
+        result = loop_train(labelled(), replace(cfg, steps=args.dagger_steps), 0, init=result.checkpoint, task=task)
+        if r % 3 == 0 or r == args.dagger:
+            success = rollout_task(task, result.policy.act, held_out).successes / args.eval_episodes
+            curve.append({"round": r, "env_steps": env_steps, "success": round6(success)})
+            print(f"  dagger h{width} round {r}: {curve[-1]}", flush=True)
+    return {"task_digest": task.digest, "hidden": width, "demos": args.dagger_demos,
+            "round_steps": args.dagger_round_steps, "episodes_per_round": episodes_per_round,
+            "bc_steps_per_round": args.dagger_steps,
+            "rounds": args.dagger, "labels": len(rows["obs"]), "curve": curve,
+            "best": max(p["success"] for p in curve)}
 
 
 def without_note(command: str) -> str:
@@ -161,7 +249,8 @@ def write(args, store: dict) -> None:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--variants", nargs="+", default=["pusher_push", "direction"])
-    parser.add_argument("--episodes", nargs="+", type=int, default=[100, 400], help="expert episodes per log")
+    parser.add_argument("--episodes", nargs="*", type=int, default=[100, 400],
+                        help="expert episodes per log (none: no BC cells)")
     parser.add_argument("--widths", nargs="+", type=int, default=[256, 512], help="hidden widths")
     parser.add_argument("--steps", type=int, default=30000, help="BC gradient steps")
     parser.add_argument("--eval-episodes", type=int, default=100)
@@ -171,6 +260,17 @@ def main(argv=None) -> int:
                         help="also run the online stage on each variant for this many environment steps (0: not)")
     parser.add_argument("--note", help="what the figures say, for the page (kept until another note replaces it)")
     parser.add_argument("--online-eval-every", type=int, default=2400, help="a multiple of every variant's episode")
+    parser.add_argument("--patience", type=int, help="the stage's corrector: steps without progress before a "
+                        "takeover (default: the stage's)")
+    parser.add_argument("--hold-steps", type=int, help="the stage's corrector: steps of a takeover (default: the "
+                        "stage's)")
+    parser.add_argument("--dagger", type=int, default=0, metavar="ROUNDS",
+                        help="also run full DAgger for this many rounds per variant and width (0: not)")
+    parser.add_argument("--dagger-demos", type=int, default=60, help="expert episodes before the first round "
+                        "(default: the 30 %% expert share of the 200-episode mix)")
+    parser.add_argument("--dagger-round-steps", type=int, default=3000,
+                        help="environment steps the policy acts per round, in whole episodes")
+    parser.add_argument("--dagger-steps", type=int, default=5000, help="BC steps per round (three times this first)")
     args = parser.parse_args(argv)
     store = json.loads(args.json.read_text()) if args.json and args.json.exists() else {}
     add_run_facts(store)  # this command joins the file's; another CPU's figures are refused
@@ -210,13 +310,25 @@ def main(argv=None) -> int:
                               **score(out / "policy.pt", task, args.eval_episodes)}
                 print(key, json.dumps(cells[key]), flush=True)
                 write(args, store)  # each cell as it is measured
+        for width in args.widths if args.dagger else ():
+            runs = store.setdefault("dagger", {})
+            key = f"{variant}/h{width}"
+            kept = runs.get(key, {})
+            settings = (args.dagger, args.dagger_demos, args.dagger_round_steps, args.dagger_steps)
+            if kept.get("task_digest") != task.digest or settings != tuple(kept.get(k) for k in (
+                    "rounds", "demos", "round_steps", "bc_steps_per_round")):
+                start = time.perf_counter()
+                runs[key] = {"variant": variant, **dagger(task, width, args),
+                             "wall_s": round(time.perf_counter() - start, 1)}
+                print(key, "dagger", json.dumps(runs[key]), flush=True)
+                write(args, store)
         if args.online_steps:
-            online = store.setdefault("online", {})
-            kept = online.get(variant, {})
+            online, key = store.setdefault("online", {}), online_key(variant, args)
+            kept = online.get(key, {})
             if kept.get("task_digest") != task.digest or kept.get("env_steps") != args.online_steps:
-                online[variant] = {"task_digest": task.digest, "env_steps": args.online_steps,
-                                   **stage(task_arg, variant, args)}
-                print(variant, "online", json.dumps(online[variant]), flush=True)
+                online[key] = {"variant": variant, "task_digest": task.digest, "env_steps": args.online_steps,
+                               **stage(task_arg, variant, args)}
+                print(key, "online", json.dumps(online[key]), flush=True)
                 write(args, store)
     write(args, store)
     return 0

@@ -546,6 +546,44 @@ def push_bound_section(name: str, payload: dict) -> list[str]:
     return lines + [""]
 
 
+def push_dagger_section(name: str, payload: dict) -> list[str]:
+    """Full DAgger on pusher_push: the most a corrector's labels teach an actor (bench/push_bound.py
+    --dagger)."""
+    lines = ["## The most a corrector's labels teach on pusher_push (full DAgger)", "",
+             "A person, or the scripted corrector, labels only the states of a takeover. Here the expert labels "
+             "every state the policy visits (DAgger), which bounds what any corrector's labels can teach an actor "
+             "of that width: behaviour cloning (deterministic, fp32, `--normalize-obs`) on the expert episodes of "
+             "the mix's expert share, then rounds in which the policy acts and BC goes on from its last weights on "
+             "every label so far; success of the deterministic policy on the 100 held-out resets, against "
+             "environment steps (the demonstrations' included). `direction_frame` adds to the observation the unit "
+             "vectors puck - fingertip and goal - puck and `along_across: [fingertip, puck, goal]`.", ""]
+    lines += note_lines(payload)
+    lines += source_lines(name, payload) + [""]
+    lines += ["| variant | digest | control period s | steps per episode | obs | expert's success |",
+              "|---|---|---|---|---|---|"]
+    for v, rec in payload["variants"].items():
+        lines.append(f"| {v} | `{rec['task_digest']}` | {rec['control_period_s']:g} | {rec['max_steps']} "
+                     f"| {rec['obs_dim']} | {rec['expert_success']:.2f} |")
+    lines += ["", "| variant | width | demonstrations, then episodes x BC steps per round | success (environment "
+              "steps) along the rounds | best | labels |", "|---|---|---|---|---|---|"]
+    for rec in payload["dagger"].values():
+        along = ", ".join(f"{p['success']:.2f} ({p['env_steps']:,})" for p in rec["curve"])
+        lines.append(f"| {rec['variant']} | {rec['hidden']} | {rec['demos']}, then {rec['episodes_per_round']} x "
+                     f"{rec['bc_steps_per_round']:,} | {along} | {rec['best']:.2f} | {rec['labels']:,} |")
+    online = payload.get("online", {})
+    if online:
+        lines += ["", "The online stage on the same variants, where the scripted corrector labels only its takeovers "
+                  "(`offline-rl hil --online --in-process`, seed 0, each variant's `--algo auto` prior on its own "
+                  "200-episode mix, 30 % expert; success without intervention on the 100 held-out resets):", "",
+                  "| variant | options | prior (its learner) | success (environment steps) along the run | at the end "
+                  "| corrector's steps |", "|---|---|---|---|---|---|"]
+        for rec in online.values():
+            along = ", ".join(f"{p['success']:.2f} ({p['env_steps']:,})" for p in rec["curve"][1:])
+            lines.append(f"| {rec['variant']} | `{rec['options']}` | {rec['prior_success']:.2f} "
+                         f"({rec['prior_algorithm']}) | {along} | {rec['final_success']:.2f} | {rec['human_steps']:,} |")
+    return lines + [""]
+
+
 def pusher7_probes_section(name: str, payload: dict) -> list[str]:
     lines = ["## What bounds the HIL-SERL stage on pusher7_reach", "",
              "The in-process stage on seed 0 at the full budget (20,000 environment steps), one setting changed at a "
@@ -733,6 +771,7 @@ SECTIONS = {  # file -> its section, in the page's order (the speed sections fol
     "pusher_push_report.json": push_experiment_section,
     "pusher_push_online.json": push_online_section,
     "pusher_push_bound.json": push_bound_section,
+    "pusher_push_dagger.json": push_dagger_section,
     "crash_safety.json": crash_section,
     "gpu_ensemble.json": gpu_ensemble_section,
     "pusher7_ros.json": ros_pipeline_section,

@@ -1,6 +1,7 @@
 """bench/push_bound.py writes its task variants by editing the shipped pusher_push.yaml: each
 variant must still apply to the file as it is, load as a valid task, change what it says it
-changes (and nothing the others change), and leave an expert that pushes the puck home."""
+changes (and nothing the others change), and leave an expert that pushes the puck home. Its
+DAgger rounds label every state the policy visits and count the budget in environment steps."""
 
 from __future__ import annotations
 
@@ -22,8 +23,9 @@ def test_each_variant_is_the_shipped_task_with_its_own_change(push_bound, tmp_pa
     tasks = {name: load_task(push_bound.variant_task(name, tmp_path)) for name in push_bound.VARIANTS}
     assert len({t.digest for t in tasks.values()} | {shipped.digest}) == len(tasks) + 1
     for name, task in tasks.items():
-        directions = "direction" in name
-        assert task.obs_dim == shipped.obs_dim + (4 if directions else 0), name
+        directions, frame = "direction" in name, "frame" in name
+        assert task.obs_dim == shipped.obs_dim + (4 if directions else 0) + (2 if frame else 0), name
+        assert any(f.kind == "along_across" for f in task.observation) == frame, name
         assert task.control_period == (0.05 if "rate20" in name else shipped.control_period), name
         # the same 3 s per episode at either rate
         assert task.episodes.max_steps * task.control_period == pytest.approx(
@@ -44,3 +46,16 @@ def test_the_expert_pushes_the_puck_home_at_20_hz(push_bound, tmp_path):
 def test_an_unknown_variant_is_refused_by_name(push_bound, tmp_path):
     with pytest.raises(SystemExit, match="unknown variant 'bigger'"):
         push_bound.variant_task("bigger", tmp_path)
+
+
+def test_dagger_labels_every_state_of_every_round_and_counts_the_steps(push_bound, tmp_path):
+    import argparse
+
+    task = load_task(push_bound.variant_task("rate20", tmp_path))
+    args = argparse.Namespace(dagger=2, dagger_demos=1, dagger_round_steps=120, dagger_steps=20, eval_episodes=2)
+    run = push_bound.dagger(task, 16, args)
+    steps = task.episodes.max_steps  # 60: two episodes a round
+    assert run["episodes_per_round"] == 2 and run["labels"] == steps * (1 + 2 * 2)
+    assert [p["round"] for p in run["curve"]] == [0, 2]
+    assert [p["env_steps"] for p in run["curve"]] == [steps, steps * 5]
+    assert all(0.0 <= p["success"] <= 1.0 for p in run["curve"]) and run["task_digest"] == task.digest
