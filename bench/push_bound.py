@@ -157,7 +157,7 @@ def stage(task_arg: str, variant: str, args) -> dict:
         offline_rl("collect", "--task", task_arg, "--episodes", "200", "--expert-frac", "0.3", "--seed", "0",
                    "--out", str(mix))
     options = STAGE + corrector_flags(args)
-    out = args.work / f"{online_key(variant, args).replace('/', '-')}-online"
+    out = args.work / f"{online_key(variant, args).replace('/', '-')}-online-{args.online_steps}"
     done = out / "summary.json"
     config = json.loads(done.read_text())["config"] if done.exists() else {}
     if not (config.get("env_steps") == args.online_steps and all(

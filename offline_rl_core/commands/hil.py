@@ -113,8 +113,8 @@ def register(subparsers) -> None:
     r.add_argument("--beta", type=float, help=f"AWAC temperature of the retraining (default: {d.beta})")
     c = p.add_argument_group("scripted corrector (--patience and --hold-steps also online; count the task's steps)")
     c.add_argument("--patience", type=int, help=f"k: steps without progress before a takeover (default: {d.patience})")
-    c.add_argument("--hold-steps", type=int, help=f"m: steps before handing back; online, a takeover's steps also "
-                   f"end at the episode's end (default: {d.hold_steps})")
+    c.add_argument("--hold-steps", type=int, help=f"m: steps before handing back; a takeover also ends with its "
+                   f"episode (default: {d.hold_steps})")
     c.add_argument("--grace-steps", type=int,
                    help=f"states at an episode's start before progress is judged (default: {d.grace_steps})")
     c.add_argument("--noise", type=float, help=f"std of noise on the corrections (default: {d.noise})")
