@@ -242,7 +242,8 @@ def without_note(command: str) -> str:
 def write(args, store: dict) -> None:
     """The JSON file, as it stands: after each cell, so a stopped run keeps what it measured."""
     if args.json:
-        ordered = {**store, **{k: dict(sorted(store[k].items())) for k in ("variants", "cells")}}
+        ordered = {**store, **{k: dict(sorted(store[k].items())) for k in ("variants", "cells", "dagger", "online")
+                               if k in store}}
         write_text_atomic(args.json, json.dumps(ordered, indent=1) + "\n")
 
 
@@ -323,7 +324,7 @@ def main(argv=None) -> int:
                 print(key, "dagger", json.dumps(runs[key]), flush=True)
                 write(args, store)
         if args.online_steps:
-            online, key = store.setdefault("online", {}), online_key(variant, args)
+            online, key = store.setdefault("online", {}), f"{online_key(variant, args)}/{args.online_steps}"
             kept = online.get(key, {})
             if kept.get("task_digest") != task.digest or kept.get("env_steps") != args.online_steps:
                 online[key] = {"variant": variant, "task_digest": task.digest, "env_steps": args.online_steps,
