@@ -31,8 +31,10 @@ def diagnostic_status(diagnosis: Diagnosis, name: str, hardware_id: str = "") ->
 class NodeDiagnostics:
     def __init__(self, node, status: Callable[[], dict], diagnosis: StatusDiagnosis | None = None,
                  hardware_id: str = "", period_s: float | None = DIAGNOSTICS_PERIOD_S, qos=10):
-        """``period_s`` None: no timer of its own (``pusher_common.status`` publishes on its tick);
-        ``qos``: the publisher's (a depth, or a profile: a short-lived node latches its last entry)."""
+        """Publish the node's entry every ``period_s`` (None: ``pusher_common.status`` does, on its tick).
+
+        ``qos``: the publisher's, a depth or a profile (a short-lived node latches its last entry).
+        """
         self.node = node
         self.status = status
         self.diagnosis = diagnosis if diagnosis is not None else StatusDiagnosis()
