@@ -1,5 +1,6 @@
 """What bounds learning pusher_push from corrections: behaviour cloning of the scripted expert
-alone, on logs of N expert episodes, at the actor's width, on 100 held-out resets.
+alone (on logs of N expert episodes, at the actor's width), full DAgger, and the stage itself,
+each scored on 100 held-out resets.
 
 The online stage's actor learns a person's (here the scripted corrector's) actions by a BC
 term beside its SAC objective. How well an MLP of the stage's width can copy the expert,
