@@ -504,6 +504,16 @@ def push_online_section(name: str, payload: dict) -> list[str]:
     return lines + ["![success against environment steps](pusher_push_online.png)", ""]
 
 
+def push_variants_table(variants: dict) -> list[str]:
+    """The task-file variants of bench/push_bound.py: digest, rate, observation, the expert's success."""
+    lines = ["| variant | digest | control period s | steps per episode | obs | expert's success |",
+             "|---|---|---|---|---|---|"]
+    for v, rec in variants.items():
+        lines.append(f"| {v} | `{rec['task_digest']}` | {rec['control_period_s']:g} | {rec['max_steps']} "
+                     f"| {rec['obs_dim']} | {rec['expert_success']:.2f} |")
+    return lines
+
+
 def push_bound_section(name: str, payload: dict) -> list[str]:
     """Behaviour cloning of pusher_push's expert alone: what bounds learning it from corrections
     (bench/push_bound.py)."""
@@ -519,11 +529,7 @@ def push_bound_section(name: str, payload: dict) -> list[str]:
              "0.05 s, 60 steps: the same 3 s); `direction_rate20` both.", ""]
     lines += note_lines(payload)
     lines += source_lines(name, payload) + [""]
-    lines += ["| variant | digest | control period s | steps per episode | obs | expert's success |",
-              "|---|---|---|---|---|---|"]
-    for v, rec in payload["variants"].items():
-        lines.append(f"| {v} | `{rec['task_digest']}` | {rec['control_period_s']:g} | {rec['max_steps']} "
-                     f"| {rec['obs_dim']} | {rec['expert_success']:.2f} |")
+    lines += push_variants_table(payload["variants"])
     lines += ["", "| variant | expert episodes (transitions) | width | success [95 % Wilson] | failures: near / pushed "
               "/ untouched | final distance m, median / p75 |", "|---|---|---|---|---|---|"]
     for rec in payload["cells"].values():
@@ -559,11 +565,7 @@ def push_dagger_section(name: str, payload: dict) -> list[str]:
              "vectors puck - fingertip and goal - puck and `along_across: [fingertip, puck, goal]`.", ""]
     lines += note_lines(payload)
     lines += source_lines(name, payload) + [""]
-    lines += ["| variant | digest | control period s | steps per episode | obs | expert's success |",
-              "|---|---|---|---|---|---|"]
-    for v, rec in payload["variants"].items():
-        lines.append(f"| {v} | `{rec['task_digest']}` | {rec['control_period_s']:g} | {rec['max_steps']} "
-                     f"| {rec['obs_dim']} | {rec['expert_success']:.2f} |")
+    lines += push_variants_table(payload["variants"])
     lines += ["", "| variant | width | demonstrations, then episodes x BC steps per round | success (environment "
               "steps) along the rounds | best | labels |", "|---|---|---|---|---|---|"]
     for rec in payload["dagger"].values():
