@@ -184,7 +184,9 @@ def test_hil_takes_its_defaults_by_mode_and_refuses_the_other_modes_flags(capsys
                          "--offline-ratio must be in [0, 1], got 1.5"),
                         (["hil", "--online", "--patience", "0", "--out", str(tmp_path / "o")],
                          "--patience must be >= 1, got 0"),
-                        (["hil", "--online", "--grace-steps", "3"], "--grace-steps: only without --online"),
+                        (["hil", "--online", "--noise", "0.1"], "--noise: only without --online"),
+                        (["hil", "--online", "--grace-steps", "-1", "--out", str(tmp_path / "o")],
+                         "--grace-steps must be >= 0, got -1"),
                         (["hil", "--online", "--steer", "stick", "--corrector", "none", "--out", str(tmp_path / "o")],
                          "--steer stick: how the scripted corrector takes over; only with --corrector scripted"),
                         (["hil", "--online", "--steer", "stick", "--task", "pusher_push", "--env-steps", "150",
@@ -199,7 +201,8 @@ def test_hil_takes_its_defaults_by_mode_and_refuses_the_other_modes_flags(capsys
     assert explicit.out == "runs/hil" and explicit.env_steps == 20000 and explicit.rounds is None
     assert explicit.bc_weight == 3.0 and explicit.lr_decay is False  # the learner's own defaults
     assert explicit.steer == "expert" and explicit.offline_ratio == 0.5 and explicit.corrector_noise == 0.0
-    assert (explicit.patience, explicit.hold_steps) == (8, 25)  # the scripted corrector's, in either mode
+    # the scripted corrector's, in either mode
+    assert (explicit.patience, explicit.hold_steps, explicit.grace_steps) == (8, 25, 20)
     default = parser.parse_args(["hil"])
     _resolve_mode_flags(default)
     assert default.out == "runs/hil" and default.rounds == 3 and default.bag == [str(PROJECT_BAG)]
@@ -209,10 +212,10 @@ def test_hil_takes_its_defaults_by_mode_and_refuses_the_other_modes_flags(capsys
     assert online.out == "runs/hil-online"
 
 
-def test_the_online_stage_takes_the_correctors_patience_and_hold(tiny, tmp_path):
-    """--patience and --hold-steps reach the online stage's scripted corrector: one that waits
-    longer than an episode never takes over; one that holds for a whole episode takes over at
-    most once in it."""
+def test_the_online_stage_takes_the_correctors_patience_hold_and_grace(tiny, tmp_path):
+    """--patience, --hold-steps and --grace-steps reach the online stage's scripted corrector:
+    one that waits longer than an episode never takes over; one that holds for a whole episode
+    takes over at most once in it; one that judges no state of an episode never takes over."""
     def stage(name, *flags):
         out = tmp_path / name
         assert cli.main(["hil", "--online", "--in-process", "--no-prior", "--bag", str(tiny["bag"]), "--env-steps",
@@ -225,6 +228,8 @@ def test_the_online_stage_takes_the_correctors_patience_and_hold(tiny, tmp_path)
     assert config["patience"] == 1000 and never["human"] == never["takeovers"] == 0
     config, held = stage("holding", "--patience", "2", "--hold-steps", "100")
     assert config["hold_steps"] == 100 and 0 < held["takeovers"] <= held["episodes"] == 2 and held["human"] > 0
+    config, unjudged = stage("graceful", "--patience", "2", "--grace-steps", "1000")
+    assert config["grace_steps"] == 1000 and unjudged["human"] == unjudged["takeovers"] == 0
 
 
 def test_bad_actor_counts_are_one_line_before_anything_starts(capsys, tmp_path):

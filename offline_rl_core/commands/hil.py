@@ -15,8 +15,8 @@ from ..runs.loggers import DEFAULT_LOGGER, LOGGERS
 
 # Flags of one mode only: their defaults are filled in by mode, so that one given to the
 # other mode is refused instead of silently ignored.
-OFFLINE_ONLY = ("rounds", "episodes", "steps", "correction_ratio", "beta", "grace_steps", "noise", "reaction_delay")
-BOTH_MODES = ("patience", "hold_steps")  # the scripted corrector's, in either mode
+OFFLINE_ONLY = ("rounds", "episodes", "steps", "correction_ratio", "beta", "noise", "reaction_delay")
+BOTH_MODES = ("patience", "hold_steps", "grace_steps")  # the scripted corrector's, in either mode
 ONLINE_ONLY = ("env_steps", "corrector", "mode", "prior_algo", "no_prior", "utd", "publish_every", "eval_every",
                "in_process", "from_topics", "success", "end_on_success", "actors", "imitate_expert",
                "critic_warmup", "normalize_obs", "bc_weight", "lr_decay", "steer", "offline_ratio", "corrector_noise")
@@ -62,8 +62,8 @@ def _run_online(args) -> int:
         prior_algo=args.prior_algo,
         bags=args.bag, task=args.task, corrector=args.corrector, steer=args.steer, mode=args.mode, utd=args.utd,
         offline_ratio=args.offline_ratio, corrector_noise=args.corrector_noise, patience=args.patience,
-        hold_steps=args.hold_steps, publish_every=args.publish_every, eval_every=args.eval_every,
-        eval_episodes=args.eval_episodes,
+        hold_steps=args.hold_steps, grace_steps=args.grace_steps, publish_every=args.publish_every,
+        eval_every=args.eval_every, eval_episodes=args.eval_episodes,
         eval_seed=args.eval_seed, in_process=args.in_process, from_topics=args.from_topics, success=args.success,
         end_on_success=args.end_on_success, actors=args.actors, imitate_expert=args.imitate_expert,
         critic_warmup=args.critic_warmup, normalize_obs=args.normalize_obs, bc_weight=args.bc_weight,
@@ -111,7 +111,8 @@ def register(subparsers) -> None:
     r.add_argument("--correction-ratio", type=float,
                    help=f"share of each batch from correction runs (default: {d.correction_ratio})")
     r.add_argument("--beta", type=float, help=f"AWAC temperature of the retraining (default: {d.beta})")
-    c = p.add_argument_group("scripted corrector (--patience and --hold-steps also online; count the task's steps)")
+    c = p.add_argument_group("scripted corrector (--patience, --hold-steps and --grace-steps also online; count the "
+                             "task's steps)")
     c.add_argument("--patience", type=int, help=f"k: steps without progress before a takeover (default: {d.patience})")
     c.add_argument("--hold-steps", type=int, help=f"m: steps before handing back; a takeover also ends with its "
                    f"episode (default: {d.hold_steps})")

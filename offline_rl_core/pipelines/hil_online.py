@@ -72,9 +72,11 @@ class OnlineHilConfig:
     steer: str = "expert"  # how the scripted corrector takes over (task.corrector.STEERS)
     corrector_noise: float = 0.0  # std of Gaussian noise on the scripted corrector's actions (a shaky hand)
     # the scripted corrector's rule (task.corrector.CorrectorParams), in the task's steps: a takeover after
-    # ``patience`` steps without progress, handed back after ``hold_steps``
+    # ``patience`` steps without progress, handed back after ``hold_steps``; progress judged after the
+    # first ``grace_steps`` states of an episode (a task at a lower rate may want fewer)
     patience: int = CorrectorParams.patience
     hold_steps: int = CorrectorParams.hold_steps
+    grace_steps: int = CorrectorParams.grace_steps
     mode: str = "lockstep"  # lockstep (paced, reproducible) | realtime (50 Hz)
     utd: int = 2
     offline_ratio: float = 0.5  # share of each batch from the offline bag (OnlineSettings; RLPD's symmetric half)
@@ -135,6 +137,8 @@ class OnlineHilConfig:
         for name in ("patience", "hold_steps"):
             if int(getattr(self, name)) < 1:
                 raise UserError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
+        if int(self.grace_steps) < 0:
+            raise UserError(f"--grace-steps must be >= 0, got {self.grace_steps}")
         if self.corrector_noise > 0 and self.corrector != "scripted":
             raise UserError(f"--corrector-noise: the scripted corrector's shaky hand; only with --corrector scripted, "
                             f"got --corrector {self.corrector}")
@@ -266,7 +270,7 @@ def _in_process(cfg: OnlineHilConfig, task, prior_path: Path | None, log, curves
         env_steps=cfg.env_steps, seed=cfg.seed, corrections=cfg.corrector != "none", eval_every=cfg.eval_every,
         eval_episodes=cfg.eval_episodes, eval_seed=cfg.eval_seed,
         corrector=CorrectorParams(steer=cfg.steer, noise=cfg.corrector_noise, patience=cfg.patience,
-                                  hold_steps=cfg.hold_steps),
+                                  hold_steps=cfg.hold_steps, grace_steps=cfg.grace_steps),
         settings=OnlineSettings(utd=cfg.utd, offline_ratio=cfg.offline_ratio, publish_every=cfg.publish_every,
                                 imitate_expert=cfg.imitate_expert,
                                 critic_warmup=cfg.critic_warmup, lr_decay_steps=_lr_decay_steps(cfg)),
@@ -298,7 +302,7 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
         "thread_priority": 0 if lockstep else REALTIME_THREAD_PRIORITY, "reset_seed": TRAIN_SEED_BASE + 10000 * cfg.seed, "episodes": episodes,
         "snapshot_every": cfg.eval_every, "corrector": cfg.corrector, "steer": cfg.steer,
         "corrector_noise": cfg.corrector_noise, "patience": cfg.patience, "hold_steps": cfg.hold_steps,
-        "logger": logger,
+        "grace_steps": cfg.grace_steps, "logger": logger,
         "from_topics": "true" if cfg.raw_topics else "false",
         "success": str(Path(cfg.success).resolve()) if cfg.success else "",
         "record_topics": _record_topics(cfg) if cfg.raw_topics else "",
