@@ -12,8 +12,8 @@ A cell already in the --json file, measured on the same task file with the same 
 kept, not trained again. ``--online-steps N`` also runs the online stage itself on each
 variant (``offline-rl hil --online --in-process``, seed 0, from the variant's auto prior on
 its own 200-episode mix, 30 % expert, with pusher7_reach's anchor: STAGE), to set beside
-what imitation alone gives; ``--patience K --hold-steps M`` set its scripted corrector's rule
-(an entry of its own).
+what imitation alone gives; ``--patience K --hold-steps M --grace-steps G`` set its scripted
+corrector's rule and ``--bc-weight W`` its actor's BC weight (each run an entry of its own).
 
 For each task variant, log size and width: `offline-rl collect --task T --episodes N
 --expert-frac 1 --seed 1000` (resets 1000.., far from the held-out 500000..), then `offline-rl
@@ -31,7 +31,9 @@ fingertip]`` and ``direction: [goal, puck]`` (the feature that lifted pusher7_re
 60 steps: the same 3 s), as HIL-SERL's arms act at 10 Hz; ``direction_rate20``: both;
 ``direction_frame``: the directions and ``along_across: [fingertip, puck, goal]`` (the
 fingertip seen from the puck, along and across its line to the goal); ``direction_frame_rate20``:
-those at 20 Hz.
+those at 20 Hz; ``direction_frame_elbow_rate20``: besides, where the forearm starts (``elbow``,
+the body link2) seen from the puck and along its line to the goal; ``direction_frame_table_rate20``:
+besides, the puck and the goal on the table (``vector: puck``, ``vector: goal``).
 
 ``--dagger ROUNDS`` measures the most a corrector's labels can teach an actor of each width:
 DAgger with every state labelled, where a person takes over only some. BC (deterministic,
@@ -59,6 +61,7 @@ from pathlib import Path
 
 import numpy as np
 
+import offline_rl_core.runs  # noqa: F401 - the speed layer, registered onto the learners as a run has it
 from offline_rl_core.benchmarks.harness import add_run_facts
 from offline_rl_core.common.atomic import write_text_atomic
 from offline_rl_core.common.seeds import HELD_OUT
@@ -75,6 +78,7 @@ BUILTIN = Path(__file__).resolve().parents[1] / "offline_rl_core" / "task" / "bu
 COLLECT_SEED = 1000
 MOVED_M = 0.003  # the puck moved this far: the arm pushed it
 NEAR = 3.0  # a failure within NEAR x success_within of the goal is one of precision
+DAGGER_STEPS = 5000  # BC steps per DAgger round (an entry with others is keyed by them)
 DIRECTIONS = ("  - difference: [goal, puck]        # where it should go\n",
               "  - direction: [puck, fingertip]\n  - direction: [goal, puck]\n")  # added after the first
 
@@ -88,6 +92,18 @@ VARIANTS = {
 VARIANTS["direction_rate20"] = VARIANTS["direction"] + VARIANTS["rate20"]
 VARIANTS["direction_frame"] = [(DIRECTIONS[0], DIRECTIONS[1] + "  - along_across: [fingertip, puck, goal]\n")]
 VARIANTS["direction_frame_rate20"] = VARIANTS["direction_frame"] + VARIANTS["rate20"]
+PUCK_POINT = "  puck:                             # as a tracker publishes it"
+ELBOW_POINT = (PUCK_POINT, "  elbow:                            # where the forearm starts\n"
+               "    kinematics: body:link2\n    axes: [x, y]\n" + PUCK_POINT)
+# where the puck and the goal are on the table (the arm's base frame): the expert's way around the
+# puck is planned in joint space, so it depends on where the puck is, not only on where it is
+# seen from the fingertip
+VARIANTS["direction_frame_table_rate20"] = [
+    (DIRECTIONS[0], DIRECTIONS[1] + "  - along_across: [fingertip, puck, goal]\n  - vector: puck\n"
+     "  - vector: goal\n")] + VARIANTS["rate20"]
+VARIANTS["direction_frame_elbow_rate20"] = [
+    (DIRECTIONS[0], DIRECTIONS[1] + "  - along_across: [fingertip, puck, goal]\n  - difference: [puck, elbow]\n"
+     "  - along_across: [elbow, puck, goal]\n"), ELBOW_POINT] + VARIANTS["rate20"]
 
 
 def variant_task(name: str, work: Path) -> str:
@@ -117,7 +133,11 @@ def offline_rl(*args: str) -> None:
 
 def score(policy_path: Path, task, episodes: int) -> dict:
     """The deterministic policy on the held-out resets, each failure binned (module docstring)."""
-    env, policy = make_env(task), load_policy(policy_path, task)
+    return score_policy(load_policy(policy_path, task), task, episodes)
+
+
+def score_policy(policy, task, episodes: int) -> dict:
+    env = make_env(task)
     bins = {"success": 0, "near": 0, "pushed": 0, "untouched": 0}
     finals = []
     for seed in range(HELD_OUT, HELD_OUT + episodes):
@@ -138,14 +158,31 @@ def score(policy_path: Path, task, episodes: int) -> dict:
 STAGE = ("--normalize-obs", "--imitate-expert", "--bc-weight", "100", "--lr-decay", "--offline-ratio", "0.25")
 
 
+# settings of a stage run that may differ from STAGE and the stage's defaults: (flag, the summary's
+# config key); a later flag wins over STAGE's
+STAGE_SETTINGS = (("--patience", "patience"), ("--hold-steps", "hold_steps"), ("--grace-steps", "grace_steps"),
+                  ("--bc-weight", "bc_weight"))
+
+
 def corrector_flags(args) -> tuple[str, ...]:
-    """The scripted corrector's rule where it is not the stage's default."""
-    return tuple(word for flag, value in (("--patience", args.patience), ("--hold-steps", args.hold_steps))
-                 if value for word in (flag, str(value)))
+    """The scripted corrector's rule (and the actor's BC weight) where given, not the stage's."""
+    return tuple(word for flag, name in STAGE_SETTINGS if getattr(args, name) is not None
+                 for word in (flag, str(getattr(args, name))))
+
+
+def stage_options(args) -> tuple[str, ...]:
+    """STAGE's options less those given otherwise, then those given: each flag once."""
+    given, kept, words = corrector_flags(args), [], list(STAGE)
+    while words:
+        flag = words.pop(0)
+        value = [words.pop(0)] if words and not words[0].startswith("--") else []
+        if flag not in given:
+            kept += [flag, *value]
+    return tuple(kept) + given
 
 
 def online_key(variant: str, args) -> str:
-    """The stage's entry: the variant, and the corrector's rule where it is not the default."""
+    """The stage's entry: the variant, and the settings given where they are not the default."""
     flags = corrector_flags(args)
     return variant + ("/" + "_".join(f.strip("-") for f in flags) if flags else "")
 
@@ -157,12 +194,13 @@ def stage(task_arg: str, variant: str, args) -> dict:
     if not mix.exists():
         offline_rl("collect", "--task", task_arg, "--episodes", "200", "--expert-frac", "0.3", "--seed", "0",
                    "--out", str(mix))
-    options = STAGE + corrector_flags(args)
+    options = stage_options(args)
     out = args.work / f"{online_key(variant, args).replace('/', '-')}-online-{args.online_steps}"
     done = out / "summary.json"
     config = json.loads(done.read_text())["config"] if done.exists() else {}
     if not (config.get("env_steps") == args.online_steps and all(
-            config.get(k) == v for k, v in (("patience", args.patience), ("hold_steps", args.hold_steps)) if v)):
+            config.get(name) == getattr(args, name) for _, name in STAGE_SETTINGS
+            if getattr(args, name) is not None)):
         offline_rl("hil", "--online", "--in-process", "--task", task_arg, "--bag", str(mix), "--seed", "0",
                    "--env-steps", str(args.online_steps), "--eval-every", str(args.online_eval_every),
                    "--logger", "none", "--out", str(out), *options)  # a run already made is kept (resumes)
@@ -221,11 +259,13 @@ def dagger(task, width: int, args) -> dict:
             success = rollout_task(task, result.policy.act, held_out).successes / args.eval_episodes
             curve.append({"round": r, "env_steps": env_steps, "success": round6(success)})
             print(f"  dagger h{width} round {r}: {curve[-1]}", flush=True)
+    last = score_policy(result.policy, task, args.eval_episodes)  # how the last round's policy fails
     return {"task_digest": task.digest, "hidden": width, "demos": args.dagger_demos,
             "round_steps": args.dagger_round_steps, "episodes_per_round": episodes_per_round,
             "bc_steps_per_round": args.dagger_steps,
             "rounds": args.dagger, "labels": len(rows["obs"]), "curve": curve,
-            "best": max(p["success"] for p in curve)}
+            "best": max(p["success"] for p in curve), "last_failures": last["failures"],
+            "last_final_dist_m": last["final_dist_m"]}
 
 
 def without_note(command: str) -> str:
@@ -266,13 +306,18 @@ def main(argv=None) -> int:
                         "takeover (default: the stage's)")
     parser.add_argument("--hold-steps", type=int, help="the stage's corrector: steps of a takeover (default: the "
                         "stage's)")
+    parser.add_argument("--grace-steps", type=int, help="the stage's corrector: states of an episode's start "
+                        "before progress is judged (default: the stage's)")
+    parser.add_argument("--bc-weight", type=float, help="the stage's actor: weight of its BC term (default: "
+                        "STAGE's 100)")
     parser.add_argument("--dagger", type=int, default=0, metavar="ROUNDS",
                         help="also run full DAgger for this many rounds per variant and width (0: not)")
     parser.add_argument("--dagger-demos", type=int, default=60, help="expert episodes before the first round "
                         "(default: the 30 %% expert share of the 200-episode mix)")
     parser.add_argument("--dagger-round-steps", type=int, default=3000,
                         help="environment steps the policy acts per round, in whole episodes")
-    parser.add_argument("--dagger-steps", type=int, default=5000, help="BC steps per round (three times this first)")
+    parser.add_argument("--dagger-steps", type=int, default=DAGGER_STEPS,
+                        help="BC steps per round (three times this first)")
     args = parser.parse_args(argv)
     store = json.loads(args.json.read_text()) if args.json and args.json.exists() else {}
     add_run_facts(store)  # this command joins the file's; another CPU's figures are refused
@@ -314,7 +359,8 @@ def main(argv=None) -> int:
                 write(args, store)  # each cell as it is measured
         for width in args.widths if args.dagger else ():
             runs = store.setdefault("dagger", {})
-            key = f"{variant}/h{width}"
+            key = f"{variant}/h{width}" + ("" if args.dagger_steps == DAGGER_STEPS
+                                           else f"/bc_steps_{args.dagger_steps}")
             kept = runs.get(key, {})
             settings = (args.dagger, args.dagger_demos, args.dagger_round_steps, args.dagger_steps)
             if kept.get("task_digest") != task.digest or settings != tuple(kept.get(k) for k in (

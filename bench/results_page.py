@@ -562,16 +562,23 @@ def push_dagger_section(name: str, payload: dict) -> list[str]:
              "the mix's expert share, then rounds in which the policy acts and BC goes on from its last weights on "
              "every label so far; success of the deterministic policy on the 100 held-out resets, against "
              "environment steps (the demonstrations' included). `direction_frame` adds to the observation the unit "
-             "vectors puck - fingertip and goal - puck and `along_across: [fingertip, puck, goal]`.", ""]
+             "vectors puck - fingertip and goal - puck and `along_across: [fingertip, puck, goal]`; `_rate20` "
+             "commands the arm at 20 Hz; `_elbow` adds where the forearm starts (`elbow`, the body link2), seen "
+             "from the puck and along its line to the goal; `_table` adds the puck and the goal in the arm's base "
+             "frame (`vector: puck`, `vector: goal`). The last round's failures: the puck ends within 3 x "
+             "success_within of the goal (near), moved but further (pushed), or never moved (untouched).", ""]
     lines += note_lines(payload)
     lines += source_lines(name, payload) + [""]
     lines += push_variants_table(payload["variants"])
     lines += ["", "| variant | width | demonstrations, then episodes x BC steps per round | success (environment "
-              "steps) along the rounds | best | labels |", "|---|---|---|---|---|---|"]
+              "steps) along the rounds | best | labels | last round's failures (near / pushed / untouched) |",
+              "|---|---|---|---|---|---|---|"]
     for rec in payload["dagger"].values():
         along = ", ".join(f"{p['success']:.2f} ({p['env_steps']:,})" for p in rec["curve"])
+        failed = rec.get("last_failures")
+        failures = f"{failed['near']} / {failed['pushed']} / {failed['untouched']}" if failed else "-"
         lines.append(f"| {rec['variant']} | {rec['hidden']} | {rec['demos']}, then {rec['episodes_per_round']} x "
-                     f"{rec['bc_steps_per_round']:,} | {along} | {rec['best']:.2f} | {rec['labels']:,} |")
+                     f"{rec['bc_steps_per_round']:,} | {along} | {rec['best']:.2f} | {rec['labels']:,} | {failures} |")
     online = payload.get("online", {})
     if online:
         lines += ["", "The online stage on the same variants, where the scripted corrector labels only its takeovers "

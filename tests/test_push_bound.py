@@ -24,7 +24,9 @@ def test_each_variant_is_the_shipped_task_with_its_own_change(push_bound, tmp_pa
     assert len({t.digest for t in tasks.values()} | {shipped.digest}) == len(tasks) + 1
     for name, task in tasks.items():
         directions, frame = "direction" in name, "frame" in name
-        assert task.obs_dim == shipped.obs_dim + (4 if directions else 0) + (2 if frame else 0), name
+        # the elbow seen from the puck and along its line to the goal; the puck and the goal on the table
+        extra = 4 if "elbow" in name or "table" in name else 0
+        assert task.obs_dim == shipped.obs_dim + (4 if directions else 0) + (2 if frame else 0) + extra, name
         assert any(f.kind == "along_across" for f in task.observation) == frame, name
         assert task.control_period == (0.05 if "rate20" in name else shipped.control_period), name
         # the same 3 s per episode at either rate
