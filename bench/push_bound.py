@@ -10,7 +10,7 @@ given far more clean demonstrations than a session sees, bounds what that term c
 
 A cell already in the --json file, measured on the same task file with the same steps, is
 kept, not trained again. ``--online-steps N`` also runs the online stage itself on each
-variant (``offline-rl hil --online --in-process``, seed 0, from the variant's auto prior on
+variant (``offline-rl hil --online --in-process``, seed 0 or ``--seed``, from the variant's auto prior on
 its own 200-episode mix, 30 % expert, with pusher7_reach's anchor: STAGE), to set beside
 what imitation alone gives; ``--patience K --hold-steps M --grace-steps G`` set its scripted
 corrector's rule and ``--bc-weight W`` its actor's BC weight (each run an entry of its own).
@@ -161,7 +161,7 @@ STAGE = ("--normalize-obs", "--imitate-expert", "--bc-weight", "100", "--lr-deca
 # settings of a stage run that may differ from STAGE and the stage's defaults: (flag, the summary's
 # config key); a later flag wins over STAGE's
 STAGE_SETTINGS = (("--patience", "patience"), ("--hold-steps", "hold_steps"), ("--grace-steps", "grace_steps"),
-                  ("--bc-weight", "bc_weight"))
+                  ("--bc-weight", "bc_weight"), ("--seed", "seed"))
 
 
 def corrector_flags(args) -> tuple[str, ...]:
@@ -188,8 +188,9 @@ def online_key(variant: str, args) -> str:
 
 
 def stage(task_arg: str, variant: str, args) -> dict:
-    """The online stage on the variant, in process, seed 0, from its own auto prior on its own
-    mixed log (200 episodes, 30 % expert), with the anchor that carried pusher7_reach (STAGE)."""
+    """The online stage on the variant, in process (seed 0 unless ``--seed``), from its own auto
+    prior on its own mixed log (200 episodes, 30 % expert, recorded with seed 0), with the anchor
+    that carried pusher7_reach (STAGE)."""
     mix = args.work / f"{variant}-mix_s0_e0.3.db3"
     if not mix.exists():
         offline_rl("collect", "--task", task_arg, "--episodes", "200", "--expert-frac", "0.3", "--seed", "0",
@@ -201,7 +202,8 @@ def stage(task_arg: str, variant: str, args) -> dict:
     if not (config.get("env_steps") == args.online_steps and all(
             config.get(name) == getattr(args, name) for _, name in STAGE_SETTINGS
             if getattr(args, name) is not None)):
-        offline_rl("hil", "--online", "--in-process", "--task", task_arg, "--bag", str(mix), "--seed", "0",
+        seed = () if args.seed is not None else ("--seed", "0")  # a seed given is among the options
+        offline_rl("hil", "--online", "--in-process", "--task", task_arg, "--bag", str(mix), *seed,
                    "--env-steps", str(args.online_steps), "--eval-every", str(args.online_eval_every),
                    "--logger", "none", "--out", str(out), *options)  # a run already made is kept (resumes)
     summary = json.loads(done.read_text())
@@ -310,6 +312,8 @@ def main(argv=None) -> int:
                         "before progress is judged (default: the stage's)")
     parser.add_argument("--bc-weight", type=float, help="the stage's actor: weight of its BC term (default: "
                         "STAGE's 100)")
+    parser.add_argument("--seed", type=int, help="the stage's seed: its prior, learner and corrector (default: 0; "
+                        "the mix is seed 0's)")
     parser.add_argument("--dagger", type=int, default=0, metavar="ROUNDS",
                         help="also run full DAgger for this many rounds per variant and width (0: not)")
     parser.add_argument("--dagger-demos", type=int, default=60, help="expert episodes before the first round "
