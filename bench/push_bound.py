@@ -155,7 +155,8 @@ def score_policy(policy, task, episodes: int) -> dict:
             "final_dist_m": {"median": round6(np.median(finals)), "p75": round6(np.percentile(finals, 75))}}
 
 
-STAGE = ("--normalize-obs", "--imitate-expert", "--bc-weight", "100", "--lr-decay", "--offline-ratio", "0.25")
+STAGE = ("--normalize-obs", "--imitate-expert", "--bc-weight", "100", "--lr-decay", "--offline-ratio", "0.25",
+         "--seed", "0")
 
 
 # settings of a stage run that may differ from STAGE and the stage's defaults: (flag, the summary's
@@ -164,15 +165,15 @@ STAGE_SETTINGS = (("--patience", "patience"), ("--hold-steps", "hold_steps"), ("
                   ("--bc-weight", "bc_weight"), ("--seed", "seed"))
 
 
-def corrector_flags(args) -> tuple[str, ...]:
-    """The scripted corrector's rule (and the actor's BC weight) where given, not the stage's."""
+def stage_flags(args) -> tuple[str, ...]:
+    """The stage settings given (the corrector's rule, the BC weight, the seed), not STAGE's."""
     return tuple(word for flag, name in STAGE_SETTINGS if getattr(args, name) is not None
                  for word in (flag, str(getattr(args, name))))
 
 
 def stage_options(args) -> tuple[str, ...]:
     """STAGE's options less those given otherwise, then those given: each flag once."""
-    given, kept, words = corrector_flags(args), [], list(STAGE)
+    given, kept, words = stage_flags(args), [], list(STAGE)
     while words:
         flag = words.pop(0)
         value = [words.pop(0)] if words and not words[0].startswith("--") else []
@@ -183,7 +184,7 @@ def stage_options(args) -> tuple[str, ...]:
 
 def online_key(variant: str, args) -> str:
     """The stage's entry: the variant, and the settings given where they are not the default."""
-    flags = corrector_flags(args)
+    flags = stage_flags(args)
     return variant + ("/" + "_".join(f.strip("-") for f in flags) if flags else "")
 
 
@@ -202,8 +203,7 @@ def stage(task_arg: str, variant: str, args) -> dict:
     if not (config.get("env_steps") == args.online_steps and all(
             config.get(name) == getattr(args, name) for _, name in STAGE_SETTINGS
             if getattr(args, name) is not None)):
-        seed = () if args.seed is not None else ("--seed", "0")  # a seed given is among the options
-        offline_rl("hil", "--online", "--in-process", "--task", task_arg, "--bag", str(mix), *seed,
+        offline_rl("hil", "--online", "--in-process", "--task", task_arg, "--bag", str(mix),
                    "--env-steps", str(args.online_steps), "--eval-every", str(args.online_eval_every),
                    "--logger", "none", "--out", str(out), *options)  # a run already made is kept (resumes)
     summary = json.loads(done.read_text())
