@@ -201,6 +201,9 @@ def test_trainer_node_from_the_card_command_publishes_progress(spawn, data, tmp_
         node.create_subscription(DiagnosticArray, "/diagnostics",
                                  lambda msg: seen.extend(s for s in msg.status if s.name == "/trainer"),
                                  QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        # the echo listening before the trainer starts: on a loaded machine a short training can
+        # be over before a starting `ros2 topic echo` subscribes
+        assert node.spin_until(lambda: node.count_subscribers("/trainer/progress") > 0, 60), echo.output()
         trainer = spawn(
             ros2("run", "trainer", "--bag", data["bag"], "--algo", "awac", "--steps", 1500, "--hidden", 16,
                  "--batch-size", 32, "--log-every", 25, "--eval-episodes", 2, "--out", out),
