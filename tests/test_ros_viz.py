@@ -290,6 +290,10 @@ def test_live_view_streams_markers_and_state_to_a_websocket_client_on_loopback(s
     assert view.wait_for_output("live view on ws://", 60), view.output()
     url = re.search(r"live view on (ws://127\.0\.0\.1:\d+)", view.output()).group(1)
     wanted = {"/markers": MarkerArray, "/pusher/state": JointState}
+    # connect once the view streams both: a channel the SDK adds while a client connects can be
+    # advertised to it and yet unknown to its subscribe
+    for topic in wanted:
+        assert view.wait_for_output(f"streaming {topic} (", 60), view.output()
     # the SDK speaks the protocol as foxglove.sdk.v1 (foxglove.websocket.v1 before it)
     with ws_client.connect(url, subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"], open_timeout=30) as ws:
         channels, got, statuses = {}, {}, []
@@ -303,6 +307,13 @@ def test_live_view_streams_markers_and_state_to_a_websocket_client_on_loopback(s
                         del channels[topic]
                 elif msg["op"] == "status":
                     statuses.append(msg.get("message"))
+                    # the SDK can answer a subscribe that raced its own advertise as if the channel
+                    # were unknown (it is advertised, not unadvertised): subscribe to it again
+                    unknown = re.search(r"Unknown channel ID: (\d+)", msg.get("message", ""))
+                    ours = [c for c in channels.values() if unknown and c["id"] == int(unknown.group(1))]
+                    if ours:
+                        ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+                            {"id": c["id"], "channelId": c["id"]} for c in ours]}))
                 elif msg["op"] == "advertise":
                     new = [c for c in msg["channels"] if c["topic"] in wanted and c["topic"] not in channels]
                     for c in new:

@@ -62,6 +62,7 @@ class LiveViewNode(Node):
                              durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
             self.subs[topic] = self.create_subscription(
                 self.message_class(types[0]), topic, lambda raw, t=topic: self.on_raw(t, raw), qos, raw=True)
+            self.get_logger().info(f"streaming {topic} ({types[0]})")
 
     @staticmethod
     def message_class(msgtype: str):
