@@ -33,7 +33,10 @@ fingertip]`` and ``direction: [goal, puck]`` (the feature that lifted pusher7_re
 fingertip seen from the puck, along and across its line to the goal); ``direction_frame_rate20``:
 those at 20 Hz; ``direction_frame_elbow_rate20``: besides, where the forearm starts (``elbow``,
 the body link2) seen from the puck and along its line to the goal; ``direction_frame_table_rate20``:
-besides, the puck and the goal on the table (``vector: puck``, ``vector: goal``).
+besides, the puck and the goal on the table (``vector: puck``, ``vector: goal``); ``orbit``:
+the scripted expert (the labels) goes round the puck in the push line's frame
+(``sim.push.approach: orbit``) instead of through joint space; ``orbit_direction_frame_rate20``:
+that expert on ``direction_frame_rate20``.
 
 ``--dagger ROUNDS`` measures the most a corrector's labels can teach an actor of each width:
 DAgger with every state labelled, where a person takes over only some. BC (deterministic,
@@ -101,6 +104,10 @@ ELBOW_POINT = (PUCK_POINT, "  elbow:                            # where the fore
 VARIANTS["direction_frame_table_rate20"] = [
     (DIRECTIONS[0], DIRECTIONS[1] + "  - along_across: [fingertip, puck, goal]\n  - vector: puck\n"
      "  - vector: goal\n")] + VARIANTS["rate20"]
+# the scripted expert goes round the puck in the push line's frame instead of through joint space
+ORBIT = [("    standoff: 0.02\n", "    standoff: 0.02\n    approach: orbit\n")]
+VARIANTS["orbit"] = ORBIT
+VARIANTS["orbit_direction_frame_rate20"] = VARIANTS["direction_frame_rate20"] + ORBIT
 VARIANTS["direction_frame_elbow_rate20"] = [
     (DIRECTIONS[0], DIRECTIONS[1] + "  - along_across: [fingertip, puck, goal]\n  - difference: [puck, elbow]\n"
      "  - along_across: [elbow, puck, goal]\n"), ELBOW_POINT] + VARIANTS["rate20"]

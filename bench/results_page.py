@@ -565,7 +565,9 @@ def push_dagger_section(name: str, payload: dict) -> list[str]:
              "vectors puck - fingertip and goal - puck and `along_across: [fingertip, puck, goal]`; `_rate20` "
              "commands the arm at 20 Hz; `_elbow` adds where the forearm starts (`elbow`, the body link2), seen "
              "from the puck and along its line to the goal; `_table` adds the puck and the goal in the arm's base "
-             "frame (`vector: puck`, `vector: goal`). The last round's failures: the puck ends within 3 x "
+             "frame (`vector: puck`, `vector: goal`); `orbit_` has the scripted expert, whose actions are the "
+             "labels, go round the puck in the push line's frame (`sim.push.approach: orbit`) instead of through "
+             "the arm's joint space. The last round's failures: the puck ends within 3 x "
              "success_within of the goal (near), moved but further (pushed), or never moved (untouched).", ""]
     lines += note_lines(payload)
     lines += source_lines(name, payload) + [""]

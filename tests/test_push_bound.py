@@ -9,6 +9,7 @@ import pytest
 from bench_scripts import bench_script
 
 from offline_rl_core.task.envs import expert_action, make_env
+from offline_rl_core.task.pusher_push import PushSettings
 from offline_rl_core.task.spec import load_task
 
 
@@ -33,6 +34,7 @@ def test_each_variant_is_the_shipped_task_with_its_own_change(push_bound, tmp_pa
         assert task.episodes.max_steps * task.control_period == pytest.approx(
             shipped.episodes.max_steps * shipped.control_period), name
         assert task.reward.success_within == shipped.reward.success_within, name
+        assert PushSettings.of(task).approach == ("orbit" if name.startswith("orbit") else "wave"), name
 
 
 def test_the_expert_pushes_the_puck_home_at_20_hz(push_bound, tmp_path):

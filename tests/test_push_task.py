@@ -139,3 +139,35 @@ def test_a_push_section_without_the_push_env_and_a_puck_without_its_body_are_ref
         load_task("pusher_push").path.parent / "pusher_push.xml")}
     with pytest.raises(UserError, match="field sim.points.puck: the sim's model has no body 'nothing'"):
         make_env(task_from_dict(doc))
+
+
+def orbit_task(approach="orbit"):
+    doc = PUSH.describe()
+    doc["sim"] = {**doc["sim"], "push": {**doc["sim"]["push"], "approach": approach},
+                  "model": str(PUSH.path.parent / "pusher_push.xml")}
+    return task_from_dict(doc)
+
+
+def test_the_orbit_approach_goes_round_the_puck_and_pushes_it_onto_the_goal():
+    """``sim.push.approach: orbit``: another task (its own digest), whose expert differs from
+    the wave's on the way behind the puck and still ends each episode with the puck on the goal."""
+    task = orbit_task()
+    assert task.digest != PUSH.digest
+    env, wave = make_env(task), task_expert(PUSH)
+    orbit = task_expert(task)
+    for seed in (HELD_OUT, HELD_OUT + 3):
+        env.reset(seed)
+        done, differed = False, 0
+        while not done:
+            args = (env.joint_positions, env.joint_velocities, env.goal, point_vectors(task, env.point_positions()))
+            action = orbit(*args)
+            assert action.dtype == np.float32 and np.all(np.abs(action) <= 1.0)
+            differed += not np.array_equal(action, wave(*args))
+            _, _, done, info = env.step(action)
+        assert differed > 0 and info["success"] and info["dist"] < task.reward.success_within
+
+
+def test_an_unknown_approach_is_one_line_naming_the_field():
+    with pytest.raises(UserError, match=r"field sim.push.approach: expected one of wave, orbit") as err:
+        make_env(orbit_task("sideways"))
+    assert "\n" not in str(err.value)

@@ -9,11 +9,19 @@ for again at the next state ("replan"):
   ``standoff`` behind the puck's far side (``contact`` = puck radius + fingertip radius from
   its centre), with the elbow on a side where the links clear the puck all along the push
   (``PushGeometry.push_is_clear``, the reset sampler's own test);
-- **getting there** (``JointSpacePlanner``): the shortest way through the arm's joint space
+- **getting there**, as the task's ``sim.push.approach`` says:
+  ``wave`` (``JointSpacePlanner``, the default): the shortest way through the arm's joint space
   (a grid of ``grid`` x ``grid`` poses on the torus of the two angles) that keeps the links
   ``margin`` from the puck, found by a breadth-first wave from the push's start; the arm
   heads ``lookahead`` cells down the wave, then to the start itself. The wave depends only on
-  the puck and the goal: it is computed once for them and reused while they stay put;
+  the puck and the goal: it is computed once for them and reused while they stay put.
+  ``orbit``: the fingertip circles the puck at ``orbit`` beyond contact, in the push line's
+  frame, the shorter way round to behind it whose arc keeps the links ``margin`` clear with
+  the elbow on the side it is (``orbit_arc`` further round each step, spiralling in from
+  further out), and goes straight to the push's start once within ``orbit_arc`` of it; where
+  no arc is clear on the elbow's side (the push needs the other), the wave. Its torques are a
+  simpler function of what the policy observes (the fingertip seen from the puck along its
+  line to the goal) than the wave's, so a network imitates it better (``bench/push_bound.py``);
 - **pushing**, once the fingertip is behind the puck and within ``align`` of the line: the
   fingertip heads ``depth`` into the puck along ``u`` (``push_gain`` times the distance left,
   at most ``push_depth``, so the puck slows to a stop on the goal, where its dry friction
@@ -58,6 +66,10 @@ class PushGains:
     steer: float = 1.0  # pushing off the line by x, aim this times x past it on the other side
     nudge: float = 0.02  # m: the puck this near the goal, push it the way it faces (no going round)
     hold: float = 0.3  # of success_within: the puck this close to the goal, the arm stands still
+    orbit: float = 0.012  # m beyond contact: the orbit's radius round the puck (approach: orbit)
+    orbit_arc: float = math.radians(25)  # rad: the fingertip's next point this far round the orbit
+    orbit_spiral: float = 0.03  # m: from further out, this much nearer the orbit each step
+    orbit_checks: int = 12  # points along an arc where the links' clearance is checked
 
 
 def wrap(angle):
@@ -139,17 +151,51 @@ class PushExpert:
         self._plan_for = None  # the puck and goal the plan below is for
         self._plan = None
 
-    def plan(self, puck: np.ndarray, goal: np.ndarray, u: np.ndarray) -> tuple[list, np.ndarray]:
-        """(the poses a push starts from, the wave to them): one start per elbow side that clears
-        the puck (both if none does). A function of the puck and the goal only: kept for the
-        next state while they stay where they are."""
+    def plan(self, puck: np.ndarray, goal: np.ndarray, u: np.ndarray) -> tuple[list, list, np.ndarray]:
+        """(the elbow signs a push can start with, the poses it starts from, the wave to them):
+        one start per elbow side that clears the puck (both if none does). A function of the
+        puck and the goal only: kept for the next state while they stay where they are."""
         key = (*puck, *goal)
         if key != self._plan_for:
             g = self.geometry
             signs = g.push_is_clear(puck, goal, self.settings.standoff, self.gains.margin) or [1.0, -1.0]
             starts = [g.inverse(puck - (g.contact + self.settings.standoff) * u, s) for s in signs]
-            self._plan_for, self._plan = key, (starts, self.planner.wave(puck, starts))
+            self._plan_for, self._plan = key, (signs, starts, self.planner.wave(puck, starts))
         return self._plan
+
+    def orbit_target(self, puck, u, n, along: float, across: float, elbow: float) -> np.ndarray | None:
+        """The fingertip's next point round the puck (``approach: orbit``), or None where
+        neither way round keeps the links clear with the elbow on its side."""
+        g, geo = self.gains, self.geometry
+        start = geo.contact + self.settings.standoff  # the push's start, behind the puck
+        radius = geo.contact + g.orbit
+        angle, dist = math.atan2(across, along), math.hypot(along, across)
+        # behind the puck is at +pi or -pi: the shorter arc first
+        for end in sorted((math.pi, -math.pi), key=lambda e: abs(e - angle)):
+            if not self._arc_clear(puck, u, n, angle, max(dist, radius), end, start, elbow):
+                continue
+            left = end - angle
+            if abs(left) <= g.orbit_arc:
+                return puck - start * u
+            a = angle + math.copysign(g.orbit_arc, left)
+            r = max(radius, dist - g.orbit_spiral)
+            return puck + r * (math.cos(a) * u + math.sin(a) * n)
+        return None
+
+    def _arc_clear(self, puck, u, n, angle: float, dist: float, end: float, start: float, elbow: float) -> bool:
+        """Whether the links stay ``margin`` clear of the puck, and the fingertip within reach,
+        along the arc from ``angle`` at ``dist`` to ``end`` at the push's start."""
+        geo, k = self.geometry, self.gains.orbit_checks
+        inner, outer = abs(geo.links[0] - geo.links[1]) + 1e-3, sum(geo.links) - 1e-3
+        for i in range(1, k + 1):
+            a = angle + (end - angle) * i / k
+            p = puck + (dist + (start - dist) * i / k) * (math.cos(a) * u + math.sin(a) * n)
+            if not inner < math.hypot(*p) < outer:
+                return False
+            upper, fore = geo.clearance(*geo.inverse(p, elbow), puck)
+            if min(float(upper), float(fore)) < self.gains.margin:
+                return False
+        return True
 
     def __call__(self, positions, velocities, goal, points=None) -> np.ndarray:
         if points is None or self.point not in points:
@@ -185,7 +231,11 @@ class PushExpert:
             if math.hypot(*ahead) > g.step:
                 target = tip + ahead * (g.step / math.hypot(*ahead))
             return self.torque(q, qdot, geo.inverse(target, elbow_side))
-        starts, wave = self.plan(puck, goal, u)
+        signs, starts, wave = self.plan(puck, goal, u)
+        if self.settings.approach == "orbit" and elbow_side in signs:
+            target = self.orbit_target(puck, u, n, along, across, elbow_side)
+            if target is not None:
+                return self.torque(q, qdot, geo.inverse(target, elbow_side))
         q_star = self.planner.toward(q, wave, g.lookahead)
         if q_star is None:  # at a start's cell (or no way round): straight to the nearest start
             q_star = min(starts, key=lambda s: float(np.abs(wrap(np.asarray(s) - q)).sum()))

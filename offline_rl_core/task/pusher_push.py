@@ -33,6 +33,9 @@ from .mujoco_task import MAX_TRIES, MujocoTaskEnv
 from .spec import FieldReader, TaskSpec
 
 
+APPROACHES = ("wave", "orbit")  # how the scripted expert gets behind the puck
+
+
 @dataclass(frozen=True)
 class PushSettings:
     """The ``sim.push`` section: what is pushed and where resets put it (m)."""
@@ -45,12 +48,14 @@ class PushSettings:
     reach: tuple[float, float]  # where the fingertip must be able to go (from the shoulder)
     standoff: float  # room behind the puck where a push starts
     margin: float  # the links this far from the puck at the push's start
+    approach: str = "wave"  # how the scripted expert gets behind the puck (task/push_expert.py)
 
     @classmethod
     def of(cls, task: TaskSpec) -> "PushSettings":
         r = FieldReader(task.source_file(), task.path)
         doc = r.mapping("sim.push", (task.sim or {}).get("push"),
-                        ("puck", "goal_marker", "point", "radius", "distance", "reach", "standoff", "margin"))
+                        ("puck", "goal_marker", "point", "radius", "distance", "reach", "standoff", "margin",
+                         "approach"))
         point = r.text("sim.push.point", doc.get("point"), "puck")
         if point not in {p.name for p in task.points}:
             raise r.error("sim.push.point", "the tracked point (points.NAME) that is the puck", point)
@@ -59,7 +64,8 @@ class PushSettings:
                    _range(r, "sim.push.distance", doc.get("distance"), (0.05, 0.1)),
                    _range(r, "sim.push.reach", doc.get("reach"), (0.04, 0.19)),
                    r.number("sim.push.standoff", doc.get("standoff"), 0.02, 0.0),
-                   r.number("sim.push.margin", doc.get("margin"), 0.005, 0.0))
+                   r.number("sim.push.margin", doc.get("margin"), 0.005, 0.0),
+                   r.choice("sim.push.approach", doc.get("approach"), APPROACHES, "wave"))
 
 
 def _range(r, label, value, default) -> tuple[float, float]:
