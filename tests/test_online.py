@@ -85,6 +85,19 @@ def test_the_prior_initialises_actor_and_critic(offline, prior):
     assert torch.equal(state["critic1"]["0.weight"], prior["learner_state"]["critic1"]["0.weight"])
 
 
+def test_a_prior_of_another_width_is_fine_tuned_at_its_width(offline):
+    """The learner takes the prior's networks as they are: a prior trained wider than the
+    learner's default is fine-tuned at its own width, actor and critic, and its weights
+    versions say so."""
+    wide = train(offline, TrainConfig(algo="awac", steps=20, **{**SMALL, "hidden": 48}), seed=0).checkpoint
+    learner = _learner(offline, wide)
+    _feed(learner, _stream(12))
+    w = learner.weights()
+    assert w["hidden"] == 48 and w["weights_version"] > 0
+    assert w["policy_state"]["0.weight"].shape[0] == 48
+    assert learner.learner.learner_state(0)["critic1"]["0.weight"].shape[0] == 48
+
+
 def test_a_resumed_learner_continues_exactly(offline, prior, tmp_path):
     rows = _stream(50)
     whole = _learner(offline, prior)

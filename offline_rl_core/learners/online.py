@@ -40,7 +40,7 @@ it last saved.
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import torch
 
@@ -123,6 +123,8 @@ class OnlineLearner:
         """``task`` (a ``TaskSpec``): the task of the data, recorded in every weights version."""
         if len(offline) == 0 and settings.offline_ratio > 0:
             raise ValueError("no offline transitions to sample from (set offline_ratio 0 to learn from scratch)")
+        if prior is not None and prior.get("hidden") and int(prior["hidden"]) != cfg.hidden:
+            cfg = replace(cfg, hidden=int(prior["hidden"]))  # the prior's networks are what is fine-tuned
         self.cfg, self.settings, self.seed = cfg, settings, int(seed)
         obs_dim, act_dim = offline.obs.shape[1], offline.action.shape[1]
         if task is not None and (obs_dim, act_dim) != (task.obs_dim, task.act_dim):

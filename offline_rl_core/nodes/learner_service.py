@@ -164,8 +164,6 @@ class LearnerService:
         self.live_file_due = False
         if prior is not None:
             policy_for_task(prior, cfg.prior, self.task)  # a prior of another task: one line naming both
-            if prior["hidden"] != cfg.train.hidden:
-                raise UserError(f"{cfg.prior}: the prior's hidden width is {prior['hidden']}, the learner's {cfg.train.hidden}")
         try:
             self.learner = OnlineLearner(offline, cfg.train, cfg.settings, cfg.seed, prior, self.task)
         except PriorMismatch as exc:
