@@ -12,7 +12,8 @@ A cell already in the --json file, measured on the same task file with the same 
 kept, not trained again. ``--online-steps N`` also runs the online stage itself on each
 variant (``offline-rl hil --online --in-process``, seed 0 or ``--seed``, from the variant's auto prior on
 its own 200-episode mix, 30 % expert, with pusher7_reach's anchor: STAGE), to set beside
-what imitation alone gives; ``--patience K --hold-steps M --grace-steps G`` set its scripted
+what imitation alone gives (``--stage-width W``: from an auto prior W wide, fine-tuned at that
+width); ``--patience K --hold-steps M --grace-steps G`` set its scripted
 corrector's rule and ``--bc-weight W`` its actor's BC weight (each run an entry of its own).
 
 For each task variant, log size and width: `offline-rl collect --task T --episodes N
@@ -191,7 +192,7 @@ def stage_options(args) -> tuple[str, ...]:
 
 def online_key(variant: str, args) -> str:
     """The stage's entry: the variant, and the settings given where they are not the default."""
-    flags = stage_flags(args)
+    flags = stage_flags(args) + (("--stage-width", str(args.stage_width)) if args.stage_width else ())
     return variant + ("/" + "_".join(f.strip("-") for f in flags) if flags else "")
 
 
@@ -203,7 +204,14 @@ def stage(task_arg: str, variant: str, args) -> dict:
     if not mix.exists():
         offline_rl("collect", "--task", task_arg, "--episodes", "200", "--expert-frac", "0.3", "--seed", "0",
                    "--out", str(mix))
-    options = stage_options(args)
+    options, prior = stage_options(args), ()
+    if args.stage_width:  # the stage fine-tunes its prior at the prior's width: an auto prior that wide
+        seed = str(args.seed if args.seed is not None else 0)
+        prior_dir = args.work / f"{variant}-auto-h{args.stage_width}-s{seed}"
+        if not (prior_dir / "policy.pt").exists():
+            offline_rl("train", "--algo", "auto", "--task", task_arg, "--bag", str(mix), "--hidden",
+                       str(args.stage_width), "--seed", seed, "--out", str(prior_dir))
+        prior = ("--prior", str(prior_dir / "policy.pt"))
     out = args.work / f"{online_key(variant, args).replace('/', '-')}-online-{args.online_steps}"
     done = out / "summary.json"
     config = json.loads(done.read_text())["config"] if done.exists() else {}
@@ -212,13 +220,14 @@ def stage(task_arg: str, variant: str, args) -> dict:
             if getattr(args, name) is not None)):
         offline_rl("hil", "--online", "--in-process", "--task", task_arg, "--bag", str(mix),
                    "--env-steps", str(args.online_steps), "--eval-every", str(args.online_eval_every),
-                   "--logger", "none", "--out", str(out), *options)  # a run already made is kept (resumes)
+                   "--logger", "none", "--out", str(out), *options, *prior)  # a run already made is kept (resumes)
     summary = json.loads(done.read_text())
     curve = [{"env_steps": p["env_steps"], "success": p["success"], "intervention_rate": p["intervention_rate"]}
              for p in summary["curve"]]
     prior_metrics = Path(summary["prior"]).parent / "metrics.json"
     algorithm = json.loads(prior_metrics.read_text())["algorithm"] if prior_metrics.exists() else None
-    return {"options": " ".join(options), "prior_algorithm": algorithm,
+    return {"options": " ".join(options + (("--stage-width", str(args.stage_width)) if args.stage_width else ())),
+            "prior_algorithm": algorithm,
             "prior_success": summary["prior_success"], "best": max(p["success"] for p in curve),
             "final_success": summary["final_success"], "human_steps": summary["counts"]["human"], "curve": curve}
 
@@ -321,6 +330,9 @@ def main(argv=None) -> int:
                         "STAGE's 100)")
     parser.add_argument("--seed", type=int, help="the stage's seed: its prior, learner and corrector (default: 0; "
                         "the mix is seed 0's)")
+    parser.add_argument("--stage-width", type=int, help="the stage's networks: its prior trained this wide "
+                        "(`offline-rl train --algo auto --hidden W`, seed 0 or --seed) and fine-tuned at that "
+                        "width (default: the stage's own prior, 256)")
     parser.add_argument("--dagger", type=int, default=0, metavar="ROUNDS",
                         help="also run full DAgger for this many rounds per variant and width (0: not)")
     parser.add_argument("--dagger-demos", type=int, default=60, help="expert episodes before the first round "

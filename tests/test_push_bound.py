@@ -63,3 +63,18 @@ def test_dagger_labels_every_state_of_every_round_and_counts_the_steps(push_boun
     assert [p["round"] for p in run["curve"]] == [0, 2]
     assert [p["env_steps"] for p in run["curve"]] == [steps, steps * 5]
     assert all(0.0 <= p["success"] <= 1.0 for p in run["curve"]) and run["task_digest"] == task.digest
+
+
+def test_a_stage_run_is_keyed_by_the_settings_it_was_given_each_flag_once(push_bound):
+    import argparse
+
+    given = dict(patience=1, hold_steps=60, grace_steps=None, bc_weight=10.0, seed=None, stage_width=512)
+    args = argparse.Namespace(**given)
+    options = push_bound.stage_options(args)
+    flags = [w for w in options if w.startswith("--")]
+    assert len(flags) == len(set(flags)) and options[options.index("--bc-weight") + 1] == "10.0"
+    assert "--stage-width" not in options  # not a flag of hil: the prior it names is trained that wide
+    key = push_bound.online_key("orbit_direction_frame_rate20", args)
+    assert key == "orbit_direction_frame_rate20/patience_1_hold-steps_60_bc-weight_10.0_stage-width_512"
+    plain = argparse.Namespace(**{k: None for k in given})
+    assert push_bound.online_key("rate20", plain) == "rate20"
