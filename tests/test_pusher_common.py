@@ -8,7 +8,7 @@ import pytest
 
 from offline_rl_core.common.errors import UserError
 
-from ros_helpers import require_ros
+from ros_helpers import require_ros, ros_env  # noqa: F401 - a fixture
 
 pytestmark = pytest.mark.ros
 
@@ -178,3 +178,40 @@ print("done", done, "policies", sorted(policies))
     check("")
     if os.geteuid() == 0:  # as an unprivileged user too (no rtprio limit: refused)
         check("import resource; resource.setrlimit(resource.RLIMIT_RTPRIO, (0, 0)); os.setuid(65534)")
+
+
+STALLED_TEARDOWN = """
+import threading, sys
+import rclpy.task
+from rclpy.node import Node
+from pusher_common import node_main
+
+node_main.TEARDOWN_LIMIT_S = 1.0
+
+class Done(Node):
+    def __init__(self, overrides):
+        super().__init__("stalled_teardown", parameter_overrides=list(overrides))
+        self.finished = rclpy.task.Future()
+        self.finished.set_result(True)
+        self.exit_code = 3
+
+    def close(self):
+        print("closed", flush=True)
+        threading.Thread(target=threading.Event().wait).start()  # never ends: the exit would wait on it
+
+sys.exit(node_main.run_node(Done, prog="stalled", argv=[sys.argv[0]]))
+"""
+
+
+def test_a_node_whose_teardown_hangs_still_ends_after_its_close_with_its_status(ros_env):
+    """Once ``close`` has kept what the node had to keep, a hang in what follows (destroying
+    rclpy's objects, the interpreter waiting on a thread) ends the process anyway, with the
+    node's exit status and where every thread was."""
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", STALLED_TEARDOWN], env=ros_env, capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 3, done.stderr
+    assert done.stdout.startswith("closed")
+    assert "stalled: shutting down took over 1 s" in done.stderr and "Thread" in done.stderr

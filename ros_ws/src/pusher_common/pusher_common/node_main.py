@@ -22,6 +22,7 @@
   place to write a summary or restore a terminal. From then on SIGINT and SIGTERM are
   ignored and rclpy's signal thread is stopped (``pusher_common.shutdown``): a second
   Ctrl-C cannot cut a close short, and nothing triggers a guard condition being destroyed.
+  After it, a teardown that hangs ends the process anyway (``TEARDOWN_LIMIT_S``).
 """
 
 from __future__ import annotations
@@ -29,9 +30,11 @@ from __future__ import annotations
 import argparse
 import faulthandler
 import gc
+import os
 import re
 import signal
 import sys
+import threading
 from typing import Callable, Sequence
 
 import rclpy
@@ -126,8 +129,31 @@ def run_node(
             close = getattr(node, "close", None)
             if close is not None:
                 close()
+            _end_if_teardown_stalls(prog, int(getattr(node, "exit_code", 0) or 0))
             node.destroy_node()
         rclpy.try_shutdown()
+
+
+TEARDOWN_LIMIT_S = 30.0  # s: destroying the node and the context, and the interpreter's exit
+
+
+def _end_if_teardown_stalls(prog: str, status: int) -> None:
+    """What the node had to keep is written (``close`` has run); should destroying rclpy's
+    objects or the interpreter's exit hang (seen once on a loaded machine: a recorder that
+    had closed its bag never exited), print where every thread is and end the process with
+    its status, rather than keep a finished node alive. A C-level watchdog backs this up
+    where the hang holds the GIL (its exit status is then 1)."""
+    def stalled() -> None:
+        print(f"{prog}: shutting down took over {TEARDOWN_LIMIT_S:g} s; ending the process (its threads "
+              "below)", file=sys.stderr, flush=True)
+        faulthandler.dump_traceback(file=sys.stderr, all_threads=True)
+        sys.stdout.flush()
+        os._exit(status)
+
+    timer = threading.Timer(TEARDOWN_LIMIT_S, stalled)
+    timer.daemon = True  # never what keeps the process alive
+    timer.start()
+    faulthandler.dump_traceback_later(2 * TEARDOWN_LIMIT_S, exit=True)
 
 
 def _rcl_reason(exc: Exception) -> str:
