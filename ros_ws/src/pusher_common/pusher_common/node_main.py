@@ -138,11 +138,15 @@ TEARDOWN_LIMIT_S = 30.0  # s: destroying the node and the context, and the inter
 
 
 def _end_if_teardown_stalls(prog: str, status: int) -> None:
-    """What the node had to keep is written (``close`` has run); should destroying rclpy's
+    """End the process with ``status`` should its teardown hang.
+
+    What the node had to keep is written (``close`` has run); should destroying rclpy's
     objects or the interpreter's exit hang (seen once on a loaded machine: a recorder that
     had closed its bag never exited), print where every thread is and end the process with
     its status, rather than keep a finished node alive. A C-level watchdog backs this up
-    where the hang holds the GIL (its exit status is then 1)."""
+    where the hang holds the GIL (its exit status is then 1).
+    """
+
     def stalled() -> None:
         print(f"{prog}: shutting down took over {TEARDOWN_LIMIT_S:g} s; ending the process (its threads "
               "below)", file=sys.stderr, flush=True)
