@@ -190,9 +190,14 @@ def stage_options(args) -> tuple[str, ...]:
     return tuple(kept) + given
 
 
+def width_flags(args) -> tuple[str, ...]:
+    """``--stage-width W`` where given: push_bound's own (the prior it trains), not a flag of hil."""
+    return ("--stage-width", str(args.stage_width)) if args.stage_width else ()
+
+
 def online_key(variant: str, args) -> str:
     """The stage's entry: the variant, and the settings given where they are not the default."""
-    flags = stage_flags(args) + (("--stage-width", str(args.stage_width)) if args.stage_width else ())
+    flags = stage_flags(args) + width_flags(args)
     return variant + ("/" + "_".join(f.strip("-") for f in flags) if flags else "")
 
 
@@ -206,7 +211,7 @@ def stage(task_arg: str, variant: str, args) -> dict:
                    "--out", str(mix))
     options, prior = stage_options(args), ()
     if args.stage_width:  # the stage fine-tunes its prior at the prior's width: an auto prior that wide
-        seed = str(args.seed if args.seed is not None else 0)
+        seed = options[options.index("--seed") + 1]  # STAGE's, or the one given
         prior_dir = args.work / f"{variant}-auto-h{args.stage_width}-s{seed}"
         if not (prior_dir / "policy.pt").exists():
             offline_rl("train", "--algo", "auto", "--task", task_arg, "--bag", str(mix), "--hidden",
@@ -226,7 +231,7 @@ def stage(task_arg: str, variant: str, args) -> dict:
              for p in summary["curve"]]
     prior_metrics = Path(summary["prior"]).parent / "metrics.json"
     algorithm = json.loads(prior_metrics.read_text())["algorithm"] if prior_metrics.exists() else None
-    return {"options": " ".join(options + (("--stage-width", str(args.stage_width)) if args.stage_width else ())),
+    return {"options": " ".join(options + width_flags(args)),
             "prior_algorithm": algorithm,
             "prior_success": summary["prior_success"], "best": max(p["success"] for p in curve),
             "final_success": summary["final_success"], "human_steps": summary["counts"]["human"], "curve": curve}

@@ -297,6 +297,11 @@ def test_live_view_streams_markers_and_state_to_a_websocket_client_on_loopback(s
     # the SDK speaks the protocol as foxglove.sdk.v1 (foxglove.websocket.v1 before it)
     with ws_client.connect(url, subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"], open_timeout=30) as ws:
         channels, got, statuses = {}, {}, []
+
+        def subscribe(advertised):  # subscription id = channel id
+            ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+                {"id": c["id"], "channelId": c["id"]} for c in advertised]}))
+
         deadline = time.monotonic() + 60
         while len(got) < len(wanted) and time.monotonic() < deadline:
             frame = ws.recv(timeout=max(deadline - time.monotonic(), 0.1))
@@ -312,16 +317,14 @@ def test_live_view_streams_markers_and_state_to_a_websocket_client_on_loopback(s
                     unknown = re.search(r"Unknown channel ID: (\d+)", msg.get("message", ""))
                     ours = [c for c in channels.values() if unknown and c["id"] == int(unknown.group(1))]
                     if ours:
-                        ws.send(json.dumps({"op": "subscribe", "subscriptions": [
-                            {"id": c["id"], "channelId": c["id"]} for c in ours]}))
+                        subscribe(ours)
                 elif msg["op"] == "advertise":
                     new = [c for c in msg["channels"] if c["topic"] in wanted and c["topic"] not in channels]
                     for c in new:
                         assert c["encoding"] == "cdr" and c["schemaEncoding"] == "ros2msg"
                         channels[c["topic"]] = c
-                    if new:  # subscription id = channel id
-                        ws.send(json.dumps({"op": "subscribe", "subscriptions": [
-                            {"id": c["id"], "channelId": c["id"]} for c in new]}))
+                    if new:
+                        subscribe(new)
                 continue
             assert frame[0] == 0x01  # message data
             sub_id, _stamp = struct.unpack_from("<IQ", frame, 1)
