@@ -14,7 +14,8 @@ variant (``offline-rl hil --online --in-process``, seed 0 or ``--seed``, from th
 its own 200-episode mix, 30 % expert, with pusher7_reach's anchor: STAGE), to set beside
 what imitation alone gives (``--stage-width W``: from an auto prior W wide, fine-tuned at that
 width); ``--patience K --hold-steps M --grace-steps G`` set its scripted
-corrector's rule and ``--bc-weight W`` its actor's BC weight (each run an entry of its own).
+corrector's rule, ``--bc-weight W`` its actor's BC weight and ``--no-explore`` its acting on the
+policy's mean (each run an entry of its own).
 
 For each task variant, log size and width: `offline-rl collect --task T --episodes N
 --expert-frac 1 --seed 1000` (resets 1000.., far from the held-out 500000..), then `offline-rl
@@ -170,13 +171,14 @@ STAGE = ("--normalize-obs", "--imitate-expert", "--bc-weight", "100", "--lr-deca
 # settings of a stage run that may differ from STAGE and the stage's defaults: (flag, the summary's
 # config key); a later flag wins over STAGE's
 STAGE_SETTINGS = (("--patience", "patience"), ("--hold-steps", "hold_steps"), ("--grace-steps", "grace_steps"),
-                  ("--bc-weight", "bc_weight"), ("--seed", "seed"))
+                  ("--bc-weight", "bc_weight"), ("--seed", "seed"), ("--no-explore", "no_explore"))
 
 
 def stage_flags(args) -> tuple[str, ...]:
-    """The stage settings given (the corrector's rule, the BC weight, the seed), not STAGE's."""
+    """The stage settings given (the corrector's rule, the BC weight, the seed, acting on the mean), not
+    STAGE's; a switch (True) is its flag alone."""
     return tuple(word for flag, name in STAGE_SETTINGS if getattr(args, name) is not None
-                 for word in (flag, str(getattr(args, name))))
+                 for word in ((flag,) if getattr(args, name) is True else (flag, str(getattr(args, name)))))
 
 
 def stage_options(args) -> tuple[str, ...]:
@@ -335,6 +337,8 @@ def main(argv=None) -> int:
                         "STAGE's 100)")
     parser.add_argument("--seed", type=int, help="the stage's seed: its prior, learner and corrector (default: 0; "
                         "the mix is seed 0's)")
+    parser.add_argument("--no-explore", action="store_true", default=None,
+                        help="the stage's policy acts on its mean (hil --no-explore; default: it samples)")
     parser.add_argument("--stage-width", type=int, help="the stage's networks: its prior trained this wide "
                         "(`offline-rl train --algo auto --hidden W`, seed 0 or --seed) and fine-tuned at that "
                         "width (default: the stage's own prior, 256)")

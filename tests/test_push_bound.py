@@ -68,7 +68,8 @@ def test_dagger_labels_every_state_of_every_round_and_counts_the_steps(push_boun
 def test_a_stage_run_is_keyed_by_the_settings_it_was_given_each_flag_once(push_bound):
     import argparse
 
-    given = dict(patience=1, hold_steps=60, grace_steps=None, bc_weight=10.0, seed=None, stage_width=512)
+    given = dict(patience=1, hold_steps=60, grace_steps=None, bc_weight=10.0, seed=None, no_explore=None,
+                 stage_width=512)
     args = argparse.Namespace(**given)
     options = push_bound.stage_options(args)
     flags = [w for w in options if w.startswith("--")]
@@ -78,3 +79,6 @@ def test_a_stage_run_is_keyed_by_the_settings_it_was_given_each_flag_once(push_b
     assert key == "orbit_direction_frame_rate20/patience_1_hold-steps_60_bc-weight_10.0_stage-width_512"
     plain = argparse.Namespace(**{k: None for k in given})
     assert push_bound.online_key("rate20", plain) == "rate20"
+    mean_only = argparse.Namespace(**{**given, "no_explore": True, "bc_weight": None})
+    assert push_bound.stage_options(mean_only)[-1] == "--no-explore"  # a switch: the flag alone, no value
+    assert push_bound.online_key("rate20", mean_only) == "rate20/patience_1_hold-steps_60_no-explore_stage-width_512"

@@ -17,8 +17,8 @@ from ..runs.loggers import DEFAULT_LOGGER, LOGGERS
 # other mode is refused instead of silently ignored.
 OFFLINE_ONLY = ("rounds", "episodes", "steps", "correction_ratio", "beta", "noise", "reaction_delay")
 BOTH_MODES = ("patience", "hold_steps", "grace_steps")  # the scripted corrector's, in either mode
-ONLINE_ONLY = ("env_steps", "corrector", "mode", "prior_algo", "no_prior", "utd", "publish_every", "eval_every",
-               "in_process", "from_topics", "success", "end_on_success", "actors", "imitate_expert",
+ONLINE_ONLY = ("env_steps", "corrector", "mode", "prior_algo", "no_prior", "no_explore", "utd", "publish_every",
+               "eval_every", "in_process", "from_topics", "success", "end_on_success", "actors", "imitate_expert",
                "critic_warmup", "normalize_obs", "bc_weight", "lr_decay", "steer", "offline_ratio", "corrector_noise")
 
 
@@ -58,7 +58,8 @@ def _run(args) -> int:
 def _run_online(args) -> int:
     cfg = OnlineHilConfig(
         out=args.out, env_steps=args.env_steps,
-        seed=args.seed, prior=args.prior, no_prior=args.no_prior, prior_steps=args.prior_steps,
+        seed=args.seed, prior=args.prior, no_prior=args.no_prior, no_explore=args.no_explore,
+        prior_steps=args.prior_steps,
         prior_algo=args.prior_algo,
         bags=args.bag, task=args.task, corrector=args.corrector, steer=args.steer, mode=args.mode, utd=args.utd,
         offline_ratio=args.offline_ratio, corrector_noise=args.corrector_noise, patience=args.patience,
@@ -142,6 +143,10 @@ def register(subparsers) -> None:
                    help="without --prior: train the prior with --algo auto (the best prior from the bag; README, "
                         f"'The best prior') or the chapter's AWAC for --prior-steps (default: {od.prior_algo})")
     o.add_argument("--no-prior", action="store_true", default=None, help="the learner starts from scratch (an ablation)")
+    o.add_argument("--no-explore", action="store_true", default=None,
+                   help="the policy acts on its mean instead of sampling its Gaussian: the arm goes only where the "
+                        "policy or a takeover sends it, and a person's corrections are the exploration (default: "
+                        "it samples, with the learner's std)")
     o.add_argument("--utd", type=int, help=f"gradient steps per environment step (default: {od.utd})")
     o.add_argument("--offline-ratio", type=float, metavar="R",
                    help="share of each batch drawn from the bag, the rest from the session's own steps and a "

@@ -64,6 +64,9 @@ class OnlineHilConfig:
     seed: int = 0
     prior: str | None = None  # a checkpoint; None: trained as prior_algo says (or reused)
     no_prior: bool = False  # the learner starts from scratch
+    # the acting policy serves its mean (tanh of it), not samples of its Gaussian: the arm goes only
+    # where the policy or a person's takeover sends it (the corrections are then the exploration)
+    no_explore: bool = False
     prior_algo: str = "auto"  # auto: the best prior (README, "The best prior"); awac: the chapter's
     prior_steps: int = 8000  # of an AWAC prior
     bags: list[str] = field(default_factory=lambda: [DEFAULT_BAG])
@@ -267,8 +270,8 @@ def _in_process(cfg: OnlineHilConfig, task, prior_path: Path | None, log, curves
     offline, _ = load_bags(cfg.bags, task=task)
     prior = load_checkpoint(prior_path) if prior_path else None
     run = run_online(offline, prior, OnlineRunConfig(
-        env_steps=cfg.env_steps, seed=cfg.seed, corrections=cfg.corrector != "none", eval_every=cfg.eval_every,
-        eval_episodes=cfg.eval_episodes, eval_seed=cfg.eval_seed,
+        env_steps=cfg.env_steps, seed=cfg.seed, corrections=cfg.corrector != "none", explore=not cfg.no_explore,
+        eval_every=cfg.eval_every, eval_episodes=cfg.eval_episodes, eval_seed=cfg.eval_seed,
         corrector=CorrectorParams(steer=cfg.steer, noise=cfg.corrector_noise, patience=cfg.patience,
                                   hold_steps=cfg.hold_steps, grace_steps=cfg.grace_steps),
         settings=OnlineSettings(utd=cfg.utd, offline_ratio=cfg.offline_ratio, publish_every=cfg.publish_every,
@@ -293,6 +296,7 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
         # until the learner's first weights, the policy serves the prior (or the learner's initial weights)
         "checkpoint": prior_path or learner_dir / "policy.pt",
         "mode": cfg.mode, "paced_every": cfg.publish_every if lockstep else 0, "publish_every": cfg.publish_every,
+        "explore": "false" if cfg.no_explore else "true",
         "utd": cfg.utd, "offline_ratio": cfg.offline_ratio,
         "imitate_expert": "true" if cfg.imitate_expert else "false",
         "critic_warmup": cfg.critic_warmup, "normalize_obs": "true" if cfg.normalize_obs else "false",
