@@ -59,8 +59,7 @@ def _run_online(args) -> int:
     cfg = OnlineHilConfig(
         out=args.out, env_steps=args.env_steps,
         seed=args.seed, prior=args.prior, no_prior=args.no_prior, no_explore=args.no_explore,
-        prior_steps=args.prior_steps,
-        prior_algo=args.prior_algo,
+        prior_steps=args.prior_steps, prior_algo=args.prior_algo,
         bags=args.bag, task=args.task, corrector=args.corrector, steer=args.steer, mode=args.mode, utd=args.utd,
         offline_ratio=args.offline_ratio, corrector_noise=args.corrector_noise, patience=args.patience,
         hold_steps=args.hold_steps, grace_steps=args.grace_steps, publish_every=args.publish_every,
