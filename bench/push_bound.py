@@ -14,8 +14,10 @@ variant (``offline-rl hil --online --in-process``, seed 0 or ``--seed``, from th
 its own 200-episode mix, 30 % expert, with pusher7_reach's anchor: STAGE), to set beside
 what imitation alone gives (``--stage-width W``: from an auto prior W wide, fine-tuned at that
 width); ``--patience K --hold-steps M --grace-steps G`` set its scripted
-corrector's rule, ``--bc-weight W`` its actor's BC weight and ``--no-explore`` its acting on the
-policy's mean (each run an entry of its own).
+corrector's rule, ``--bc-weight W`` its actor's BC weight, ``--no-explore`` its acting on the
+policy's mean and ``--action-labels`` the corrector's labels of the states it leaves to the policy
+(each run an entry of its own); ``--over-ros`` runs it over ROS on raw topics (``--from-topics``)
+instead of in process.
 
 For each task variant, log size and width: `offline-rl collect --task T --episodes N
 --expert-frac 1 --seed 1000` (resets 1000.., far from the held-out 500000..), then `offline-rl
@@ -171,7 +173,8 @@ STAGE = ("--normalize-obs", "--imitate-expert", "--bc-weight", "100", "--lr-deca
 # settings of a stage run that may differ from STAGE and the stage's defaults: (flag, the summary's
 # config key); a later flag wins over STAGE's
 STAGE_SETTINGS = (("--patience", "patience"), ("--hold-steps", "hold_steps"), ("--grace-steps", "grace_steps"),
-                  ("--bc-weight", "bc_weight"), ("--seed", "seed"), ("--no-explore", "no_explore"))
+                  ("--bc-weight", "bc_weight"), ("--seed", "seed"), ("--no-explore", "no_explore"),
+                  ("--action-labels", "action_labels"))
 
 
 def stage_flags(args) -> tuple[str, ...]:
@@ -193,8 +196,10 @@ def stage_options(args) -> tuple[str, ...]:
 
 
 def width_flags(args) -> tuple[str, ...]:
-    """``--stage-width W`` where given: push_bound's own (the prior it trains), not a flag of hil."""
-    return ("--stage-width", str(args.stage_width)) if args.stage_width else ()
+    """push_bound's own flags where given, not hil's: ``--stage-width W`` (the prior it trains)
+    and ``--over-ros`` (where the stage runs)."""
+    return (("--stage-width", str(args.stage_width)) if args.stage_width else ()) + \
+        (("--over-ros",) if getattr(args, "over_ros", None) else ())
 
 
 def online_key(variant: str, args) -> str:
@@ -222,10 +227,13 @@ def stage(task_arg: str, variant: str, args) -> dict:
     out = args.work / f"{online_key(variant, args).replace('/', '-')}-online-{args.online_steps}"
     done = out / "summary.json"
     config = json.loads(done.read_text())["config"] if done.exists() else {}
-    if not (config.get("env_steps") == args.online_steps and all(
+    over_ros = bool(getattr(args, "over_ros", None))
+    if not (config.get("env_steps") == args.online_steps and config.get("from_topics", False) == over_ros and all(
             config.get(name) == getattr(args, name) for _, name in STAGE_SETTINGS
             if getattr(args, name) is not None)):
-        offline_rl("hil", "--online", "--in-process", "--task", task_arg, "--bag", str(mix),
+        # over ROS: the nodes as processes, the learner joining the arm's raw topics live
+        where = "--from-topics" if over_ros else "--in-process"
+        offline_rl("hil", "--online", where, "--task", task_arg, "--bag", str(mix),
                    "--env-steps", str(args.online_steps), "--eval-every", str(args.online_eval_every),
                    "--logger", "none", "--out", str(out), *options, *prior)  # a run already made is kept (resumes)
     summary = json.loads(done.read_text())
@@ -339,6 +347,12 @@ def main(argv=None) -> int:
                         "the mix is seed 0's)")
     parser.add_argument("--no-explore", action="store_true", default=None,
                         help="the stage's policy acts on its mean (hil --no-explore; default: it samples)")
+    parser.add_argument("--action-labels", action="store_true", default=None,
+                        help="the stage's corrector labels every state it leaves to the policy (hil "
+                        "--action-labels; default: only its takeovers are imitated)")
+    parser.add_argument("--over-ros", action="store_true", default=None,
+                        help="the stage over ROS, the learner on the arm's raw topics (hil --online --from-topics; "
+                        "default: in process)")
     parser.add_argument("--stage-width", type=int, help="the stage's networks: its prior trained this wide "
                         "(`offline-rl train --algo auto --hidden W`, seed 0 or --seed) and fine-tuned at that "
                         "width (default: the stage's own prior, 256)")

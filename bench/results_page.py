@@ -583,9 +583,11 @@ def push_dagger_section(name: str, payload: dict) -> list[str]:
                      f"{rec['bc_steps_per_round']:,} | {along} | {rec['best']:.2f} | {rec['labels']:,} | {failures} |")
     online = payload.get("online", {})
     if online:
-        lines += ["", "The online stage on the same variants, where the scripted corrector labels only its takeovers "
-                  "(`offline-rl hil --online --in-process`, seed 0, each variant's `--algo auto` prior on its own "
-                  "200-episode mix, 30 % expert; success without intervention on the 100 held-out resets):", "",
+        lines += ["", "The online stage on the same variants, where the scripted corrector labels only its takeovers, "
+                  "or with `--action-labels` also every state it leaves to the policy (`offline-rl hil --online "
+                  "--in-process`, or over ROS with the learner on the arm's raw topics where the options end in "
+                  "`--over-ros`; seed 0 unless `--seed`, each variant's `--algo auto` prior on its own 200-episode "
+                  "mix, 30 % expert; success without intervention on the 100 held-out resets):", "",
                   "| variant | options | prior (its learner) | success (environment steps) along the run | at the end "
                   "| corrector's steps |", "|---|---|---|---|---|---|"]
         for rec in online.values():

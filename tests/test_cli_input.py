@@ -186,6 +186,11 @@ def test_hil_takes_its_defaults_by_mode_and_refuses_the_other_modes_flags(capsys
                          "--patience must be >= 1, got 0"),
                         (["hil", "--online", "--noise", "0.1"], "--noise: only without --online"),
                         (["hil", "--no-explore"], "--no-explore: only with --online"),
+                        (["hil", "--action-labels"], "--action-labels: only with --online"),
+                        (["hil", "--online", "--action-labels", "--out", str(tmp_path / "o")],
+                         "--action-labels: over ROS only with --from-topics"),
+                        (["hil", "--online", "--action-labels", "--in-process", "--corrector", "none", "--out",
+                          str(tmp_path / "o")], "--action-labels: the scripted corrector labels the states"),
                         (["hil", "--online", "--grace-steps", "-1", "--out", str(tmp_path / "o")],
                          "--grace-steps must be >= 0, got -1"),
                         (["hil", "--online", "--steer", "stick", "--corrector", "none", "--out", str(tmp_path / "o")],
@@ -203,6 +208,7 @@ def test_hil_takes_its_defaults_by_mode_and_refuses_the_other_modes_flags(capsys
     assert explicit.bc_weight == 3.0 and explicit.lr_decay is False  # the learner's own defaults
     assert explicit.steer == "expert" and explicit.offline_ratio == 0.5 and explicit.corrector_noise == 0.0
     assert explicit.no_explore is False  # the policy samples its Gaussian unless told
+    assert explicit.action_labels is False  # only a takeover's actions are imitated unless told
     # the scripted corrector's, in either mode
     assert (explicit.patience, explicit.hold_steps, explicit.grace_steps) == (8, 25, 20)
     default = parser.parse_args(["hil"])

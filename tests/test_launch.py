@@ -162,10 +162,15 @@ def test_online_launch_splits_into_one_learner_and_namespaced_actors():
 def test_the_online_launch_hands_the_corrector_and_learner_settings_to_their_nodes():
     """What `offline-rl hil --online` passes as launch arguments reaches the node that uses it,
     typed: the corrector's steering and shaky hand, the learner's batch mix and anchor, whether the
-    policy node explores."""
+    policy node explores, whether the corrector labels the states it leaves to the policy and the
+    learner imitates the labels (a person at the keyboard labels none)."""
     nodes = by_label(load_launch(LAUNCH_DIR / "online.launch.yaml", {
         "steer": "stick", "corrector_noise": "0.2", "offline_ratio": "0.25", "bc_weight": "100.0",
-        "lr_decay_steps": "20000", "explore": "false"}))
+        "lr_decay_steps": "20000", "explore": "false", "action_labels": "true", "from_topics": "true"}))
+    assert nodes["corrector"].params["action_labels"] is True and nodes["learner"].params["action_labels"] is True
+    keyboard = by_label(load_launch(LAUNCH_DIR / "online.launch.yaml", {"action_labels": "true",
+                                                                        "corrector": "keyboard"}))
+    assert keyboard["corrector"].params["action_labels"] is False
     assert nodes["corrector"].params["steer"] == "stick" and nodes["corrector"].params["noise"] == 0.2
     assert nodes["policy"].params["explore"] is False
     learner = nodes["learner"].params
@@ -174,3 +179,4 @@ def test_the_online_launch_hands_the_corrector_and_learner_settings_to_their_nod
     assert defaults["corrector"].params["steer"] == "expert" and defaults["corrector"].params["noise"] == 0.0
     assert defaults["learner"].params["offline_ratio"] == 0.5
     assert defaults["policy"].params["explore"] is True  # the stage samples the learner's Gaussian
+    assert not defaults["corrector"].params["action_labels"] and not defaults["learner"].params["action_labels"]

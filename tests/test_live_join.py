@@ -23,9 +23,9 @@ QUIET = LiveSettings().quiet
 class Learner:
     """What the learner service does with a LiveJoin: take messages, poll, keep the steps."""
 
-    def __init__(self, task, settings=None, judge=None):
-        self.live = LiveJoin(task, settings, judge)
-        self.parts, self.steps, self.now = [], 0, 0.0
+    def __init__(self, task, settings=None, judge=None, action_labels=False):
+        self.live = LiveJoin(task, settings, judge, action_labels)
+        self.parts, self.labels, self.steps, self.now = [], [], 0, 0.0
 
     def take(self, topic, msgtype, payload, recv):
         self.now += 1e-4
@@ -39,6 +39,8 @@ class Learner:
         self.steps += len(out)
         if len(out.transitions):
             self.parts.append(out.transitions)
+            if out.labels is not None:
+                self.labels.append(out.labels)
 
     def rows(self) -> np.ndarray:
         return Transitions.concatenate(self.parts).to_rows() if self.parts else np.zeros((0, 0), np.float32)
@@ -242,3 +244,49 @@ def test_the_log_of_an_n_joint_velocity_arm_joined_live_is_its_batch_join(tmp_pa
         learner.take(*message)
     assert_same_as_batch(learner, bag, task)
     assert learner.rows().shape[0] > 0
+
+
+def test_the_correctors_action_labels_are_joined_to_the_states_they_label(tmp_path):
+    """``action_labels``: a label (``corrections/action_label``, stamped with its state) comes
+    with the transition of the state it labels, clipped into [-1, 1] as a command is; a state
+    without one has NaN; the transitions are the batch join's all the same; a label that comes
+    after its step was handed out is counted late, not attached to another step."""
+    from offline_rl_core.data.bag import typestore
+    from offline_rl_core.data.raw_topics.spec import ACTION_LABEL_TOPIC
+
+    from raw_topic_bags import _Messages
+
+    bag = tmp_path / "session.db3"
+    record_raw_bag(bag, episodes=2, expert_frac=0.5, seed=6, sim_like=True)
+    task = load_task("pusher_reach")
+    ts, msgs = typestore(), _Messages()
+    learner = Learner(task, action_labels=True)
+    topic, labelled, late = "/" + ACTION_LABEL_TOPIC, set(), None
+    for name, msgtype, payload, recv in bag_messages(bag, task):
+        if name.startswith("/pusher/command"):
+            cmd = ts.deserialize_cdr(payload, msgtype)
+            stamp = cmd.header.stamp.sec * 10**9 + cmd.header.stamp.nanosec
+            if stamp not in labelled and len(labelled) % 3 != 2:  # every third state unlabelled
+                labelled.add(stamp)
+                label = msgs.joint_state(stamp, "", effort=1.5 * np.asarray(cmd.effort[::-1]))  # clipped
+                if late is None and len(labelled) == 151:  # in the last episode, still in the window
+                    late = label  # sent only once its step is out
+                else:
+                    learner.take(topic, "sensor_msgs/msg/JointState", label, recv - 1)
+            else:
+                labelled.add(stamp)
+        learner.take(name, msgtype, payload, recv)
+    learner.poll(idle=True)
+    assert learner.live.add(topic, "sensor_msgs/msg/JointState", late, 0, learner.now) is None
+    learner.now += learner.live.settings.quiet_missing
+    learner.poll(idle=True)
+    learner.poll(ended=True)
+    rows = learner.rows()
+    batch, _ = transitions_from_topics(bag, task)
+    assert np.array_equal(bits(rows), bits(batch.to_rows()))
+    got = np.concatenate(learner.labels)
+    assert got.shape == batch.action.shape and learner.live.counts.late_topics == {topic: 1}
+    given = np.isfinite(got).all(axis=1)
+    assert np.isnan(got[~given]).all() and 0.5 * len(got) < given.sum() < len(got)
+    want = np.clip(1.5 * batch.action[:, ::-1].astype(np.float64), -1, 1)
+    assert np.allclose(got[given], want[given], atol=1e-6) and np.abs(got[given]).max() == 1.0

@@ -621,3 +621,61 @@ def test_lr_decay_brings_the_rates_to_zero_over_the_budget_and_resumes_exactly(o
     assert rates(constant) == {3e-4} and not torch.equal(_flat(constant.weights()), _flat(one.weights()))
     with pytest.raises(ValueError, match="lr_decay_steps must be >= 0"):
         OnlineSettings(lr_decay_steps=-1)
+
+
+def _feed_labelled(learner, rows, labels):
+    for i in range(len(rows)):
+        learner.add(rows.select(np.array([i])), labels=labels[i:i + 1])
+        while learner.updates_owed > 0:
+            learner.train()
+            if learner.version_due():
+                learner.cut_version()
+
+
+def test_action_labels_are_imitated_where_the_policy_acted_and_the_critic_keeps_the_action_taken(offline, prior):
+    """``add(rows, labels=...)`` (``hil --online --action-labels``): a state the policy acted on
+    and a person labelled is imitated toward the label, not toward the policy's action, while the
+    row keeps the action the arm took for the critic; an unlabelled row (NaN) stays the policy's
+    own, not imitated; the count of labelled rows survives a resume."""
+    from offline_rl_core.serving.policy import LoadedPolicy
+
+    rows = _stream(200)
+    rows.source[:] = SOURCE_POLICY
+    target = np.tile(np.array([[0.8, -0.6]], np.float32), (len(rows), 1))
+    labels = target.copy()
+    labels[1::2] = np.nan  # every other state unlabelled
+    learner = _learner(offline, prior, offline_ratio=0.0)
+    first = learner.n_offline
+    _feed_labelled(learner, rows, labels)
+    held = slice(first, first + len(rows))
+    assert torch.equal(learner.data.action[0, held], torch.from_numpy(rows.action))  # the critic's: the arm's
+    assert np.array_equal(learner.data.label[0, held][::2].numpy(), target[::2])
+    assert np.array_equal(learner.data.label[0, held][1::2].numpy(), rows.action[1::2])
+    assert learner.data.human[0, held, 0].numpy().tolist() == [1.0, 0.0] * (len(rows) // 2)
+    assert learner.n_labelled == len(rows) // 2 and learner.n_human == 0
+
+    unlabelled = _learner(offline, prior, offline_ratio=0.0)
+    _feed(unlabelled, rows)
+    gap = {name: float(np.mean((LoadedPolicy(ln.weights()).act(rows.obs) - target) ** 2))
+           for name, ln in (("labelled", learner), ("unlabelled", unlabelled))}
+    assert gap["labelled"] < 0.5 * gap["unlabelled"], gap
+
+    resumed = _learner(offline, prior, offline_ratio=0.0)
+    resumed.restore(learner.state())
+    assert resumed.n_labelled == learner.n_labelled
+    assert torch.equal(resumed.data.label[0, held], learner.data.label[0, held])
+
+
+def test_the_stage_with_action_labels_learns_from_the_correctors_labels(offline, prior):
+    """In process, ``labels``: every state the corrector leaves to the policy is labelled with
+    the corrector's action (counted), takeovers are a person's as before, and the run's config
+    says so; without it nothing is labelled."""
+    runs = {}
+    for labels in (False, True):
+        cfg = OnlineRunConfig(env_steps=200, seed=0, eval_every=200, eval_episodes=2, labels=labels,
+                              settings=OnlineSettings(publish_every=20), train=TrainConfig(algo="sac", **SMALL))
+        runs[labels] = run_online(offline, prior, cfg, log=lambda s: None)
+    counts = runs[True]["counts"]
+    assert counts["labelled"] == counts["steps"] - counts["human"] > 0
+    assert "labelled" not in runs[False]["counts"] and runs[True]["config"]["labels"] is True
+    assert counts["human"] > 0  # the takeovers are still a person's

@@ -69,7 +69,7 @@ def test_a_stage_run_is_keyed_by_the_settings_it_was_given_each_flag_once(push_b
     import argparse
 
     given = dict(patience=1, hold_steps=60, grace_steps=None, bc_weight=10.0, seed=None, no_explore=None,
-                 stage_width=512)
+                 action_labels=None, stage_width=512)
     args = argparse.Namespace(**given)
     options = push_bound.stage_options(args)
     flags = [w for w in options if w.startswith("--")]
@@ -82,3 +82,8 @@ def test_a_stage_run_is_keyed_by_the_settings_it_was_given_each_flag_once(push_b
     mean_only = argparse.Namespace(**{**given, "no_explore": True, "bc_weight": None})
     assert push_bound.stage_options(mean_only)[-1] == "--no-explore"  # a switch: the flag alone, no value
     assert push_bound.online_key("rate20", mean_only) == "rate20/patience_1_hold-steps_60_no-explore_stage-width_512"
+    labelled = argparse.Namespace(**{**given, "action_labels": True, "bc_weight": None})
+    assert push_bound.online_key("rate20", labelled) == "rate20/patience_1_hold-steps_60_action-labels_stage-width_512"
+    over_ros = argparse.Namespace(**{**given, "action_labels": True, "bc_weight": None, "over_ros": True})
+    assert push_bound.online_key("rate20", over_ros).endswith("_action-labels_stage-width_512_over-ros")
+    assert "--over-ros" not in push_bound.stage_options(over_ros)  # push_bound's: hil runs --from-topics

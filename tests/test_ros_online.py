@@ -445,3 +445,59 @@ def test_on_pusher7_reach_raw_topics_the_learner_trains_on_the_arms_joined_topic
     assert jumps == [98], jumps
     final = load_checkpoint(out / "learner" / "policy.pt")
     assert final["task"]["digest"] == task.digest and final["weights_version"] == 7
+
+
+@pytest.fixture(scope="module")
+def push(tmp_path_factory):
+    """A 4-episode pusher_push bag and a 50-step AWAC prior trained on it."""
+    require_ros()
+    from offline_rl_core.commands.cli import main
+
+    d = tmp_path_factory.mktemp("push")
+    bag, prior = d / "push.db3", d / "prior"
+    assert main(["collect", "--task", "pusher_push", "--episodes", "4", "--expert-frac", "0.5", "--seed", "0",
+                 "--out", str(bag)]) == 0
+    assert main(["train", "--bag", str(bag), "--algo", "awac", "--steps", "50", "--eval-episodes", "0",
+                 "--out", str(prior)]) == 0
+    return bag, prior / "policy.pt"
+
+
+@pytest.mark.slow
+def test_on_the_push_task_the_scripted_corrector_takes_over_and_labels_every_state_it_leaves(
+        ros_env, tmp_path, push):
+    """`hil --online --task pusher_push --from-topics --action-labels`: the corrector node hears
+    the puck from its tracker's topic, takes over with the push expert, and labels every other
+    state with the action it would take (corrections/action_label, in the session bag); the
+    learner joins each label to its state, so every transition it trains on is imitable (a
+    takeover or a labelled state), its labels the corrector's, its actions the arm's."""
+    from offline_rl_core.data.bag import open_bag, typestore
+    from offline_rl_core.data.raw_topics import transitions_from_topics
+    from offline_rl_core.data.transitions import SOURCE_HUMAN, SOURCE_POLICY
+
+    bag, prior = push
+    out = tmp_path / "online"
+    proc = subprocess.run([sys.executable, "-m", "offline_rl_core", "hil", "--online", "--task", "pusher_push",
+                           "--from-topics", "--action-labels", "--bag", str(bag), "--prior", str(prior),
+                           "--env-steps", "300", "--publish-every", "25", "--eval-every", "150", "--eval-episodes",
+                           "1", "--patience", "1", "--hold-steps", "10", "--logger", "none", "--out", str(out)],
+                          env=ros_env, cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    ts = typestore()
+    with open_bag(out / "session.db3") as reader:
+        conns = [c for c in reader.connections if c.topic == "/corrections/action_label"]
+        sent = [ts.deserialize_cdr(raw, c.msgtype) for c, _, raw in reader.messages(connections=conns)]
+    state = torch.load(out / "learner" / "learner_state.pt", weights_only=True)
+    rows = state["online_rows"]
+    batch, _ = transitions_from_topics(out / "session.db3", "pusher_push")
+    policy = np.flatnonzero(batch.source[:state["n_online"]] == SOURCE_POLICY)
+    human = np.flatnonzero(batch.source[:state["n_online"]] == SOURCE_HUMAN)
+    assert len(policy) and len(human)  # the corrector took over, and left states to the policy
+    assert np.array_equal(rows["action"].numpy(), batch.action[:state["n_online"]])  # the critic's: the arm's
+    assert rows["human"].numpy().all()  # every transition a takeover or a labelled state
+    assert state["n_labelled"] == len(policy) and state["n_human"] == len(human)
+    labels = {tuple(np.clip(np.asarray(m.effort), -1, 1).astype(np.float32)) for m in sent}
+    assert all(tuple(row) in labels for row in rows["label"].numpy()[policy])
+    assert np.array_equal(rows["label"].numpy()[human], rows["action"].numpy()[human])
+    assert len(policy) <= len(sent) <= len(policy) + 2  # each episode's last state: labelled, no transition
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["counts"]["labelled"] == len(policy) and summary["config"]["action_labels"] is True

@@ -112,6 +112,31 @@ def test_a_stick_for_a_task_that_is_no_reach_is_refused_in_one_line():
         CorrectorParams(steer="joystick")
 
 
+def test_the_push_correctors_label_is_its_experts_action_and_leaves_its_decisions_alone():
+    """``label`` (``--action-labels``): on a state it leaves to the policy, the push corrector's
+    label is the task's expert's action for that state, and asking for labels changes none of
+    its decisions (no state, no random draw of its own)."""
+    task = load_task("pusher_push")
+    runs = {}
+    for labelled in (False, True):
+        env = make_env(task)
+        corrector = ScriptedCorrector.for_task(task, CorrectorParams(patience=2, hold_steps=5, noise=0.1, seed=3))
+        env.reset(HELD_OUT)
+        decisions, labels = [], []
+        for _ in range(60):
+            state = env.joint_positions.copy(), env.joint_velocities.copy()
+            points = point_vectors(task, env.point_positions())
+            action = corrector.decide(*state, env.goal.copy(), points)
+            if action is None and labelled:
+                labels.append(corrector.label(*state, points))
+                assert np.array_equal(labels[-1], np.clip(expert_action(env), -1, 1).astype(np.float32))
+            decisions.append(None if action is None else action.tobytes())
+            env.step(np.zeros(task.act_dim, np.float32) if action is None else action)
+        runs[labelled] = decisions
+    assert runs[True] == runs[False] and any(d is None for d in runs[True]) and any(d for d in runs[True])
+    assert labels and all(np.all(np.abs(a) <= 1) for a in labels)
+
+
 def test_pusher_reach_is_the_chapters_env_and_expert():
     env = make_env("pusher_reach")
     assert type(env) is PusherReachEnv

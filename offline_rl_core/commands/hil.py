@@ -17,7 +17,8 @@ from ..runs.loggers import DEFAULT_LOGGER, LOGGERS
 # other mode is refused instead of silently ignored.
 OFFLINE_ONLY = ("rounds", "episodes", "steps", "correction_ratio", "beta", "noise", "reaction_delay")
 BOTH_MODES = ("patience", "hold_steps", "grace_steps")  # the scripted corrector's, in either mode
-ONLINE_ONLY = ("env_steps", "corrector", "mode", "prior_algo", "no_prior", "no_explore", "utd", "publish_every",
+ONLINE_ONLY = ("env_steps", "corrector", "mode", "prior_algo", "no_prior", "no_explore", "action_labels", "utd",
+               "publish_every",
                "eval_every", "in_process", "from_topics", "success", "end_on_success", "actors", "imitate_expert",
                "critic_warmup", "normalize_obs", "bc_weight", "lr_decay", "steer", "offline_ratio", "corrector_noise")
 
@@ -59,6 +60,7 @@ def _run_online(args) -> int:
     cfg = OnlineHilConfig(
         out=args.out, env_steps=args.env_steps,
         seed=args.seed, prior=args.prior, no_prior=args.no_prior, no_explore=args.no_explore,
+        action_labels=args.action_labels,
         prior_steps=args.prior_steps, prior_algo=args.prior_algo,
         bags=args.bag, task=args.task, corrector=args.corrector, steer=args.steer, mode=args.mode, utd=args.utd,
         offline_ratio=args.offline_ratio, corrector_noise=args.corrector_noise, patience=args.patience,
@@ -146,6 +148,10 @@ def register(subparsers) -> None:
                    help="the policy acts on its mean instead of sampling its Gaussian: the arm goes only where the "
                         "policy or a takeover sends it, and a person's corrections are the exploration (default: "
                         "it samples, with the learner's std)")
+    o.add_argument("--action-labels", action="store_true", default=None,
+                   help="the scripted corrector also labels every state it leaves to the policy with the action it "
+                        "would take (DAgger's labels): the actor imitates the labels, the critic learns from the "
+                        "actions the arm took (default: only a takeover's actions are imitated)")
     o.add_argument("--utd", type=int, help=f"gradient steps per environment step (default: {od.utd})")
     o.add_argument("--offline-ratio", type=float, metavar="R",
                    help="share of each batch drawn from the bag, the rest from the session's own steps and a "

@@ -37,7 +37,8 @@ class Batch:
     next_obs: torch.Tensor
     not_done: torch.Tensor  # (M, B, 1): 1 - terminated; truncation still bootstraps
     actor_mask: torch.Tensor  # (M, B, 1): 0 where the action must not be imitated
-    human: torch.Tensor  # (M, B, 1): 1 where a person (source "human") chose the action
+    human: torch.Tensor  # (M, B, 1): 1 where a person chose the action or labelled the state with one
+    label: torch.Tensor  # (M, B, act_dim): the action to imitate there (the row's action, or the label)
 
 
 class MemberData:
@@ -47,7 +48,7 @@ class MemberData:
     not copied (a view with a member axis of size 1 broadcast in gather).
     """
 
-    FIELDS = ("obs", "action", "reward", "next_obs", "not_done", "actor_mask", "human")
+    FIELDS = ("obs", "action", "reward", "next_obs", "not_done", "actor_mask", "human", "label")
 
     def __init__(self, datasets: list[Transitions], device: str = "cpu", capacity: int | None = None,
                  fifo_from: int | None = None):
@@ -90,9 +91,10 @@ class MemberData:
         """The training tensors' columns of ``d``, float32 (N, width)."""
         n = len(d)
         f32 = lambda a, w: np.ascontiguousarray(a, dtype=np.float32).reshape(n, w)  # noqa: E731
+        action = f32(d.action, d.action.shape[1])
         return {
             "obs": f32(d.obs, d.obs.shape[1]),
-            "action": f32(d.action, d.action.shape[1]),
+            "action": action,
             "reward": f32(d.reward, 1),
             "next_obs": f32(d.next_obs, d.obs.shape[1]),
             "not_done": f32(1.0 - d.terminated.astype(np.float32), 1),
@@ -100,6 +102,9 @@ class MemberData:
             # takeover (see ``intervention_actor_mask``); the critic still learns from them.
             "actor_mask": f32(intervention_actor_mask(d), 1),
             "human": f32(d.source == SOURCE_HUMAN, 1),
+            # the action a person would take: the row's own (the same array, no copy) unless a
+            # label says otherwise (``append``'s labels)
+            "label": action,
         }
 
     @property
@@ -111,14 +116,23 @@ class MemberData:
         """The row that appended row ``k`` (counted from 0) is, or was, written to."""
         return self.fifo_from + k % self.ring_rows
 
-    def append(self, rows: Transitions) -> None:
+    def append(self, rows: Transitions, labels: np.ndarray | None = None) -> None:
         """Write ``rows`` after the current rows, in place (one shared dataset); with a ring,
-        over the oldest appended rows once it is full."""
+        over the oldest appended rows once it is full. ``labels`` (N, act_dim), NaN rows where
+        none: the action a person (or the scripted corrector) labelled each state with while the
+        policy acted; imitated in place of the executed action (the critic keeps that one)."""
         start, n = self.sizes[0], len(rows)
         if self.fifo_from is None and start + n > self.capacity:
             raise ValueError(f"buffer full: {start} + {n} rows > capacity {self.capacity}")
         cols = self.columns(rows)
         cols["actor_mask"][:] = 1.0  # takeovers are judged offline, over whole episodes
+        if labels is not None:
+            labels = np.asarray(labels, np.float32).reshape(n, -1)
+            if labels.shape != cols["action"].shape:
+                raise ValueError(f"labels of shape {labels.shape} for {n} rows of {cols['action'].shape[1]} actions")
+            given = np.isfinite(labels).all(axis=1)
+            cols["label"] = np.where(given[:, None], labels, cols["action"])
+            cols["human"] = np.maximum(cols["human"], given[:, None].astype(np.float32))
         first, skip = self.appended, 0
         if self.fifo_from is not None and n > self.ring_rows:  # only the newest fit
             skip = n - self.ring_rows

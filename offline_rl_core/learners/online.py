@@ -42,6 +42,7 @@ from __future__ import annotations
 import time
 from dataclasses import asdict, dataclass, replace
 
+import numpy as np
 import torch
 
 from ..serving.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, task_field
@@ -166,6 +167,7 @@ class OnlineLearner:
                                    cfg.threads)
         self.n_online = 0  # online transitions
         self.n_human_seen = 0  # live transitions a person chose, evicted ones included
+        self.n_labelled_seen = 0  # live transitions the policy chose and a person labelled
         self.n_steps = 0  # environment steps (transitions, and steps that made none)
         self.step_rows: list[int] | None = None  # online transitions through each step, once they differ
         self.updates = 0
@@ -179,16 +181,22 @@ class OnlineLearner:
         self.train_seconds = 0.0
 
     # ------------------------------------------------------------------ data
-    def add(self, rows: Transitions, steps: int | None = None) -> None:
+    def add(self, rows: Transitions, steps: int | None = None, labels: np.ndarray | None = None) -> None:
         """Append live transitions (already checked: finite, known layout), the transitions
-        of the last of ``steps`` environment steps (default: one step per transition)."""
+        of the last of ``steps`` environment steps (default: one step per transition).
+        ``labels`` (one row of actions per transition, NaN where none): the corrector's action
+        on each state the policy acted on, imitated by the actor's BC term in place of the
+        executed action, which the critic still learns from (DAgger's labels)."""
         steps = len(rows) if steps is None else int(steps)
         if steps < len(rows):
             raise ValueError(f"{len(rows)} transitions cannot come from {steps} steps")
         if len(rows):
-            self.data.append(rows if self.norm is None else normalized(rows, *self.norm))
+            self.data.append(rows if self.norm is None else normalized(rows, *self.norm), labels)
             self.n_online += len(rows)
             self.n_human_seen += int((rows.source == SOURCE_HUMAN).sum())
+            if labels is not None:
+                given = np.isfinite(np.asarray(labels, np.float32).reshape(len(rows), -1)).all(axis=1)
+                self.n_labelled_seen += int((given & (rows.source != SOURCE_HUMAN)).sum())
         if self.step_rows is None and steps != len(rows):
             self.step_rows = list(range(1, self.n_steps + 1))  # one transition per step so far
         if self.step_rows is not None:
@@ -205,6 +213,11 @@ class OnlineLearner:
     def n_human(self) -> int:
         """Live transitions a person chose (source human): their takeovers' steps."""
         return self.n_human_seen
+
+    @property
+    def n_labelled(self) -> int:
+        """Live transitions the policy chose and a person labelled with an action (``add``'s labels)."""
+        return self.n_labelled_seen
 
     @property
     def n_evicted(self) -> int:
@@ -312,6 +325,7 @@ class OnlineLearner:
             "sample_generator": self.sample_gen.get_state(),
             "n_online": self.n_online,
             "n_human": self.n_human_seen,
+            "n_labelled": self.n_labelled_seen,
             "n_steps": self.n_steps,
             "step_rows": None if self.step_rows is None else torch.tensor(self.step_rows, dtype=torch.int64),
             "updates": self.updates,
@@ -340,10 +354,12 @@ class OnlineLearner:
             raise ValueError(f"the saved state holds {len(rows['obs'])} online transitions, this learner's buffer "
                              f"{len(slots)} (resume with the capacity it was saved with)")
         for name in MemberData.FIELDS:  # a state saved with a larger buffer: its newest rows
-            getattr(self.data, name)[0, slots] = rows[name][len(rows[name]) - len(slots):]
+            saved = rows["action"] if name == "label" and name not in rows else rows[name]  # saved before labels
+            getattr(self.data, name)[0, slots] = saved[len(saved) - len(slots):]
         self.data.sizes = [self.n_offline + min(n, self.data.ring_rows)]
         human = state.get("n_human")  # saved since the buffer became a ring; before, every row was held
         self.n_human_seen = int(rows["human"].sum()) if human is None else int(human)
+        self.n_labelled_seen = int(state.get("n_labelled", 0))
         self.updates, self.version = int(state["updates"]), int(state["train_version"])
         # saved before the option: a learner that trained had nothing to warm up
         self.warmup_done = int(state.get("critic_warmup_done", self.settings.critic_warmup if self.updates else 0))

@@ -6,8 +6,9 @@ tanh(mean), is what a checkpoint serves); its log-std is one learnt vector.
 Critic: r + gamma (1 - terminated) (min Q'(s', a') - alpha log pi(a' | s')), a' ~ pi(s'),
         MSE on both Qs, Polyak targets (the AWAC prior's critic initialises it).
 Actor:  alpha log pi(a | s) - min Q(s, a), a ~ pi(s) reparameterised,
-        plus ``bc_weight`` x the mean squared error of tanh(mean) to the action over the
-        batch's rows a person (source "human") chose.
+        plus ``bc_weight`` x the mean squared error of tanh(mean) to the person's action over
+        the batch's rows a person chose (source "human") or labelled (``MemberData.append``'s
+        labels: the corrector's action on a state the policy acted on).
 alpha: fixed at ``alpha`` (with ``target_entropy`` set, tuned toward it instead).
 
 Noise comes from each member's own generator, so a seed gives the same run, alone or
@@ -65,8 +66,9 @@ class SAC(CriticLearner):
         q = self.critic.q_min(batch.obs, action)
         self.critic.online.requires_grad_(True)
         # BC on the person's actions: the mean over the batch's human rows (a handful of a
-        # batch; a mean over the whole batch would dilute it by their share)
-        err = (torch.tanh(mean) - batch.action).pow(2).mean(-1, keepdim=True) * batch.human
+        # batch; a mean over the whole batch would dilute it by their share); a labelled row's
+        # target is its label, not the policy's action that the critic learns from
+        err = (torch.tanh(mean) - batch.label).pow(2).mean(-1, keepdim=True) * batch.human
         bc = err.flatten(1).sum(1) / batch.human.flatten(1).sum(1).clamp(min=1.0)
         return per_member_mean(alpha * log_prob - q) + self.cfg.bc_weight * bc, log_prob, q
 

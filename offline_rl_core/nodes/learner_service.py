@@ -78,6 +78,9 @@ class LearnerServiceConfig:
     snapshot_every: int = 0  # live transitions between kept copies of the weights (0: none)
     task: str | None = None  # a built-in task or a task file; None: the prior's, else the bags'
     from_topics: bool = False  # build the live transitions from the task's raw topics
+    # raw topics: the corrector's action labels too (data.raw_topics.spec.ACTION_LABEL_TOPIC), joined
+    # to the states they label and imitated there (the critic learns from the action the arm took)
+    action_labels: bool = False
     success: str | None = None  # raw topics: a success classifier judges each state, not the success distance
     actors: tuple[str, ...] = ()  # the actors' namespaces, when several feed this learner (counted apart)
     live: LiveSettings = field(default_factory=LiveSettings)
@@ -152,7 +155,10 @@ class LearnerService:
             log(f"offline half: left out {self.offline_estop_dropped} transitions recorded while the e-stop was engaged")
         # the live join of the task's raw topics (None: the transitions come on pusher/transition)
         judge = self._judge(cfg)  # a classifier without from_topics is refused here, not ignored
-        self.live = LiveJoin(self.task, cfg.live, judge) if cfg.from_topics else None
+        if cfg.action_labels and not cfg.from_topics:
+            raise UserError("parameter action_labels: only with from_topics (the labels are joined to the raw "
+                            "topics' states by stamp)")
+        self.live = LiveJoin(self.task, cfg.live, judge, cfg.action_labels) if cfg.from_topics else None
         # raw topics joined by receive times, on a sim's /clock: each message waits for the
         # /clock that says which tick it was published in (see receive_clock)
         self.publication_clock = PublicationClock() if (
@@ -316,6 +322,7 @@ class LearnerService:
         k = 0
         for has_row in steps.has_row:
             row = rows[k] if has_row else None
+            label = steps.labels[k:k + 1] if has_row and steps.labels is not None else None
             k += bool(has_row)
             if self.skip_steps:
                 self.skip_steps -= 1
@@ -326,7 +333,8 @@ class LearnerService:
             if rejection is not None:
                 self.rejected.add(rejection)
                 row = None  # still a step of the arm: the versions stay in step with it
-            self.learner.add(Transitions.from_rows(row[None] if row is not None else rows[:0], self.layout), steps=1)
+            self.learner.add(Transitions.from_rows(row[None] if row is not None else rows[:0], self.layout), steps=1,
+                             labels=label if row is not None else None)
             self.received += row is not None
         return len(steps)
 
@@ -379,8 +387,10 @@ class LearnerService:
         """``live.json``: the steps taken from the raw topics and trained on (a pipeline
         waits on it for the learner to have the whole session before stopping it)."""
         self.live_file_due = False
+        labelled = {"labelled": self.learner.n_labelled} if self.cfg.action_labels else {}
         write_json_atomic(self.out / "live.json", {"steps": self.learner.n_steps, "transitions": self.learner.n_online,
-                                                   "updates": self.learner.updates, "join": self.live.counts.as_dict()})
+                                                   **labelled, "updates": self.learner.updates,
+                                                   "join": self.live.counts.as_dict()})
 
     # ---------------------------------------------------------------- persistence
     def close(self) -> Path:
@@ -457,7 +467,8 @@ class LearnerService:
         learner = self.learner
         live = {"steps": learner.n_steps, "join": self.live.counts.as_dict()} if self.live is not None else {}
         actors = {"received_from": dict(self.received_from)} if self.received_from else {}
-        return {"received": learner.n_online, **live, **actors, "evicted": learner.n_evicted,
+        labelled = {"labelled": learner.n_labelled} if self.cfg.action_labels else {}
+        return {"received": learner.n_online, **live, **actors, **labelled, "evicted": learner.n_evicted,
                 "updates": learner.updates,
                 "owed": learner.updates_owed,
                 "weights_version": learner.version, "rejected": dict(self.rejected.counts),

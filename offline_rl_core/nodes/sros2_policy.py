@@ -22,6 +22,8 @@ import datetime as dt
 from dataclasses import dataclass
 from xml.etree import ElementTree as ET
 
+from ..data.raw_topics.spec import ACTION_LABEL_TOPIC
+
 POLICY_VERSION = "0.2.0"  # sros2's policy format with <enclaves>
 ENCLAVE_ROOT = "/pusher_rl"
 PERMISSIONS_SCHEMA = "http://www.omg.org/spec/DDS-SECURITY/20170901/omg_shared_ca_permissions.xsd"
@@ -59,15 +61,16 @@ NODE_GRAPH: dict[str, NodeAccess] = {
                          reply=(ESTOP_RESET,)),
     "mux": NodeAccess(publish=("pusher/command/policy", "pusher/command/human", "corrections/intervening"),
                       subscribe=("policy/action", "teleop/action", "pusher/state", ESTOP), reply=(ESTOP_RESET,)),
-    "corrector": NodeAccess(publish=("teleop/action", "episode_label"),
-                            subscribe=("pusher/state", "pusher/target", "joy"), status=False),
-    "learner": NodeAccess(publish=("~/weights",), subscribe=("pusher/transition", ESTOP), reply=(ESTOP_RESET,)),
+    "corrector": NodeAccess(publish=("teleop/action", "episode_label", ACTION_LABEL_TOPIC),
+                            subscribe=("pusher/state", "pusher/target", "pusher/fingertip", "joy"), status=False),
+    "learner": NodeAccess(publish=("~/weights",), subscribe=("pusher/transition", ACTION_LABEL_TOPIC, ESTOP),
+                          reply=(ESTOP_RESET,)),
     # driving (collect) or passive: every topic of the pipeline, never a weights publisher
     "recorder": NodeAccess(publish=("pusher/command/expert", "pusher/command/random"),
                            subscribe=SIM_OUT[1:] + COMMANDS + (
                                "policy/action", "policy/provenance", "teleop/action", "corrections/intervening",
                                "effort_controller/commands", "learner/weights", "/tf", "/tf_static", ESTOP,
-                               "episode_label"),
+                               "episode_label", ACTION_LABEL_TOPIC),
                            status=False),
     "trainer": NodeAccess(publish=("~/progress",), status=False),
     # the arm's markers from a real arm's joint states (ros2 run viz markers)

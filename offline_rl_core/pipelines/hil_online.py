@@ -67,6 +67,9 @@ class OnlineHilConfig:
     # the acting policy serves its mean (tanh of it), not samples of its Gaussian: the arm goes only
     # where the policy or a person's takeover sends it (the corrections are then the exploration)
     no_explore: bool = False
+    # the scripted corrector also labels every state it leaves to the policy with its action (DAgger's
+    # labels): imitated by the actor's BC term, the critic on the action the arm took
+    action_labels: bool = False
     prior_algo: str = "auto"  # auto: the best prior (README, "The best prior"); awac: the chapter's
     prior_steps: int = 8000  # of an AWAC prior
     bags: list[str] = field(default_factory=lambda: [DEFAULT_BAG])
@@ -112,12 +115,18 @@ class OnlineHilConfig:
         if self.env_steps < 1:
             raise UserError(f"--env-steps must be >= 1 (whole episodes of the task), got {self.env_steps}")
         if not self.in_process:
+            if self.action_labels and not self.from_topics:
+                raise UserError("--action-labels: over ROS only with --from-topics (the learner joins the labels to "
+                                "the raw topics' states by stamp)")
             if self.end_on_success:
                 raise UserError("--end-on-success: only with --in-process (over ROS an episode ends at the sim's "
                                 "time limit or a person's label)")
             if self.success is not None and not self.from_topics:
                 raise UserError("--success: over ROS only with --from-topics (the learner judges the states it "
                                 "joins from the raw topics; pusher/transition comes scored by the sim)")
+        if self.action_labels and self.corrector != "scripted":
+            raise UserError(f"--action-labels: the scripted corrector labels the states (--corrector scripted), "
+                            f"not --corrector {self.corrector}")
         if self.success is not None and not Path(self.success).is_file():
             raise UserError(f"--success {self.success}: no such classifier file (train one with "
                             "`offline-rl classifier train`)")
@@ -271,7 +280,7 @@ def _in_process(cfg: OnlineHilConfig, task, prior_path: Path | None, log, curves
     prior = load_checkpoint(prior_path) if prior_path else None
     run = run_online(offline, prior, OnlineRunConfig(
         env_steps=cfg.env_steps, seed=cfg.seed, corrections=cfg.corrector != "none", explore=not cfg.no_explore,
-        eval_every=cfg.eval_every, eval_episodes=cfg.eval_episodes, eval_seed=cfg.eval_seed,
+        labels=cfg.action_labels, eval_every=cfg.eval_every, eval_episodes=cfg.eval_episodes, eval_seed=cfg.eval_seed,
         corrector=CorrectorParams(steer=cfg.steer, noise=cfg.corrector_noise, patience=cfg.patience,
                                   hold_steps=cfg.hold_steps, grace_steps=cfg.grace_steps),
         settings=OnlineSettings(utd=cfg.utd, offline_ratio=cfg.offline_ratio, publish_every=cfg.publish_every,
@@ -297,6 +306,7 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
         "checkpoint": prior_path or learner_dir / "policy.pt",
         "mode": cfg.mode, "paced_every": cfg.publish_every if lockstep else 0, "publish_every": cfg.publish_every,
         "explore": "false" if cfg.no_explore else "true",
+        "action_labels": "true" if cfg.action_labels else "false",
         "utd": cfg.utd, "offline_ratio": cfg.offline_ratio,
         "imitate_expert": "true" if cfg.imitate_expert else "false",
         "critic_warmup": cfg.critic_warmup, "normalize_obs": "true" if cfg.normalize_obs else "false",
@@ -389,6 +399,11 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
     per_actor = {ns: _session_counts(session) for ns, session in zip(cfg.namespaces, sessions)}
     counts = {key: sum(c[key] for c in per_actor.values()) for key in ("steps", "human", "takeovers", "episodes")}
     counts["learner_restarts"] = restarts
+    if cfg.action_labels:  # the states the learner joined a label to (live.json: written as it trains)
+        try:
+            counts["labelled"] = int(json.loads((learner_dir / "live.json").read_text())["labelled"])
+        except (OSError, ValueError, KeyError):
+            counts["labelled"] = None
     result = {"curve": curve, "counts": counts, "learner_seconds": round(wall, 2), "where": "over ROS"}
     if cfg.actors > 1:
         progress = _last_progress(learner_dir / "progress.jsonl") or {}
@@ -474,13 +489,13 @@ def _joined_by_receive_times(cfg: OnlineHilConfig) -> bool:
 def _record_topics(cfg: OnlineHilConfig) -> str:
     """The recorder's --topics for a raw-topic session: the task's topics (those of a known
     type subscribed from the start: the session's first states are in the bag), its
-    description and a person's episode labels."""
+    description, a person's episode labels and (``action_labels``) the corrector's action labels."""
     from ..data.episode_labels import LABEL_TOPIC
     from ..data.raw_topics import plan_for
     from ..data.task_record import TASK_TOPIC
     from ..task.spec import load_task
 
-    roles = plan_for(load_task(cfg.task)).roles
+    roles = plan_for(load_task(cfg.task), cfg.action_labels).roles
     return (f"--topics {' '.join([*(r.given for r in roles), TASK_TOPIC.lstrip('/'), LABEL_TOPIC])} "
             f"--types {' '.join(f'{r.given}:{r.types[0]}' for r in roles if r.types and len(r.types) == 1)}")
 

@@ -55,6 +55,9 @@ class OnlineRunConfig:
     seed: int = 0
     corrections: bool = True  # the scripted corrector takes over (False: online RL alone)
     explore: bool = True  # sample from the policy's Gaussian (False: act deterministically)
+    # the corrector also labels every state it leaves to the policy with its expert's action
+    # (DAgger's labels): imitated by the actor's BC term, the critic on the executed action
+    labels: bool = False
     eval_every: int = 2_500
     eval_episodes: int = 100
     eval_seed: int = EVAL_SEED
@@ -123,17 +126,22 @@ def run_online(offline: Transitions, prior: dict | None, cfg: OnlineRunConfig,
             actor.see(n)
             assert actor.ready(), "the learner cut every version due before this step"
             action, source = actor.act(obs, n), SOURCE_POLICY
-            correction = corrector.decide(env.joint_positions.copy(), env.joint_velocities.copy(), env.goal.copy(),
-                                          point_vectors(task, env.point_positions())) if cfg.corrections else None
-            if correction is not None:
-                action, source = correction, SOURCE_HUMAN
+            label = None
+            if cfg.corrections:
+                qpos, qvel = env.joint_positions.copy(), env.joint_velocities.copy()
+                points = point_vectors(task, env.point_positions())
+                correction = corrector.decide(qpos, qvel, env.goal.copy(), points)
+                if correction is not None:
+                    action, source = correction, SOURCE_HUMAN
+                elif cfg.labels:
+                    label = corrector.label(qpos, qvel, points)[None]
             next_obs, reward, done, info = env.step(action)
             if rescored:
                 truth = info["success"]
                 reward, info, judged = rescore(task, env, next_obs, judged, judge, cfg.end_on_success)
                 done = info["terminated"] or info["truncated"]
             learner.add(Transitions.from_rows(transition_row(obs, action, reward, next_obs, info, episode, step,
-                                                             source)[None], layout))
+                                                             source)[None], layout), labels=label)
             counts["human"] += source == SOURCE_HUMAN
             counts["takeovers"] += source == SOURCE_HUMAN and not was_human
             window["human"] += source == SOURCE_HUMAN
@@ -161,10 +169,13 @@ def run_online(offline: Transitions, prior: dict | None, cfg: OnlineRunConfig,
     if n % cfg.eval_every:
         evaluate(n)
     counts["steps"] = n
+    if cfg.labels:
+        counts["labelled"] = learner.n_labelled
     return {"curve": curve, "counts": counts, "wall_s": round(time.perf_counter() - t0, 2),
             "train_seconds": round(learner.train_seconds, 2), "final_weights": learner.weights(),
             "config": {"env_steps": cfg.env_steps, "seed": cfg.seed, "corrections": cfg.corrections,
-                       "explore": cfg.explore, "corrector": asdict(cfg.corrector), "online": asdict(cfg.settings),
+                       "explore": cfg.explore, **({"labels": True} if cfg.labels else {}),
+                       "corrector": asdict(cfg.corrector), "online": asdict(cfg.settings),
                        "train": cfg.train.to_dict(),
                        **({} if task.name == DEFAULT_TASK else {"task": task.name, "task_digest": task.digest}),
                        **({"success": cfg.success or "simulator", "end_on_success": cfg.end_on_success}

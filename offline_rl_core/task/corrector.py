@@ -11,7 +11,9 @@ and a reaction delay (steps between deciding to take over and acting) make it le
 perfect. Everything random comes from one numpy Generator seeded by ``seed``.
 
 One call of :meth:`ScriptedCorrector.decide` per state; the answer is the correction
-action (float32, one value per command joint) or None (the policy keeps control).
+action (float32, one value per command joint) or None (the policy keeps control). On a state
+it leaves to the policy, :meth:`ScriptedCorrector.label` gives the action it would have taken:
+a label (DAgger's), learnt from without moving the arm.
 
 Any task: the rule judges the task's reward distance and takes over with the task's
 scripted expert (:func:`task_rule`, from joint positions and the goal, as the corrector node
@@ -214,6 +216,16 @@ class ScriptedCorrector:
         self.intervening = True
         self.takeovers += 1
         return self.act(qpos, qvel, points)
+
+    def label(self, qpos, qvel, points=None) -> np.ndarray:
+        """The expert's action on the state just decided (after ``decide``), without taking
+        over: a label for a state the policy acts on (DAgger's), the corrector's state and random
+        stream untouched (no noise: the label is what it would steer, not a shaky hand)."""
+        if self.target is None:
+            raise ValueError("label() before decide(): no goal yet")
+        tracked = () if points is None else (points,)
+        action = np.asarray(self.expert(qpos, qvel, self.target, *tracked), np.float64)
+        return np.clip(action, -1.0, 1.0).astype(np.float32)
 
     def act(self, qpos, qvel, points=None) -> np.ndarray:
         tracked = () if points is None else (points,)

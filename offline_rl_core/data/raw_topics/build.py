@@ -169,6 +169,7 @@ class Streams:
     goal: Rows
     points: dict  # point name -> Rows (points with a topic that was heard)
     resets: np.ndarray  # int64 receive times of reset messages
+    labels: Rows | None = None  # the corrector's action labels (a plan with them), in arrival order
 
 
 def read_bag(bag: Path, plan: JoinPlan) -> tuple[Streams, JoinReport]:
@@ -283,6 +284,8 @@ class JoinResult:
     unobserved_t: np.ndarray  # int64 stamps of states dropped for a missing goal or point
     # with a judge: each transition's success by the task's success distance (None: no judge)
     rule_success: np.ndarray | None = None
+    # with action labels: each transition's label (float32, in [-1, 1]; NaN where its state has none)
+    labels: np.ndarray | None = None
 
 
 def first_per_stamp(stamp: np.ndarray, content: np.ndarray) -> tuple[np.ndarray, int, int]:
@@ -537,8 +540,30 @@ def join(plan: JoinPlan, s: Streams, report: JoinReport, kinematics=None, allow_
     if c.size == 0 and not allow_empty:
         raise JoinEmpty(f"no transitions could be built from {plan.state_topic} and the commands; "
                         f"commands: {_counts_text(report.commands)}")
+    labels = None
+    if s.labels is not None:  # a label carries its state's header stamp; joined by receive times, matched by it
+        by_header = plan.receive_stamps
+        labels = _labels_of(s.labels, states.header[keep][a] if by_header else t_state[a], 0 if by_header else tol,
+                            task.act_dim, by_header)
     return JoinResult(data, step_index.astype(np.int64), t_state, t_state[first_state[episode]], live["cmd_t"],
-                      live["cmd_dist"], live["next_t"], live["next_dist"], row_of_state, unobserved_t, rule)
+                      live["cmd_dist"], live["next_t"], live["next_dist"], row_of_state, unobserved_t, rule, labels)
+
+
+def _labels_of(labels: Rows, t: np.ndarray, tol: int, act_dim: int, by_header: bool = False) -> np.ndarray:
+    """The action label of each state stamped ``t`` (the one with its stamp, nearest within the
+    join tolerance; the first received of a stamp; ``by_header``: ``t`` are the states' header
+    stamps, matched to the labels'), clipped into [-1, 1] as a command is; NaN where none was heard."""
+    out = np.full((t.size, act_dim), np.nan, np.float32)
+    usable = labels.take(np.flatnonzero(labels.ok))
+    if by_header:
+        usable.stamp = usable.header
+    if len(usable) == 0 or t.size == 0:
+        return out
+    keep, _, _ = first_per_stamp(usable.stamp, usable.values)
+    usable = usable.take(keep)
+    j, _, heard = nearest(usable.stamp, t, tol)
+    out[heard] = np.clip(usable.values[j[heard]], -1.0, 1.0).astype(np.float32)
+    return out
 
 
 class StateVerdicts:

@@ -48,7 +48,7 @@ from .streams import Mismatch, Rows, decode_rows, has_header, role_width
 
 NEVER = -(2**62)  # a watermark before any stamp
 _GROUP = {"state": "states", "command": "commands", "action": "commands", "goal": "observed", "point": "observed",
-          "reset": "resets"}
+          "reset": "resets", "label": "labels"}
 
 
 @dataclass
@@ -67,6 +67,7 @@ class LiveSteps:
 
     transitions: Transitions
     has_row: np.ndarray  # bool per step
+    labels: np.ndarray | None = None  # with action labels: one per transition (NaN: its state has none)
 
     def __len__(self) -> int:
         return int(self.has_row.size)
@@ -120,11 +121,11 @@ class LiveJoin:
     """``judge``: a success classifier (``success(obs)``) whose judgement of each state
     replaces the task's success distance, as in ``build.join``."""
 
-    def __init__(self, task: TaskSpec, settings: LiveSettings | None = None, judge=None):
+    def __init__(self, task: TaskSpec, settings: LiveSettings | None = None, judge=None, action_labels: bool = False):
         self.task = task
         # verdicts remembered across polls: the window is joined again on each
         self.judge = None if judge is None else StateVerdicts(judge)
-        self.plan = plan_for(task)
+        self.plan = plan_for(task, action_labels)
         self.settings = settings or LiveSettings()
         self.kinematics = point_kinematics(task)
         self.roles = {r.topic: r for r in self.plan.roles}
@@ -134,13 +135,16 @@ class LiveJoin:
         self.commands = _Buffer(task.act_dim)
         self.goal = _Buffer(task.goal.size)
         self.points = {r.name: _Buffer(width[r.topic]) for r in self.plan.of_role("point")}
+        # the corrector's labels: they gate no step (a label still to come is not waited for; the
+        # corrector sends it before its answer, steps before the next state that seals the step)
+        self.labels = _Buffer(task.act_dim) if action_labels else None
         self.resets: list[int] = []
         self.watermark = {r.topic: NEVER for r in self.plan.roles}  # latest stamp heard, per topic
         self.window_start = NEVER  # first state of the window (an episode start)
         self.goal_start = NEVER  # the earliest goal the window's states can take
         self.handed_out = NEVER  # every state stamped before this has had its steps handed out
         # how far each group of topics was taken complete when steps were last handed out
-        self.sealed = {"states": NEVER, "commands": NEVER, "observed": NEVER, "resets": NEVER}
+        self.sealed = {"states": NEVER, "commands": NEVER, "observed": NEVER, "resets": NEVER, "labels": NEVER}
         self.last_advance = -math.inf  # when a watermark last moved (the caller's clock, s)
         self.changed = False
         self.quiet_used = 0  # the quiet level of the last poll that joined: 0 none, 1 quiet, 2 quiet_missing
@@ -204,6 +208,8 @@ class LiveJoin:
     def _held(self, role: TopicRole) -> _Buffer:
         if role.role == "point":
             return self.points[role.name]
+        if role.role == "label":
+            return self.labels
         return {"state": self.states, "command": self.commands, "action": self.commands, "goal": self.goal}[role.role]
 
     def _in_window(self, role: TopicRole, stamp: int) -> bool:
@@ -234,7 +240,8 @@ class LiveJoin:
         quiet = level > 0
         report = JoinReport("live", self.task.source_file())
         streams = Streams(self.states.rows, self.commands.rows, self.goal.rows,
-                          {name: b.rows for name, b in self.points.items()}, np.asarray(self.resets, np.int64))
+                          {name: b.rows for name, b in self.points.items()}, np.asarray(self.resets, np.int64),
+                          None if self.labels is None else self.labels.rows)
         try:
             result = join(self.plan, streams, report, self.kinematics, allow_empty=True, judge=self.judge)
         except JoinEmpty:
@@ -244,7 +251,7 @@ class LiveJoin:
         if cut <= self.handed_out:
             return self._none()
         # a command below the seal of the states without one could have changed a step handed out
-        self.sealed.update(states=seals[0], commands=seals[2], observed=seals[3])
+        self.sealed.update(states=seals[0], commands=seals[2], observed=seals[3], labels=cut)
         t = result.state_t
         steps = np.flatnonzero((t >= self.handed_out) & (t < cut) & (result.cmd_dist >= 0))
         rows = result.row_of_state[steps]
@@ -266,7 +273,8 @@ class LiveJoin:
             more = judged_counts(self.judge.source, data.success, result.rule_success[picked])
             for key in ("successes", "rule_successes", "false_successes", "missed"):
                 self.counts.judged[key] += more[key]
-        return LiveSteps(data, rows >= 0)
+        labels = None if result.labels is None else result.labels[picked]
+        return LiveSteps(data, rows >= 0, labels)
 
     def _none(self) -> LiveSteps:
         return LiveSteps(Transitions.empty(0, Layout(self.task.obs_dim, self.task.act_dim)), np.zeros(0, bool))
@@ -334,6 +342,6 @@ class LiveJoin:
         self.states.keep(lambda r: r.stamp >= start)
         self.commands.keep(lambda r: r.stamp >= start - tol)
         self.goal.keep(lambda r: r.stamp >= self.goal_start)
-        for buffer in self.points.values():
+        for buffer in [*self.points.values(), *([self.labels] if self.labels is not None else [])]:
             buffer.keep(lambda r: r.stamp >= start - tol)
 

@@ -15,6 +15,12 @@ from ...common.errors import UserError
 from ...task.spec import JOINT_STATE, TaskSpec
 
 
+# The scripted corrector's action labels (``--action-labels``): on every state it leaves to the
+# policy, the action it would take (JointState of the command joints, effort in [-1, 1], stamped
+# with the state's stamp). The project's topic, not the robot's: the arm never reads it.
+ACTION_LABEL_TOPIC = "corrections/action_label"
+
+
 def absolute(topic: str) -> str:
     """A task's relative topic name as a bag stores it (recorded without a namespace)."""
     return topic if topic.startswith("/") else "/" + topic
@@ -25,7 +31,7 @@ class TopicRole:
     """One topic the join reads: what it is for, the task field that names it, the types it may have."""
 
     topic: str  # absolute
-    role: str  # state, command, action, goal, point, reset
+    role: str  # state, command, action, goal, point, reset, label
     field: str  # the task file's field naming it (for messages)
     types: tuple[str, ...] | None  # None: any type (a reset)
     required: bool
@@ -79,8 +85,9 @@ class JoinPlan:
         return round(self.task.episodes.max_gap * 1e9)
 
 
-def plan_for(task: TaskSpec) -> JoinPlan:
-    """The topics ``task`` reads from a recording, by role."""
+def plan_for(task: TaskSpec, action_labels: bool = False) -> JoinPlan:
+    """The topics ``task`` reads from a recording, by role; ``action_labels``: the corrector's
+    action labels too (``ACTION_LABEL_TOPIC``, joined to the states they label)."""
     command = task.command
     roles: list[TopicRole] = []
 
@@ -102,5 +109,7 @@ def plan_for(task: TaskSpec) -> JoinPlan:
             add(p.topic, "point", f"points.{p.name}.topic", (p.type,), p.kinematics is None, p.name)
     if task.episodes.reset_topic is not None:
         add(task.episodes.reset_topic, "reset", "episodes.reset_topic", None, True)
+    if action_labels:
+        add(ACTION_LABEL_TOPIC, "label", "the corrector's action labels (--action-labels)", (JOINT_STATE,), False)
     return JoinPlan(task, tuple(roles))
 

@@ -1,4 +1,5 @@
-"""A recording's topics as arrays by role: states, commands, goal, tracked points, resets.
+"""A recording's topics as arrays by role: states, commands, goal, tracked points, resets, and
+the corrector's action labels (read as the project's action topics are).
 
 ``decode_rows(plan, role, msgtype, payloads, recv_ns)`` turns the raw payloads of one topic
 into ``Rows``: stamps, receive times and float64 values in the task's order (the state's
@@ -89,7 +90,7 @@ def role_width(plan: JoinPlan, role: TopicRole) -> int:
     task = plan.task
     if role.role == "state":
         return 2 * len(task.state.joints)
-    if role.role in ("command", "action"):
+    if role.role in ("command", "action", "label"):
         return task.act_dim
     if role.role == "goal":
         return task.goal.size
@@ -127,8 +128,8 @@ def decode_rows(plan: JoinPlan, role: TopicRole, msgtype: str, payloads, recv_ns
             rows.header[d.rows] = d.stamp_ns
             if not plan.receive_stamps:
                 rows.stamp[d.rows] = d.stamp_ns
-    read = {"state": _read_state, "command": _read_command, "action": _read_command, "goal": _read_vector,
-            "point": _read_vector}.get(role.role)
+    read = {"state": _read_state, "command": _read_command, "action": _read_command, "label": _read_command,
+            "goal": _read_vector, "point": _read_vector}.get(role.role)
     if read is not None:
         read(plan, role, msgtype, decoded, rows)
         rows.ok &= np.isfinite(rows.values).all(axis=1)

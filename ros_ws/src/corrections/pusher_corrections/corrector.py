@@ -1,14 +1,18 @@
 """``ros2 run corrections corrector``: the human in human-in-the-loop, or a stand-in.
 
 Watches the task's state (``-p task:=NAME_OR_FILE``, default pusher_reach: ``pusher/state``)
-with its goal (``pusher/target``), paired by stamp as the policy node does
-(``offline_rl_core.nodes.pairing``), and answers every state on ``teleop/action``
-(JointState of the command joints, stamp = the state's): either a correction (effort =
+with its goal (``pusher/target``) and the tracked points that have a topic (a puck from its
+tracker), paired by stamp as the policy node does (``offline_rl_core.nodes.pairing``), and
+answers every state on ``teleop/action`` (JointState of the command joints, stamp = the
+state's): either a correction (effort =
 the action in [-1, 1]) or a *yield* (empty effort: the policy keeps the arm). A
 republished state gets the same answer again; each state is decided once. The scripted
-rule judges the task's reward distance (tracked points from forward kinematics) and
-takes over with the task's scripted expert (``offline_rl_core.task.corrector.task_rule``);
-a task without one in this build is refused at start in one line.
+rule is the in-process stage's (``ScriptedCorrector.for_task``): it judges the task's reward
+distances (points heard on their topics, else from forward kinematics) and takes over with
+the task's scripted expert; a task without one in this build is refused at start in one line.
+With ``--action-labels`` it also publishes, before its yield, the action it would take on
+every state it leaves to the policy (``corrections/action_label``, stamp = the state's): labels
+a learner with ``action_labels`` imitates (DAgger's); no node that moves the arm reads them.
 
 ``--mode scripted`` (default): takes over with the scripted expert when the fingertip
 has not got closer to the target for ``patience`` steps, hands back after
@@ -73,7 +77,8 @@ from offline_rl_core.nodes.diagnostics import StatusDiagnosis
 from offline_rl_core.nodes.gamepad import LABEL_TOPIC, GamepadTeleop, label_json, load_mapping
 from offline_rl_core.common.rejections import RejectionCounter
 
-from offline_rl_core.task.corrector import STEERS, CorrectorParams, ScriptedCorrector, task_rule
+from offline_rl_core.data.raw_topics.spec import ACTION_LABEL_TOPIC
+from offline_rl_core.task.corrector import STEERS, CorrectorParams, ScriptedCorrector
 
 KEEP_ANSWERS = 64
 KEYS = {
@@ -155,11 +160,14 @@ PARAMS = (
     Param("noise", 0.0, "std of Gaussian noise on the corrections' torques (a shaky hand)", low=0.0, flag="--noise"),
     Param("reaction_delay", 0, "states between deciding to take over and acting", low=0, flag="--reaction-delay"),
     Param("seed", 0, "seed of the correction noise", low=0, read_only=True, flag="--seed"),
+    Param("action_labels", False, "scripted: also publish, on every state it leaves to the policy, the action it "
+          f"would take on {ACTION_LABEL_TOPIC} (DAgger's labels, for a learner with action_labels); the arm "
+          "never reads them", read_only=True, flag="--action-labels"),
     Param("steer", "expert", "how a takeover moves the arm: expert (the task's scripted expert) or stick (the "
           "fingertip steered straight at the goal, as with a Cartesian stick; reach tasks)", choices=STEERS,
           read_only=True, flag="--steer"),
 )
-RULE_PARAMS = tuple(p.name for p in PARAMS if p.name not in ("mode", "task", "gamepad"))
+RULE_PARAMS = tuple(p.name for p in PARAMS if p.name not in ("mode", "task", "gamepad", "action_labels"))
 
 
 class Corrector(Node):
@@ -172,14 +180,10 @@ class Corrector(Node):
         task = self.task = load_task(self.settings.task or None)  # UserError: one line naming the task
         self.builder = ObservationBuilder(task, kinematics_model(task))
         if self.mode == "scripted":
-            heard = [v for v in task.reward.distance if v in self.builder.topic_only]
-            if heard:  # this node hears no points: the rule's distance must come from the joints
-                raise UserError(f"{task.source_file()}: the scripted corrector computes reward.distance from the "
-                                f"joints, but point {heard[0]} has no kinematics it can compute")
-            # UserError: no expert for the task, or a stick for a task that is no reach
-            expert, distance = task_rule(task, self.builder.distance, values["steer"])
-            try:
-                self.teleop = ScriptedCorrector(CorrectorParams(**values), expert, distance, task.reward.success_within)
+            # the in-process stage's corrector (ScriptedCorrector.for_task), fed with the tracked
+            # points this node hears (a puck from its tracker) and computes (the fingertip)
+            try:  # UserError: no expert for the task, or a stick for a task that is no reach
+                self.teleop = ScriptedCorrector.for_task(task, CorrectorParams(**values))
             except ValueError as exc:
                 raise UserError(str(exc)) from None
         elif self.mode == "gamepad":
@@ -190,15 +194,24 @@ class Corrector(Node):
                                 "command joints")
             self.teleop = KeyboardTeleop(task.act_dim)
             self.create_timer(0.1, self.check_keys, clock=Clock(clock_type=ClockType.STEADY_TIME))
-        self.pairing = StatePairing(points=())  # the rule computes its tracked points
+        # points with a topic are paired with their state (those without kinematics waited for)
+        self.pairing = StatePairing(points=tuple(self.builder.point_topics), required=self.builder.topic_only)
         self.answers: dict[int, JointState] = {}
         self.states = 0
         self.corrections = 0
         self.correcting = False  # the last state decided was answered with a correction
         goal_type = {JOINT_STATE: JointState, POSE_STAMPED: PoseStamped}.get(task.goal.type, PointStamped)
         self.create_subscription(goal_type, task.goal.topic, self.on_goal, 10)
+        for name, point in self.builder.point_topics.items():
+            self.create_subscription(PoseStamped if point.type == POSE_STAMPED else PointStamped, point.topic,
+                                     lambda msg, name=name: self.on_point(name, msg), 10)
         state_sub = self.create_subscription(JointState, task.state.topic, self.on_state, 10)
         self.pub = self.create_publisher(JointState, "teleop/action", 10)
+        # DAgger's labels: the action it would take on each state it leaves to the policy
+        self.action_labels = self.mode == "scripted" and self.settings.action_labels
+        self.action_label_pub = self.create_publisher(JointState, ACTION_LABEL_TOPIC, 10) \
+            if self.action_labels else None
+        self.labelled = 0
         self.rejected = RejectionCounter()
         if self.mode == "gamepad":
             self.create_subscription(Joy, "joy", self.on_joy, 10)
@@ -217,6 +230,8 @@ class Corrector(Node):
                "correcting": self.correcting}
         if self.mode == "scripted":
             out["takeovers"] = self.teleop.takeovers
+        if self.action_labels:
+            out["action_labels"] = self.labelled
         if self.mode == "gamepad":
             out["deadman_held"] = self.teleop.active
             out["rejected"] = dict(self.rejected.counts)
@@ -267,6 +282,12 @@ class Corrector(Node):
         if problem is None:
             self.answer(self.pairing.on_goal(stamp_key(msg.header.stamp), goal))
 
+    def on_point(self, name: str, msg) -> None:
+        p = msg.pose.position if isinstance(msg, PoseStamped) else msg.point
+        value, problem = self.builder.point(name, p.x, p.y, p.z)
+        if problem is None:
+            self.answer(self.pairing.on_point(name, stamp_key(msg.header.stamp), value))
+
     def on_state(self, msg: JointState) -> None:
         self.answer(self.pairing.on_state(stamp_key(msg.header.stamp), msg))
 
@@ -279,7 +300,18 @@ class Corrector(Node):
             joints, _ = self.builder.state(msg.name, msg.position, msg.velocity)
             if joints is None:
                 return
-            action = self.teleop.decide(joints[0], joints[1], paired.goal)
+            if self.mode == "scripted":  # every tracked point, heard or from kinematics
+                points = {k: v for k, v in self.builder.vectors(joints[0], paired.goal, paired.points).items()
+                          if k != "goal"}
+                action = self.teleop.decide(joints[0], joints[1], paired.goal, points)
+                if action is None and self.action_labels:  # sent before the answer that lets the arm move
+                    label = JointState(name=list(self.task.command.joints))
+                    label.header.stamp = msg.header.stamp
+                    label.effort = [float(a) for a in self.teleop.label(joints[0], joints[1], points)]
+                    self.action_label_pub.publish(label)
+                    self.labelled += 1
+            else:
+                action = self.teleop.decide(joints[0], joints[1], paired.goal)
             self.states += 1
             self.correcting = action is not None
             out = JointState(name=list(self.task.command.joints))

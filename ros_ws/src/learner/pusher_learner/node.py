@@ -31,6 +31,10 @@ wait until the state and goal topics are heard, so a paced actor never outruns i
 joined by receive times (``join.stamps: receive``: commands without a header) on a sim
 (``-p use_sim_time:=true``) has each message stamped by the sim time of its publication
 (its source timestamp against the /clock's), as the recorder on sim time stamps the bag.
+With ``-p action_labels:=true`` it also joins the scripted corrector's action labels
+(``corrections/action_label``, one per state it leaves to the policy) to the states they
+label: the actor's BC term imitates them there (DAgger's labels), the critic learns from the
+action the arm took.
 
 The logic lives in ``offline_rl_core.nodes.learner_service``; this node only moves messages.
 """
@@ -123,6 +127,9 @@ PARAMS = [
           "trains on, e.g. [/arm1, /arm2]; none: its own namespace's", read_only=True, flag="--actors", kind=list),
     Param("from_topics", False, "build the live transitions from the task's raw topics (joint states, commands, "
           "goal) instead of pusher/transition", read_only=True, flag="--from-topics"),
+    Param("action_labels", False, "raw topics: also join the corrector's action labels (corrections/action_label) "
+          "to the states they label; the actor imitates them, the critic learns from the actions the arm took",
+          read_only=True, flag="--action-labels"),
     Param("success", "", "raw topics: a success classifier file (offline-rl classifier train) that judges each "
           "state's success, for the reward's bonus and the episode's end, instead of the task's success distance; "
           "empty: the distance", read_only=True, flag="--success"),
@@ -163,7 +170,7 @@ class Learner(Node):
             bags=list(s.bag), out=s.out, prior=s.prior or None, task=s.task or None, seed=s.seed,
             save_every=s.save_every, resume=s.resume, session_bag=s.session_bag or None,
             snapshot_every=s.snapshot_every, from_topics=s.from_topics, success=s.success or None,
-            actors=tuple(s.actors or ()),
+            action_labels=s.action_labels, actors=tuple(s.actors or ()),
             live=LiveSettings(lateness=s.lateness, quiet=s.quiet, quiet_missing=s.quiet_missing),
             settings=settings, train=train,
             logger=s.logger, sim_time=bool(self.get_parameter("use_sim_time").value)),
