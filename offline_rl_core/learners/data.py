@@ -38,7 +38,12 @@ class Batch:
     not_done: torch.Tensor  # (M, B, 1): 1 - terminated; truncation still bootstraps
     actor_mask: torch.Tensor  # (M, B, 1): 0 where the action must not be imitated
     human: torch.Tensor  # (M, B, 1): 1 where a person chose the action or labelled the state with one
-    label: torch.Tensor  # (M, B, act_dim): the action to imitate there (the row's action, or the label)
+    # (M, B, act_dim): the action to imitate there, the row's action or its label (None: the action)
+    label: torch.Tensor | None = None
+
+    def __post_init__(self) -> None:
+        if self.label is None:
+            self.label = self.action
 
 
 class MemberData:
