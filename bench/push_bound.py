@@ -82,6 +82,9 @@ from offline_rl_core.task.envs import expert_action, make_env
 from offline_rl_core.task.spec import load_task
 
 BUILTIN = Path(__file__).resolve().parents[1] / "offline_rl_core" / "task" / "builtin"
+# pusher_push as first shipped (the wave, 50 Hz, the first observation; digest f371e75b24e83718):
+# the variants are edits of it, so each keeps the task file (and digest) it was measured on
+WAVE = Path(__file__).resolve().parent / "push_tasks" / "pusher_push_wave.yaml"
 COLLECT_SEED = 1000
 MOVED_M = 0.003  # the puck moved this far: the arm pushed it
 NEAR = 3.0  # a failure within NEAR x success_within of the goal is one of precision
@@ -90,7 +93,7 @@ DIRECTIONS = ("  - difference: [goal, puck]        # where it should go\n",
               "  - direction: [puck, fingertip]\n  - direction: [goal, puck]\n")  # added after the first
 
 
-# variant -> the edits of pusher_push.yaml that make it (each must match the shipped file once)
+# variant -> the edits of the first pusher_push (WAVE) that make it (each must match it once)
 VARIANTS = {
     "direction": [DIRECTIONS],
     "rate20": [("control_period: 0.02", "control_period: 0.05"), ("  frame_skip: 4\n", "  frame_skip: 10\n"),
@@ -121,12 +124,14 @@ def variant_task(name: str, work: Path) -> str:
     """The task file (or built-in name) of a variant."""
     if name == "pusher_push":
         return name
-    if name not in VARIANTS:
-        raise SystemExit(f"push_bound: unknown variant {name!r} (pusher_push, {', '.join(VARIANTS)})")
-    text = (BUILTIN / "pusher_push.yaml").read_text().replace("name: pusher_push\n", f"name: pusher_push_{name}\n")
-    for old, new in VARIANTS[name]:
+    if name != "wave" and name not in VARIANTS:
+        raise SystemExit(f"push_bound: unknown variant {name!r} (pusher_push, wave, {', '.join(VARIANTS)})")
+    text = WAVE.read_text()  # ``wave``: as first shipped, its name (and so its digest) unchanged
+    if name != "wave":
+        text = text.replace("name: pusher_push\n", f"name: pusher_push_{name}\n")
+    for old, new in VARIANTS.get(name, ()):
         if text.count(old) != 1:
-            raise SystemExit(f"push_bound: pusher_push.yaml no longer holds {old.strip()!r} once; update VARIANTS")
+            raise SystemExit(f"push_bound: {WAVE.name} no longer holds {old.strip()!r} once; update VARIANTS")
         text = text.replace(old, old + new if old == DIRECTIONS[0] else new)  # features go after the line
     folder = work / "tasks"
     folder.mkdir(parents=True, exist_ok=True)
