@@ -78,10 +78,11 @@ def main() -> int:
     return 0
 
 
-def curve_of(arm: str, summary: dict) -> tuple[list[int], list[float]]:
-    """(environment steps, success without intervention) along a run."""
+def curve_of(arm: str, summary: dict, episode_steps: int = 100) -> tuple[list[int], list[float]]:
+    """(environment steps, success without intervention) along a run (``episode_steps``: the
+    task's steps per episode; the chapter's 100)."""
     if arm == "offline_rounds":  # success of the served policy at the start of each round, then the final one
-        per_round = summary["rounds"][0]["episodes"] * 100
+        per_round = summary["rounds"][0]["episodes"] * episode_steps
         steps = [per_round * i for i in range(len(summary["rounds"]) + 1)]
         return steps, [r["success_without_intervention"] for r in summary["rounds"]] + [summary["final_success"]]
     return [p["env_steps"] for p in summary["curve"]], [p["success"] for p in summary["curve"]]

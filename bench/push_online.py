@@ -1,22 +1,29 @@
 """The online stage on pusher_push, per seed, beside its ablations and a classifier's reward.
 
-    python bench/push_online.py [--seeds 0 1 2] [--arms online classifier no_prior no_corrections]
-                                [--env-steps 49950] [--eval-every 4950] [--out runs/push-online]
+    python bench/push_online.py [--seeds 0 1 2] [--arms online classifier no_prior no_corrections offline_rounds]
+                                [--env-steps 48000] [--eval-every 4800] [--out runs/push-online]
                                 [--json bench/pusher_push_online.json]
 
-Every arm is ``offline-rl hil --online --in-process --task pusher_push`` on the mixed log of
-its seed (200 episodes, 30 % expert: ``offline-rl collect --task pusher_push --episodes 200
---expert-frac 0.3 --seed S``, the chapter's experiment's bags, collected when absent), with the
-same environment-step budget (a whole number of 150-step episodes near 50,000):
+Every arm but the offline rounds is ``offline-rl hil --online --in-process --task pusher_push``
+on the mixed log of its seed (200 episodes, 30 % expert: ``offline-rl collect --task
+pusher_push --episodes 200 --expert-frac 0.3 --seed S``, the chapter's experiment's bags,
+collected when absent), with the same environment-step budget (a whole number of 60-step
+episodes near 50,000), and the stage's settings that carry the push task (RECIPE: the corrector
+takes over at the first step without progress and keeps the arm to the episode's end, and
+labels every state it leaves to the policy, ``--action-labels``), from an ``--algo auto`` prior
+``--width`` wide (default 512) that the script trains on the seed's log:
 
-- ``online``: from the ``--algo auto`` prior the stage trains on that log, with the scripted
-  corrector, the simulator's reward;
+- ``online``: from that prior, with the scripted corrector, the simulator's reward;
 - ``classifier``: the same, the reward and the episode's end from a success classifier
   (``offline-rl classifier train --labels simulator --successes 20 --failures 20 --head 40``
   on the seed's log: 20 labelled successes and 20 failures) instead of the simulator, which
   is counted beside it (``counts.false_ends``, ``counts.missed``);
-- ``no_prior``: the learner from scratch (corrector on);
-- ``no_corrections``: the prior and online RL alone;
+- ``no_prior``: the learner from scratch, at its default width (corrector and labels on);
+- ``no_corrections``: the prior and online RL alone (no corrector, so no labels);
+- ``offline_rounds``: the chapter's offline correction rounds instead of the online stage
+  (``offline-rl hil --rounds R --episodes 50``, over ROS: the policy node serves the prior,
+  the scripted corrector takes over, AWAC is retrained on the log and the corrections after
+  each round), R rounds of 50 episodes within the same environment steps;
 - ``imitate_expert`` (when named in ``--arms``): the online arm with the actor's BC term also on
   the log's expert episodes (``--imitate-expert``), which keeps the actor near the
   demonstrations while the critic, which the auto prior does not give, is learnt;
@@ -48,7 +55,12 @@ from offline_rl_core.task.spec import load_task
 from results_page import hil_table
 
 TASK = "pusher_push"
-ARMS = ("online", "classifier", "no_prior", "no_corrections")
+ARMS = ("online", "classifier", "no_prior", "no_corrections", "offline_rounds")
+# the stage's settings that carry the push task (README, "Success without the simulator"): a
+# takeover at the first step without progress, kept to the episode's end, and the corrector's
+# labels of the states it leaves to the policy
+RECIPE = ("--patience", "1", "--hold-steps", "60", "--action-labels")
+ROUND_EPISODES = 50  # episodes per offline round
 VARIANTS = ("imitate_expert", "critic_warmup", "normalize_obs")  # run when named: the stage with one setting changed
 BAGS = Path("runs/prior/pusher_push/bags")  # bench/prior_report.py --task pusher_push's logs
 
@@ -57,8 +69,9 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     p.add_argument("--arms", nargs="+", choices=ARMS + VARIANTS, default=list(ARMS))
-    p.add_argument("--env-steps", type=int, default=49_950, help="a multiple of the task's 150-step episodes")
-    p.add_argument("--eval-every", type=int, default=4_950)
+    p.add_argument("--env-steps", type=int, default=48_000, help="a multiple of the task's episodes")
+    p.add_argument("--eval-every", type=int, default=4_800, help="a multiple of the task's episodes")
+    p.add_argument("--width", type=int, default=512, help="the auto prior's width, fine-tuned at that width")
     p.add_argument("--eval-episodes", type=int, default=100)
     p.add_argument("--out", default="runs/push-online")
     p.add_argument("--json", default="bench/pusher_push_online.json")
@@ -74,11 +87,24 @@ def main() -> int:
             bag.parent.mkdir(parents=True, exist_ok=True)
             subprocess.run([*offline_rl, "collect", "--task", TASK, "--episodes", "200", "--expert-frac", "0.3",
                             "--seed", str(seed), "--out", str(bag)], check=True)
+        prior = out / "priors" / f"auto-h{args.width}-s{seed}" / "policy.pt"
+        if not prior.exists():
+            subprocess.run([*offline_rl, "train", "--algo", "auto", "--task", TASK, "--bag", str(bag), "--hidden",
+                            str(args.width), "--seed", str(seed), "--out", str(prior.parent)], check=True)
         for arm in args.arms:
             run_dir = out / arm / f"seed{seed}"
+            if arm == "offline_rounds":
+                rounds = args.env_steps // (ROUND_EPISODES * load_task(TASK).episodes.max_steps)
+                cmd = [*offline_rl, "hil", "--rounds", str(rounds), "--episodes", str(ROUND_EPISODES), "--task", TASK,
+                       "--bag", str(bag), "--prior", str(prior), "--seed", str(seed), "--patience", "1",
+                       "--hold-steps", "60", "--eval-episodes", str(args.eval_episodes), "--out", str(run_dir)]
+                results.setdefault(arm, {})[str(seed)] = run(cmd, run_dir / "summary.json")
+                continue
             cmd = [*offline_rl, "hil", "--online", "--in-process", "--task", TASK, "--bag", str(bag),
                    "--seed", str(seed), "--env-steps", str(args.env_steps), "--eval-every", str(args.eval_every),
                    "--eval-episodes", str(args.eval_episodes), "--logger", "none", "--out", str(run_dir)]
+            cmd += ["--prior", str(prior)] if arm != "no_prior" else ["--no-prior"]
+            cmd += list(RECIPE) if arm != "no_corrections" else ["--corrector", "none"]
             if arm == "classifier":
                 classifier = out / "classifiers" / f"seed{seed}.pt"
                 if not classifier.exists():
@@ -86,8 +112,7 @@ def main() -> int:
                                     "--successes", "20", "--failures", "20", "--head", "40", "--seed", str(seed),
                                     "--out", str(classifier)], check=True)
                 cmd += ["--success", str(classifier), "--end-on-success"]
-            cmd += {"no_prior": ["--no-prior"], "no_corrections": ["--corrector", "none"],
-                    "imitate_expert": ["--imitate-expert"],
+            cmd += {"imitate_expert": ["--imitate-expert"],
                     "critic_warmup": ["--critic-warmup", "5000"],
                     "normalize_obs": ["--normalize-obs"]}.get(arm, [])
             results.setdefault(arm, {})[str(seed)] = run(cmd, run_dir / "summary.json")
@@ -123,11 +148,11 @@ def plot(results: dict, path: Path) -> None:
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
     for j, (arm, by_seed) in enumerate(results.items()):
         for i, (seed, summary) in enumerate(sorted(by_seed.items(), key=lambda kv: int(kv[0]))):
-            steps, success = curve_of(arm, summary)
+            steps, success = curve_of(arm, summary, load_task(TASK).episodes.max_steps)
             label = f"{arm}, seed {seed}"
             style = dict(color=f"C{j}", alpha=1.0 - 0.25 * i, lw=2)
             axes[0].plot(steps, success, "o-", label=label, **style)
-            if arm not in ("no_corrections",):
+            if arm not in ("no_corrections", "offline_rounds"):  # rounds: no curve of windows
                 axes[1].plot([s * period / 60 for s in steps], [p["intervention_rate"] for p in summary["curve"]],
                              "s--", label=label, **style)
     axes[0].axhline(0.9, color="grey", ls=":", lw=1)
