@@ -80,7 +80,7 @@ push-demo: setup
 	$(VENV)/bin/offline-rl collect --task pusher_push --episodes 200 --expert-frac 0.3 --seed 0 --out $(PUSH)/push.db3
 	$(VENV)/bin/offline-rl train --bag $(PUSH)/push.db3 --algo bc --steps $(PUSH_STEPS) --eval-episodes 20 --out $(PUSH)/bc
 	$(VENV)/bin/offline-rl train --bag $(PUSH)/push.db3 --algo awac --steps $(PUSH_STEPS) --eval-episodes 20 --out $(PUSH)/awac
-	$(VENV)/bin/offline-rl classifier train --bag $(PUSH)/push.db3 --labels simulator --successes 20 --failures 20 --head 40 \
+	$(VENV)/bin/offline-rl classifier train --bag $(PUSH)/push.db3 --labels simulator --successes 20 --failures 20 --head 16 \
 		--out $(PUSH)/classifier.pt
 	$(VENV)/bin/offline-rl hil --online --in-process --task pusher_push --bag $(PUSH)/push.db3 \
 		--prior $(PUSH)/awac/policy.pt --success $(PUSH)/classifier.pt --end-on-success \

@@ -4,7 +4,7 @@
                                 [--env-steps 48000] [--eval-every 4800] [--out runs/push-online]
                                 [--json bench/pusher_push_online.json]
 
-Every arm but the offline rounds is ``offline-rl hil --online --in-process --task pusher_push``
+Every arm but two is ``offline-rl hil --online --in-process --task pusher_push``
 on the mixed log of its seed (200 episodes, 30 % expert: ``offline-rl collect --task
 pusher_push --episodes 200 --expert-frac 0.3 --seed S``, the chapter's experiment's bags,
 collected when absent), with the same environment-step budget (a whole number of 60-step
@@ -14,8 +14,10 @@ labels every state it leaves to the policy, ``--action-labels``), from an ``--al
 ``--width`` wide (default 512) that the script trains on the seed's log:
 
 - ``online``: from that prior, with the scripted corrector, the simulator's reward;
+- ``online_ros``: the same over ROS, as a user runs it: the nodes as processes on a private
+  DDS domain, the learner joining the arm's raw topics live (``--from-topics``);
 - ``classifier``: the same, the reward and the episode's end from a success classifier
-  (``offline-rl classifier train --labels simulator --successes 20 --failures 20 --head 40``
+  (``offline-rl classifier train --labels simulator --successes 20 --failures 20 --head 16``
   on the seed's log: 20 labelled successes and 20 failures) instead of the simulator, which
   is counted beside it (``counts.false_ends``, ``counts.missed``);
 - ``no_prior``: the learner from scratch, at its default width (corrector and labels on);
@@ -34,9 +36,10 @@ labels every state it leaves to the policy, ``--action-labels``), from an ``--al
 
 The curve: success without intervention of the deterministic policy on the task's 100
 held-out resets every ``--eval-every`` steps, the intervention rate of each window, robot
-time (steps x the control period). In one process, not over ROS: the lockstep ROS stage gives
-the in-process run's bytes (tests/test_ros_online.py), and a 50,000-step session over ROS
-takes hours on two cores. A run whose ``summary.json`` exists is not run again (the script
+time (steps x the control period). The ablations run in one process: the lockstep ROS stage
+gives the in-process run's bytes (tests/test_ros_online.py), and a 48,000-step session over
+raw topics takes an hour or more on two cores. A run whose ``summary.json`` exists is not run
+again (the script
 resumes). Writes the JSON (each arm's summaries, the command, the machine), the plot beside
 it, and prints the table of bench/RESULTS.md's section.
 """
@@ -55,7 +58,7 @@ from offline_rl_core.task.spec import load_task
 from results_page import hil_table
 
 TASK = "pusher_push"
-ARMS = ("online", "classifier", "no_prior", "no_corrections", "offline_rounds")
+ARMS = ("online", "online_ros", "classifier", "no_prior", "no_corrections", "offline_rounds")
 # the stage's settings that carry the push task (README, "Success without the simulator"): a
 # takeover at the first step without progress, kept to the episode's end, and the corrector's
 # labels of the states it leaves to the policy
@@ -100,7 +103,8 @@ def main() -> int:
                        "--hold-steps", "60", "--eval-episodes", str(args.eval_episodes), "--out", str(run_dir)]
                 results.setdefault(arm, {})[str(seed)] = run(cmd, run_dir / "summary.json")
                 continue
-            cmd = [*offline_rl, "hil", "--online", "--in-process", "--task", TASK, "--bag", str(bag),
+            where = "--from-topics" if arm == "online_ros" else "--in-process"
+            cmd = [*offline_rl, "hil", "--online", where, "--task", TASK, "--bag", str(bag),
                    "--seed", str(seed), "--env-steps", str(args.env_steps), "--eval-every", str(args.eval_every),
                    "--eval-episodes", str(args.eval_episodes), "--logger", "none", "--out", str(run_dir)]
             cmd += ["--prior", str(prior)] if arm != "no_prior" else ["--no-prior"]
@@ -109,7 +113,7 @@ def main() -> int:
                 classifier = out / "classifiers" / f"seed{seed}.pt"
                 if not classifier.exists():
                     subprocess.run([*offline_rl, "classifier", "train", "--bag", str(bag), "--labels", "simulator",
-                                    "--successes", "20", "--failures", "20", "--head", "40", "--seed", str(seed),
+                                    "--successes", "20", "--failures", "20", "--head", "16", "--seed", str(seed),
                                     "--out", str(classifier)], check=True)
                 cmd += ["--success", str(classifier), "--end-on-success"]
             cmd += {"imitate_expert": ["--imitate-expert"],

@@ -504,6 +504,12 @@ def push_online_section(name: str, payload: dict) -> list[str]:
     return lines + ["![success against environment steps](pusher_push_online.png)", ""]
 
 
+# the variants of bench/push_bound.py: edits of the first pusher_push (bench/push_tasks)
+WAVE_NOTE = ("`wave` is pusher_push as first shipped (the wave expert at 50 Hz; digest `f371e75b24e83718`, kept "
+             "as bench/push_tasks/pusher_push_wave.yaml) and every other variant an edit of it; the shipped "
+             "pusher_push is `orbit_direction_frame_rate20` but for its name. ")
+
+
 def push_variants_table(variants: dict) -> list[str]:
     """The task-file variants of bench/push_bound.py: digest, rate, observation, the expert's success."""
     lines = ["| variant | digest | control period s | steps per episode | obs | expert's success |",
@@ -524,7 +530,8 @@ def push_bound_section(name: str, payload: dict) -> list[str]:
              "alone (`offline-rl collect --expert-frac 1 --seed 1000`), for 30,000 gradient steps, then the "
              "deterministic policy on the 100 held-out resets. Failures: `near`, the puck ends within "
              f"{payload['near_within']:g} x success_within of the goal; `pushed`, it moved but ends further; "
-             "`untouched`, it never moved. Variants of the task file: `direction` adds the unit vectors puck - "
+             "`untouched`, it never moved. " + WAVE_NOTE
+             + "Variants of the task file: `direction` adds the unit vectors puck - "
              "fingertip and goal - puck to the observation; `rate20` commands the arm at 20 Hz (control_period "
              "0.05 s, 60 steps: the same 3 s); `direction_rate20` both.", ""]
     lines += note_lines(payload)
@@ -561,7 +568,8 @@ def push_dagger_section(name: str, payload: dict) -> list[str]:
              "of that width: behaviour cloning (deterministic, fp32, `--normalize-obs`) on the expert episodes of "
              "the mix's expert share, then rounds in which the policy acts and BC goes on from its last weights on "
              "every label so far; success of the deterministic policy on the 100 held-out resets, against "
-             "environment steps (the demonstrations' included). `direction_frame` adds to the observation the unit "
+             "environment steps (the demonstrations' included). " + WAVE_NOTE
+             + "`direction_frame` adds to the observation the unit "
              "vectors puck - fingertip and goal - puck and `along_across: [fingertip, puck, goal]`; `_rate20` "
              "commands the arm at 20 Hz; `_elbow` adds where the forearm starts (`elbow`, the body link2), seen "
              "from the puck and along its line to the goal; `_table` adds the puck and the goal in the arm's base "
