@@ -23,9 +23,9 @@ labels every state it leaves to the policy, ``--action-labels``), from an ``--al
 - ``no_prior``: the learner from scratch, at its default width (corrector and labels on);
 - ``no_corrections``: the prior and online RL alone (no corrector, so no labels);
 - ``offline_rounds``: the chapter's offline correction rounds instead of the online stage
-  (``offline-rl hil --rounds R --episodes 50``, over ROS: the policy node serves the prior,
+  (``offline-rl hil --rounds R --episodes 100``, over ROS: the policy node serves the prior,
   the scripted corrector takes over, AWAC is retrained on the log and the corrections after
-  each round), R rounds of 50 episodes within the same environment steps;
+  each round), R rounds of 100 episodes within the same environment steps;
 - ``imitate_expert`` (when named in ``--arms``): the online arm with the actor's BC term also on
   the log's expert episodes (``--imitate-expert``), which keeps the actor near the
   demonstrations while the critic, which the auto prior does not give, is learnt;
@@ -63,7 +63,7 @@ ARMS = ("online", "online_ros", "classifier", "no_prior", "no_corrections", "off
 # takeover at the first step without progress, kept to the episode's end, and the corrector's
 # labels of the states it leaves to the policy
 RECIPE = ("--patience", "1", "--hold-steps", "60", "--action-labels")
-ROUND_EPISODES = 50  # episodes per offline round
+ROUND_EPISODES = 100  # episodes per offline round (6,000 steps: 8 rounds in 48,000)
 VARIANTS = ("imitate_expert", "critic_warmup", "normalize_obs")  # run when named: the stage with one setting changed
 BAGS = Path("runs/prior/pusher_push/bags")  # bench/prior_report.py --task pusher_push's logs
 

@@ -48,6 +48,21 @@ def require_ros() -> None:
         pytest.skip(f"ROS packages {missing or ''} / ros2 not installed in {sys.prefix}: run `make setup`")
 
 
+def task_bag_and_prior(tmp_path_factory, task: str, hidden: int | None = None):
+    """A 4-episode bag of ``task`` (half expert) and a 50-step AWAC prior trained on it
+    (``hidden`` wide, else the default width)."""
+    require_ros()
+    from offline_rl_core.commands.cli import main
+
+    d = tmp_path_factory.mktemp(task)
+    bag, prior = d / f"{task}.db3", d / "prior"
+    assert main(["collect", "--task", task, "--episodes", "4", "--expert-frac", "0.5", "--seed", "0",
+                 "--out", str(bag)]) == 0
+    assert main(["train", "--bag", str(bag), "--algo", "awac", "--steps", "50", "--eval-episodes", "0",
+                 *(["--hidden", str(hidden)] if hidden else []), "--out", str(prior)]) == 0
+    return bag, prior / "policy.pt"
+
+
 @pytest.fixture(scope="session")
 def ros_env():
     """Environment for node processes (and this process's rclpy) on the session's domain."""

@@ -195,7 +195,7 @@ def test_hil_takes_its_defaults_by_mode_and_refuses_the_other_modes_flags(capsys
                          "--grace-steps must be >= 0, got -1"),
                         (["hil", "--online", "--steer", "stick", "--corrector", "none", "--out", str(tmp_path / "o")],
                          "--steer stick: how the scripted corrector takes over; only with --corrector scripted"),
-                        (["hil", "--online", "--steer", "stick", "--task", "pusher_push", "--env-steps", "150",
+                        (["hil", "--online", "--steer", "stick", "--task", "pusher_push", "--env-steps", "60",
                           "--in-process", "--out", str(tmp_path / "o")],
                          "task pusher_push's is goal - puck")):
         assert cli.main(argv) == 2

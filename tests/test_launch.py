@@ -44,8 +44,8 @@ def test_the_task_argument_reaches_the_nodes_that_read_the_task():
         dict.fromkeys(("learner", "policy", "mux", "corrector"), "/tmp/arm.yaml")
     assert by_label(load_launch(LAUNCH_DIR / "online.launch.yaml", {}))["mux"].params["task"] == "pusher_reach"
     corrections = by_label(load_launch(LAUNCH_DIR / "corrections.launch.yaml", {"out": "b.db3", "task": "arm"}))
-    assert {n: corrections[n].params["task"] for n in ("policy", "mux", "corrector")} == \
-        dict.fromkeys(("policy", "mux", "corrector"), "arm")
+    assert {n: corrections[n].params["task"] for n in ("policy", "mux", "corrector", "sim")} == \
+        dict.fromkeys(("policy", "mux", "corrector", "sim"), "arm")
     served = by_label(load_launch(LAUNCH_DIR / "serve.launch.yaml", {"checkpoint": "c.pt", "task": "arm"}))
     assert served["policy"].params["task"] == "arm"
 

@@ -168,7 +168,7 @@ def test_the_step_rate_of_filtered_bc_by_goal_is_measured_on_the_datas_own_task(
     """On a machine that has not measured it yet, the step rate of an auto plan that clones the
     episodes ending at the goal is timed on the data's task: pusher_push's episodes end at the
     goal by its columns, not by pusher_reach's (the first `--algo auto` on a new machine failed so)."""
-    data = collect_transitions(4, 1.0, 0, task="pusher_push")
+    data = collect_transitions(4, 1.0, 4, task="pusher_push")  # resets 4..7: the expert pushes each home
     task = load_task("pusher_push")
     cfg = TrainConfig(algo="filtered_bc", filter_by="goal", batch_size=32, hidden=32)
     with pytest.raises(ValueError, match="no episode of the data ends at the goal"):

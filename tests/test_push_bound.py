@@ -1,6 +1,7 @@
-"""bench/push_bound.py writes its task variants by editing the shipped pusher_push.yaml: each
-variant must still apply to the file as it is, load as a valid task, change what it says it
-changes (and nothing the others change), and leave an expert that pushes the puck home. Its
+"""bench/push_bound.py writes its task variants by editing pusher_push as first shipped (the
+wave, bench/push_tasks/pusher_push_wave.yaml): each variant must still apply to that file, load
+as a valid task, change what it says it changes (and nothing the others change), and leave an
+expert that pushes the puck home; the shipped pusher_push is the variant its figures chose. Its
 DAgger rounds label every state the policy visits and count the budget in environment steps."""
 
 from __future__ import annotations
@@ -18,8 +19,9 @@ def push_bound():
     return bench_script("push_bound")
 
 
-def test_each_variant_is_the_shipped_task_with_its_own_change(push_bound, tmp_path):
-    shipped = load_task("pusher_push")
+def test_each_variant_is_the_first_task_with_its_own_change(push_bound, tmp_path):
+    shipped = load_task(push_bound.variant_task("wave", tmp_path))
+    assert shipped.digest == "f371e75b24e83718"  # the first pusher_push: its figures keep their task file
     assert push_bound.variant_task("pusher_push", tmp_path) == "pusher_push"
     tasks = {name: load_task(push_bound.variant_task(name, tmp_path)) for name in push_bound.VARIANTS}
     assert len({t.digest for t in tasks.values()} | {shipped.digest}) == len(tasks) + 1
@@ -35,6 +37,17 @@ def test_each_variant_is_the_shipped_task_with_its_own_change(push_bound, tmp_pa
             shipped.episodes.max_steps * shipped.control_period), name
         assert task.reward.success_within == shipped.reward.success_within, name
         assert PushSettings.of(task).approach == ("orbit" if name.startswith("orbit") else "wave"), name
+
+
+def test_the_shipped_task_is_the_orbit_variant_at_20_hz_with_the_frame_features(push_bound, tmp_path):
+    """What the push figures measured on ``orbit_direction_frame_rate20`` (the online stage's
+    0.91 over ROS) were measured on: the shipped task but for its name, and so its digest."""
+    def without_name(task):
+        return {k: v for k, v in task.describe().items() if k != "name"}
+
+    variant = load_task(push_bound.variant_task("orbit_direction_frame_rate20", tmp_path))
+    shipped = load_task("pusher_push")
+    assert without_name(variant) == without_name(shipped) and variant.digest != shipped.digest
 
 
 def test_the_expert_pushes_the_puck_home_at_20_hz(push_bound, tmp_path):

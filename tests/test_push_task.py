@@ -39,7 +39,10 @@ def test_the_puck_is_a_tracked_point_from_a_topic_and_the_observation_sees_puck_
     assert (puck.topic, puck.type, puck.kinematics) == ("puck", POSE_STAMPED, None)
     assert PUSH.observation_labels() == (
         "cos(shoulder)", "sin(shoulder)", "cos(elbow)", "sin(elbow)", "vel(shoulder)", "vel(elbow)",
-        "puck.x-fingertip.x", "puck.y-fingertip.y", "goal.x-puck.x", "goal.y-puck.y")
+        "puck.x-fingertip.x", "puck.y-fingertip.y", "goal.x-puck.x", "goal.y-puck.y",
+        "dir(puck.x-fingertip.x)", "dir(puck.y-fingertip.y)", "dir(goal.x-puck.x)", "dir(goal.y-puck.y)",
+        "along(fingertip-puck|goal-puck)", "across(fingertip-puck|goal-puck)")
+    assert (PUSH.control_period, PUSH.episodes.max_steps, PUSH.sim["frame_skip"]) == (0.05, 60, 10)  # 20 Hz, 3 s
     assert PUSH.reward.distances == (("goal", "puck"), ("puck", "fingertip"))
     assert PUSH.reward.success_at == "end"
 
@@ -141,7 +144,7 @@ def test_a_push_section_without_the_push_env_and_a_puck_without_its_body_are_ref
         make_env(task_from_dict(doc))
 
 
-def orbit_task(approach="orbit"):
+def with_approach(approach):
     doc = PUSH.describe()
     doc["sim"] = {**doc["sim"], "push": {**doc["sim"]["push"], "approach": approach},
                   "model": str(PUSH.path.parent / "pusher_push.xml")}
@@ -149,11 +152,12 @@ def orbit_task(approach="orbit"):
 
 
 def test_the_orbit_approach_goes_round_the_puck_and_pushes_it_onto_the_goal():
-    """``sim.push.approach: orbit``: another task (its own digest), whose expert differs from
-    the wave's on the way behind the puck and still ends each episode with the puck on the goal."""
-    task = orbit_task()
-    assert task.digest != PUSH.digest
-    env, wave = make_env(task), task_expert(PUSH)
+    """``sim.push.approach: orbit`` (the shipped task's): its expert differs from the wave's (a
+    task of its own digest) on the way behind the puck and still ends each episode with the
+    puck on the goal."""
+    task = PUSH
+    assert task.sim["push"]["approach"] == "orbit" and with_approach("wave").digest != PUSH.digest
+    env, wave = make_env(task), task_expert(with_approach("wave"))
     orbit = task_expert(task)
     for seed in (HELD_OUT, HELD_OUT + 3):
         env.reset(seed)
@@ -169,5 +173,5 @@ def test_the_orbit_approach_goes_round_the_puck_and_pushes_it_onto_the_goal():
 
 def test_an_unknown_approach_is_one_line_naming_the_field():
     with pytest.raises(UserError, match=r"field sim.push.approach: expected one of wave, orbit") as err:
-        make_env(orbit_task("sideways"))
+        make_env(with_approach("sideways"))
     assert "\n" not in str(err.value)

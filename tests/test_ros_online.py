@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from ros_helpers import REPO, probe_node, require_ros, ros_env, spawn  # noqa: F401 - fixtures
+from ros_helpers import REPO, probe_node, require_ros, ros_env, spawn, task_bag_and_prior  # noqa: F401 - fixtures
 
 pytestmark = pytest.mark.ros
 
@@ -342,24 +342,10 @@ def _read_all(fd, screen):
         screen.append(data.decode(errors="replace"))
 
 
-def _task_bag_and_prior(tmp_path_factory, task: str):
-    """A 4-episode bag of ``task`` (half expert) and a 50-step AWAC prior trained on it."""
-    require_ros()
-    from offline_rl_core.commands.cli import main
-
-    d = tmp_path_factory.mktemp(task)
-    bag, prior = d / f"{task}.db3", d / "prior"
-    assert main(["collect", "--task", task, "--episodes", "4", "--expert-frac", "0.5", "--seed", "0",
-                 "--out", str(bag)]) == 0
-    assert main(["train", "--bag", str(bag), "--algo", "awac", "--steps", "50", "--eval-episodes", "0",
-                 "--out", str(prior)]) == 0
-    return bag, prior / "policy.pt"
-
-
 @pytest.fixture(scope="module")
 def pusher7(tmp_path_factory):
     """A 4-episode pusher7_reach bag and a 50-step AWAC prior trained on it."""
-    return _task_bag_and_prior(tmp_path_factory, "pusher7_reach")
+    return task_bag_and_prior(tmp_path_factory, "pusher7_reach")
 
 
 @pytest.mark.slow
@@ -455,7 +441,7 @@ def test_on_pusher7_reach_raw_topics_the_learner_trains_on_the_arms_joined_topic
 @pytest.fixture(scope="module")
 def push(tmp_path_factory):
     """A 4-episode pusher_push bag and a 50-step AWAC prior trained on it."""
-    return _task_bag_and_prior(tmp_path_factory, "pusher_push")
+    return task_bag_and_prior(tmp_path_factory, "pusher_push")
 
 
 @pytest.mark.slow

@@ -283,8 +283,8 @@ def test_hil_takes_the_task_and_refuses_what_it_cannot_evaluate(arm, tmp_path, c
     out = tmp_path / "hil"
     assert cli.main(["hil", "--task", str(arm["task_file"]), "--bag", str(arm["bag"]), "--out", str(out)]) == 2
     line = capsys.readouterr().err.strip().splitlines()[-1]
-    assert line.startswith(f"offline-rl: error: task test_arm7 ({arm['task_file']}): offline-rl hil evaluates on "
-                           "pusher_reach's env only"), line
+    assert line == (f"offline-rl: error: task test_arm7 ({arm['task_file']}): offline-rl hil runs the task in a sim "
+                    "and scores it on held-out rollouts there; the task has no sim section"), line
     assert not out.exists()  # nothing was written
     # a prior of another task than the run's: one line naming both layouts
     assert cli.main(["hil", "--online", "--bag", str(arm["pusher_bag"]), "--prior", str(arm["checkpoint"]),

@@ -95,8 +95,8 @@ def register(subparsers) -> None:
                    help="offline bag(s) of the prior (default: bags/mix.db3 here, else the project's)")
     p.add_argument("--task", metavar="NAME_OR_FILE",
                    help="the task: a built-in task or a task file, given to the sim, policy, corrector, learner and "
-                        "trainer (default: the one the bag records, else pusher_reach); --online runs any task "
-                        "with a sim, the rounds pusher_reach only")
+                        "trainer (default: the one the bag records, else pusher_reach); the rounds and --online run "
+                        "any task with a sim, scored on its held-out resets in its own env")
     p.add_argument("--seed", type=seed_arg, default=d.seed, help="seed of training and of the corrector (default: %(default)s)")
     p.add_argument("--prior-steps", type=int, default=d.prior_steps, help="steps of the prior's training (default: %(default)s)")
     p.add_argument("--eval-episodes", type=int, default=d.eval_episodes,

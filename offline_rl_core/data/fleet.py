@@ -188,10 +188,15 @@ def read_fleet(paths: list[str], workers: int | None = None, executor: Executor 
         data, summary = executor.submit(decode_bag, paths[0]).result()
         return writable(_rebased(data, 0)), [summary]
     counts = [f.result() for f in [executor.submit(count_transitions, p) for p in paths]]
-    out = Transitions.empty(sum(counts))
+    out: Transitions | None = None  # in the first bag's layout (its task's sizes)
     extra: list[Transitions] = []  # rows beyond the index's count (a bag still being recorded)
     summaries, cursor, offset = [], 0, 0
-    for data, summary in iter_fleet(paths, executor, ahead):
+    for path, (data, summary) in zip(paths, iter_fleet(paths, executor, ahead)):
+        if out is None:
+            out = Transitions.empty(sum(counts), data.layout)
+        elif data.layout != out.layout:
+            raise UserError(f"{path}: its transitions ({data.layout.describe()}) are not those of {paths[0]} "
+                            f"({out.layout.describe()}); merge bags of one task")
         data = _rebased(data, offset)
         offset = int(data.episode.max()) + 1
         fit = max(0, min(len(data), len(out) - cursor))

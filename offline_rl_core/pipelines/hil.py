@@ -16,9 +16,11 @@ Each round, on a private DDS domain (``rosproc.isolated_ros_env``):
 4. publish: ``DIR/round_<r>/train/policy.pt`` replaces ``DIR/policy.pt`` atomically,
    and the loop waits until the policy node reports the reload.
 
-Success without intervention is measured in process (batched rollouts of the served
-checkpoint on held-out reset seeds). ``DIR/summary.json`` and ``DIR/rounds.png``
-summarise the rounds. No ROS import here: nodes are subprocesses, stopped by pid.
+Every node is given the task (``--task``, else the one the bags record, else pusher_reach;
+any task a sim hosts). Success without intervention is measured in process (rollouts of
+the served checkpoint on the task's held-out reset seeds, in its own env).
+``DIR/summary.json`` and ``DIR/rounds.png`` summarise the rounds. No ROS import here: nodes
+are subprocesses, stopped by pid.
 """
 
 from __future__ import annotations
@@ -190,8 +192,8 @@ class Loop:
             args += ["--log-every", 2000]
         for bag in bags:
             args += ["--bag", bag]
-        if init:
-            args += ["--init", init]
+        if init:  # a warm start is trained at its own width (an auto prior may be wider than the default)
+            args += ["--init", init, "--hidden", int(load_checkpoint(init)["hidden"])]
         if correction_ratio is not None:
             args += ["--correction-ratio", correction_ratio, "--beta", self.cfg.beta]
         proc = self.start(f"trainer ({name})", ros2_run("trainer", "node", *args), out_dir.parent / f"{out_dir.name}.log")
@@ -279,20 +281,18 @@ class Loop:
         raise UserError(f"the policy node did not reload {served}; see {policy_node.log_path}:\n" + _tail(policy_node.output()))
 
 
-def resolve_task(loop: Loop, given: str | None, bags: list[str], prior: str | None, out: Path,
-                 any_task: bool = False) -> TaskSpec:
+def resolve_task(loop: Loop, given: str | None, bags: list[str], prior: str | None, out: Path) -> TaskSpec:
     """The task of a HIL run: ``--task``, else the bags' (``offline-rl train``'s rule); a given
-    prior must be of it. Sets how the nodes are told it (``loop.task_arg``). ``any_task``:
-    the caller evaluates on the task's own env (the online stage, over ROS or in one
-    process); else (the corrections rounds) only pusher_reach is taken."""
+    prior must be of it, and a sim must host it (the arm of the run, and the held-out
+    rollouts it is scored on). Sets how the nodes are told it (``loop.task_arg``)."""
     from ..runs.training_run import task_of_run
 
     task = task_of_run(bags, given)
     if prior:
         policy_for_task(load_checkpoint(prior), prior, task)  # a prior of another task: one line naming both
-    if not any_task and task.digest != load_task(DEFAULT_TASK).digest:
-        raise UserError(f"task {task.name} ({task.source_file()}): offline-rl hil evaluates on pusher_reach's env "
-                        "only (hil --online --in-process: any task a sim hosts)")
+    if not task.sim:
+        raise UserError(f"task {task.name} ({task.source_file()}): offline-rl hil runs the task in a sim and scores "
+                        "it on held-out rollouts there; the task has no sim section")
     loop.task_arg = task_argument(task, out)
     return task
 
@@ -380,8 +380,9 @@ def resolve_prior(loop: Loop, given: str | None, bags: list[str], seed: int, pri
     return loop.train("prior", bags, prior_steps, seed, out / "prior", algo="awac"), "trained"
 
 
-def evaluate(path: Path, cfg: HilConfig) -> dict:
-    return evaluate_policy(load_policy(path), cfg.eval_episodes, cfg.eval_seed)
+def evaluate(path: Path, cfg: HilConfig, task: TaskSpec) -> dict:
+    """The served checkpoint without intervention, on ``task``'s held-out resets in its own env."""
+    return evaluate_policy(load_policy(path, task), cfg.eval_episodes, cfg.eval_seed, task=task)
 
 
 def plot_rounds(rows: list[dict], final: dict, path: Path) -> None:
@@ -410,7 +411,9 @@ def run_hil(cfg: HilConfig, log: Callable[[str], None] = lambda s: print(s, file
     loop = Loop(cfg, log, logger)
     with hil_session(out, loop):
         log(f"hil: {cfg.rounds} rounds x {cfg.episodes} episodes -> {out} (ROS_DOMAIN_ID {loop.env['ROS_DOMAIN_ID']})")
-        resolve_task(loop, cfg.task, cfg.bags, cfg.prior, out)
+        task = resolve_task(loop, cfg.task, cfg.bags, cfg.prior, out)
+        if task.digest != load_task(DEFAULT_TASK).digest:
+            cfg.task = loop.task_arg  # as the online stage: the summary's config names what the nodes were told
         prior_path, prior_from = resolve_prior(loop, cfg.prior, cfg.bags, cfg.seed, cfg.prior_steps, out, log)
         served = out / "policy.pt"
         with atomic_path(served) as tmp:
@@ -424,7 +427,7 @@ def run_hil(cfg: HilConfig, log: Callable[[str], None] = lambda s: print(s, file
         for r in range(1, cfg.rounds + 1):
             round_dir = out / f"round_{r}"
             round_dir.mkdir(parents=True, exist_ok=True)
-            ev = evaluate(served, cfg)
+            ev = evaluate(served, cfg, task)
             if prior_eval is None:
                 prior_eval = ev
             log(f"round {r}/{cfg.rounds}: served policy succeeds {ev['successes']}/{ev['episodes']} without "
@@ -440,7 +443,7 @@ def run_hil(cfg: HilConfig, log: Callable[[str], None] = lambda s: print(s, file
             log(f"round {r}/{cfg.rounds}: policy node reloaded {served}")
             rows.append({"round": r, "success_without_intervention": ev["success_rate"],
                          "successes": ev["successes"], **stats, "checkpoint": str(ckpt)})
-        final_eval = evaluate(served, cfg)
+        final_eval = evaluate(served, cfg, task)
         loop.stop_all()
 
         n = cfg.eval_episodes

@@ -230,7 +230,7 @@ def run_hil_online(cfg: OnlineHilConfig, log: Callable[[str], None] = lambda s: 
     t0 = time.monotonic()
     curves = None  # in process: logged as the stage runs; over ROS: the curve scored after the session
     with hil_session(out, loop):
-        task = resolve_task(loop, cfg.task, cfg.bags, cfg.prior, out, any_task=True)
+        task = resolve_task(loop, cfg.task, cfg.bags, cfg.prior, out)
         if task.digest != load_task(DEFAULT_TASK).digest:
             cfg.task = loop.task_arg  # every later step (the nodes, the join, the rollouts) reads it from there
         prior_path, prior_from = (None, "none") if cfg.no_prior else resolve_prior(
