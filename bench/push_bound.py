@@ -6,7 +6,7 @@ The online stage's actor learns a person's (here the scripted corrector's) actio
 term beside its SAC objective. How well an MLP of the stage's width can copy the expert,
 given far more clean demonstrations than a session sees, bounds what that term can give:
 
-  .venv/bin/python bench/push_bound.py --variants pusher_push direction rate20 --json bench/pusher_push_bound.json
+  .venv/bin/python bench/push_bound.py --variants wave direction rate20 --json bench/pusher_push_bound.json
 
 A cell already in the --json file, measured on the same task file with the same steps, is
 kept, not trained again. ``--online-steps N`` also runs the online stage itself on each
@@ -29,7 +29,9 @@ seeds 500000..500099, each failure put in one bin:
 - ``untouched``: the puck never moved.
 
 Variants (copies of the task file written with its model into the work folder):
-``pusher_push`` as shipped; ``direction``: the observation adds ``direction: [puck,
+``pusher_push`` as shipped; ``wave``, pusher_push as first shipped (the wave expert at 50 Hz,
+bench/push_tasks/pusher_push_wave.yaml, digest f371e75b24e83718), of which every other variant
+is an edit (so each keeps the task file its figures were measured on); ``direction``: the observation adds ``direction: [puck,
 fingertip]`` and ``direction: [goal, puck]`` (the feature that lifted pusher7_reach);
 ``rate20``: the arm commanded at 20 Hz instead of 50 (control_period 0.05 s, frame_skip 10,
 60 steps: the same 3 s), as HIL-SERL's arms act at 10 Hz; ``direction_rate20``: both;
@@ -40,7 +42,7 @@ the body link2) seen from the puck and along its line to the goal; ``direction_f
 besides, the puck and the goal on the table (``vector: puck``, ``vector: goal``); ``orbit``:
 the scripted expert (the labels) goes round the puck in the push line's frame
 (``sim.push.approach: orbit``) instead of through joint space; ``orbit_direction_frame_rate20``:
-that expert on ``direction_frame_rate20``.
+that expert on ``direction_frame_rate20`` (the shipped pusher_push but for its name).
 
 ``--dagger ROUNDS`` measures the most a corrector's labels can teach an actor of each width:
 DAgger with every state labelled, where a person takes over only some. BC (deterministic,
@@ -50,7 +52,7 @@ state it visits, and BC goes on from the last weights on all labels so far for
 ``--dagger-steps``; success on the held-out resets every third round, against environment
 steps (the demonstrations' included), as the online stage's budget counts them:
 
-  .venv/bin/python bench/push_bound.py --variants pusher_push direction_frame direction_frame_rate20 \
+  .venv/bin/python bench/push_bound.py --variants wave direction_frame direction_frame_rate20 \
       --episodes --widths 256 --dagger 16 --json bench/pusher_push_dagger.json
 """
 

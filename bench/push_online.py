@@ -14,8 +14,6 @@ labels every state it leaves to the policy, ``--action-labels``), from an ``--al
 ``--width`` wide (default 512) that the script trains on the seed's log:
 
 - ``online``: from that prior, with the scripted corrector, the simulator's reward;
-- ``online_ros``: the same over ROS, as a user runs it: the nodes as processes on a private
-  DDS domain, the learner joining the arm's raw topics live (``--from-topics``);
 - ``classifier``: the same, the reward and the episode's end from a success classifier
   (``offline-rl classifier train --labels simulator --successes 20 --failures 20 --head 16``
   on the seed's log: 20 labelled successes and 20 failures) instead of the simulator, which
@@ -58,14 +56,19 @@ from offline_rl_core.task.spec import load_task
 from results_page import hil_table
 
 TASK = "pusher_push"
-ARMS = ("online", "online_ros", "classifier", "no_prior", "no_corrections", "offline_rounds")
+ARMS = ("online", "classifier", "no_prior", "no_corrections", "offline_rounds")
 # the stage's settings that carry the push task (README, "Success without the simulator"): a
 # takeover at the first step without progress, kept to the episode's end, and the corrector's
 # labels of the states it leaves to the policy
 RECIPE = ("--patience", "1", "--hold-steps", "60", "--action-labels")
+# the learner's anchor that carried pusher7_reach (bench/push_bound.py's STAGE): actor and critic
+# on z-scored observations, the BC term (weight 100) also on the log's expert episodes, the
+# rates decaying over the budget, a quarter of each batch from the log
+ANCHOR = ("--normalize-obs", "--imitate-expert", "--bc-weight", "100", "--lr-decay", "--offline-ratio", "0.25")
 ROUND_EPISODES = 100  # episodes per offline round (6,000 steps: 8 rounds in 48,000)
-VARIANTS = ("imitate_expert", "critic_warmup", "normalize_obs")  # run when named: the stage with one setting changed
+VARIANTS = ("critic_warmup",)  # run when named: the stage with one setting changed
 BAGS = Path("runs/prior/pusher_push/bags")  # bench/prior_report.py --task pusher_push's logs
+SHARED = Path("runs/push-online")  # the priors, the classifiers and the offline rounds, in process or over ROS
 
 
 def main() -> int:
@@ -76,13 +79,15 @@ def main() -> int:
     p.add_argument("--eval-every", type=int, default=4_800, help="a multiple of the task's episodes")
     p.add_argument("--width", type=int, default=512, help="the auto prior's width, fine-tuned at that width")
     p.add_argument("--eval-episodes", type=int, default=100)
-    p.add_argument("--out", default="runs/push-online")
+    p.add_argument("--over-ros", action="store_true", help="every online arm over ROS, the learner joining the "
+                   "arm's raw topics live (hil --online --from-topics); default: in one process")
+    p.add_argument("--out", help="run folder (default: runs/push-online, runs/push-online-ros with --over-ros)")
     p.add_argument("--json", default="bench/pusher_push_online.json")
     p.add_argument("--note", help="what bounded the measurement (seeds, arms not run), for the page")
     args = p.parse_args()
     facts = run_facts()
     offline_rl = [sys.executable, "-m", "offline_rl_core"]
-    out = Path(args.out)
+    out = Path(args.out or ("runs/push-online-ros" if args.over_ros else "runs/push-online"))
     results: dict = {}
     for seed in args.seeds:
         bag = BAGS / f"mix_s{seed}_e0.3.db3"
@@ -90,12 +95,12 @@ def main() -> int:
             bag.parent.mkdir(parents=True, exist_ok=True)
             subprocess.run([*offline_rl, "collect", "--task", TASK, "--episodes", "200", "--expert-frac", "0.3",
                             "--seed", str(seed), "--out", str(bag)], check=True)
-        prior = out / "priors" / f"auto-h{args.width}-s{seed}" / "policy.pt"
+        prior = SHARED / "priors" / f"auto-h{args.width}-s{seed}" / "policy.pt"
         if not prior.exists():
             subprocess.run([*offline_rl, "train", "--algo", "auto", "--task", TASK, "--bag", str(bag), "--hidden",
                             str(args.width), "--seed", str(seed), "--out", str(prior.parent)], check=True)
         for arm in args.arms:
-            run_dir = out / arm / f"seed{seed}"
+            run_dir = (SHARED if arm == "offline_rounds" else out) / arm / f"seed{seed}"
             if arm == "offline_rounds":
                 rounds = args.env_steps // (ROUND_EPISODES * load_task(TASK).episodes.max_steps)
                 cmd = [*offline_rl, "hil", "--rounds", str(rounds), "--episodes", str(ROUND_EPISODES), "--task", TASK,
@@ -103,22 +108,21 @@ def main() -> int:
                        "--hold-steps", "60", "--eval-episodes", str(args.eval_episodes), "--out", str(run_dir)]
                 results.setdefault(arm, {})[str(seed)] = run(cmd, run_dir / "summary.json")
                 continue
-            where = "--from-topics" if arm == "online_ros" else "--in-process"
+            where = "--from-topics" if args.over_ros else "--in-process"
             cmd = [*offline_rl, "hil", "--online", where, "--task", TASK, "--bag", str(bag),
                    "--seed", str(seed), "--env-steps", str(args.env_steps), "--eval-every", str(args.eval_every),
                    "--eval-episodes", str(args.eval_episodes), "--logger", "none", "--out", str(run_dir)]
             cmd += ["--prior", str(prior)] if arm != "no_prior" else ["--no-prior"]
-            cmd += list(RECIPE) if arm != "no_corrections" else ["--corrector", "none"]
+            cmd += [*ANCHOR, *RECIPE] if arm != "no_corrections" else [*ANCHOR, "--corrector", "none"]
             if arm == "classifier":
-                classifier = out / "classifiers" / f"seed{seed}.pt"
+                classifier = SHARED / "classifiers" / f"seed{seed}.pt"
                 if not classifier.exists():
                     subprocess.run([*offline_rl, "classifier", "train", "--bag", str(bag), "--labels", "simulator",
                                     "--successes", "20", "--failures", "20", "--head", "16", "--seed", str(seed),
                                     "--out", str(classifier)], check=True)
-                cmd += ["--success", str(classifier), "--end-on-success"]
-            cmd += {"imitate_expert": ["--imitate-expert"],
-                    "critic_warmup": ["--critic-warmup", "5000"],
-                    "normalize_obs": ["--normalize-obs"]}.get(arm, [])
+                # over ROS an episode ends at the time limit (or a person's label), not at the classifier's word
+                cmd += ["--success", str(classifier)] + ([] if args.over_ros else ["--end-on-success"])
+            cmd += {"critic_warmup": ["--critic-warmup", "5000"]}.get(arm, [])
             results.setdefault(arm, {})[str(seed)] = run(cmd, run_dir / "summary.json")
             task = load_task(TASK)
             write_json_atomic(args.json, {"task": task.name, "task_digest": task.digest, "arms": results,

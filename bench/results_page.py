@@ -479,13 +479,19 @@ def push_experiment_section(name: str, payload: dict) -> list[str]:
 def push_online_section(name: str, payload: dict) -> list[str]:
     """The online stage on pusher_push beside its ablations and the classifier's reward (bench/push_online.py)."""
     lines = ["## The HIL-SERL stage on pusher_push", "",
-             f"The online stage on the push task (digest `{payload['task_digest']}`) in one process, lockstep, from "
-             "the `--algo auto` prior of each seed's mixed log (200 episodes, 30 % expert), the scripted corrector, "
-             "the same environment-step budget for every arm; success without intervention of the deterministic "
-             "policy on the task's 100 held-out resets along the run. `classifier`: the learner's reward and episode "
-             "end from a success classifier trained on 20 labelled successes and 20 failures of the seed's log, the "
-             "simulator counted beside it; `no_prior`: from scratch; `no_corrections`: no corrector. Curves of success "
-             "and of the intervention rate against environment steps and robot time: "
+             f"The online stage on the push task (digest `{payload['task_digest']}`), lockstep, from the `--algo "
+             "auto` prior of each seed's mixed log (200 episodes, 30 % expert) trained 512 wide, the scripted "
+             "corrector taking over at the first step without progress and keeping the arm to the episode's end "
+             "(`--patience 1 --hold-steps 60`) and labelling every state it leaves to the policy "
+             "(`--action-labels`), the same environment-step budget for every arm; success without intervention of "
+             "the deterministic policy on the task's 100 held-out resets along the run. `online`: in one process; "
+             "`online_ros`: over ROS, the learner joining the arm's raw topics live (`--from-topics`); `classifier`: "
+             "the learner's reward and episode end from a success classifier trained on 20 labelled successes and "
+             "20 failures of the seed's log (`--head 16`), the simulator counted beside it; `no_prior`: from "
+             "scratch at the learner's default width; `no_corrections`: no corrector (so no labels); "
+             "`offline_rounds`: the offline correction rounds over ROS (`offline-rl hil --rounds`, AWAC retrained "
+             "from the served policy on the log and the corrections after each round of 100 episodes) within the "
+             "same steps. Curves of success and of the intervention rate against environment steps and robot time: "
              "[pusher_push_online.png](pusher_push_online.png).", ""]
     lines += note_lines(payload)
     lines += source_lines(name, payload) + ["", hil_table(payload["arms"]), ""]

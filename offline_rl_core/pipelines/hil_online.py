@@ -11,7 +11,7 @@ The learning curve is scored afterwards from the weights snapshots the learner k
 every ``eval_every`` environment steps (deterministic policy, no corrector, held-out reset
 seeds, in the task's own env): success without intervention against environment steps
 and against the learner's wall time, with the intervention rate and the critic's values
-of each window. Any task with a sim runs over ROS; ``in_process`` only pusher_reach.
+of each window. Any task with a sim runs, over ROS or ``in_process``.
 ``DIR/summary.json`` and ``DIR/online.png`` hold them. ``in_process`` runs the same stage
 in one process without ROS (``online_loop``): the reference the ROS run is measured
 against, and the fast way to run ablations.
