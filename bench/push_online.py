@@ -1,45 +1,49 @@
 """The online stage on pusher_push, per seed, beside its ablations and a classifier's reward.
 
-    python bench/push_online.py [--seeds 0 1 2] [--arms online classifier no_prior no_corrections offline_rounds]
-                                [--env-steps 48000] [--eval-every 4800] [--out runs/push-online]
+    python bench/push_online.py [--over-ros] [--seeds 0 1 2]
+                                [--arms online classifier no_prior no_corrections offline_rounds]
+                                [--env-steps 48000] [--eval-every 4800] [--out DIR]
                                 [--json bench/pusher_push_online.json]
 
-Every arm but two is ``offline-rl hil --online --in-process --task pusher_push``
-on the mixed log of its seed (200 episodes, 30 % expert: ``offline-rl collect --task
+Every online arm is ``offline-rl hil --online --task pusher_push``, in one process
+(``--in-process``) or, with ``--over-ros``, over ROS as a user runs it: the nodes as processes
+on a private DDS domain, the learner joining the arm's raw topics live (``--from-topics``). Each
+runs on the mixed log of its seed (200 episodes, 30 % expert: ``offline-rl collect --task
 pusher_push --episodes 200 --expert-frac 0.3 --seed S``, the chapter's experiment's bags,
-collected when absent), with the same environment-step budget (a whole number of 60-step
-episodes near 50,000), and the stage's settings that carry the push task (RECIPE: the corrector
-takes over at the first step without progress and keeps the arm to the episode's end, and
-labels every state it leaves to the policy, ``--action-labels``), from an ``--algo auto`` prior
-``--width`` wide (default 512) that the script trains on the seed's log:
+collected when absent), for the same environment steps (a whole number of 60-step episodes
+near 50,000), from an ``--algo auto`` prior ``--width`` wide (default 512) that the script
+trains on the seed's log, with the settings that carry the push task: the learner's ANCHOR
+(pusher7_reach's: z-scored observations, the BC term of weight 100 also on the log's expert
+episodes, the rates decaying over the budget, a quarter of each batch from the log) and the
+corrector's RECIPE (a takeover at the first step without progress, kept to the episode's end,
+and a label on every state it leaves to the policy, ``--action-labels``):
 
 - ``online``: from that prior, with the scripted corrector, the simulator's reward;
-- ``classifier``: the same, the reward and the episode's end from a success classifier
-  (``offline-rl classifier train --labels simulator --successes 20 --failures 20 --head 16``
-  on the seed's log: 20 labelled successes and 20 failures) instead of the simulator, which
-  is counted beside it (``counts.false_ends``, ``counts.missed``);
+- ``classifier``: the same, the reward from a success classifier (``offline-rl classifier
+  train --labels simulator --successes 20 --failures 20 --head 16`` on the seed's log: 20
+  labelled successes and 20 failures) instead of the simulator, which is counted beside it
+  (``counts.false_ends``, ``counts.missed``); in process the classifier also ends the
+  episode (``--end-on-success``), over ROS its time limit does;
 - ``no_prior``: the learner from scratch, at its default width (corrector and labels on);
 - ``no_corrections``: the prior and online RL alone (no corrector, so no labels);
 - ``offline_rounds``: the chapter's offline correction rounds instead of the online stage
-  (``offline-rl hil --rounds R --episodes 100``, over ROS: the policy node serves the prior,
-  the scripted corrector takes over, AWAC is retrained on the log and the corrections after
-  each round), R rounds of 100 episodes within the same environment steps;
-- ``imitate_expert`` (when named in ``--arms``): the online arm with the actor's BC term also on
-  the log's expert episodes (``--imitate-expert``), which keeps the actor near the
-  demonstrations while the critic, which the auto prior does not give, is learnt;
+  (``offline-rl hil --rounds R --episodes 100``, always over ROS: the policy node serves the
+  prior, the scripted corrector takes over, AWAC is retrained from the served policy on the
+  log and the corrections after each round), R rounds of 100 episodes within the same
+  environment steps;
+- ``no_anchor`` (when named in ``--arms``): the online arm without ANCHOR;
 - ``critic_warmup`` (when named): the online arm with 5,000 steps of the critic alone on the
-  log, the prior's actor fixed, before the first update (``--critic-warmup 5000``);
-- ``normalize_obs`` (when named): the online arm with actor and critic on observations z-scored
-  by the log's statistics (``--normalize-obs``), as the auto prior was trained.
+  log, the prior's actor fixed, before the first update (``--critic-warmup 5000``).
 
 The curve: success without intervention of the deterministic policy on the task's 100
 held-out resets every ``--eval-every`` steps, the intervention rate of each window, robot
-time (steps x the control period). The ablations run in one process: the lockstep ROS stage
-gives the in-process run's bytes (tests/test_ros_online.py), and a 48,000-step session over
-raw topics takes an hour or more on two cores. A run whose ``summary.json`` exists is not run
-again (the script
-resumes). Writes the JSON (each arm's summaries, the command, the machine), the plot beside
-it, and prints the table of bench/RESULTS.md's section.
+time (steps x the control period). A 48,000-step session over raw topics takes an hour or more
+on two cores. In one process the learner updates in step with the arm; over ROS it trains as
+the messages arrive, so the two are not the same run. A run whose ``summary.json`` exists is
+not run again (the
+script resumes; the priors, classifiers and offline rounds are shared by both ways, in
+runs/push-online). Writes the JSON (each arm's summaries, the command, the machine), the plot
+beside it, and prints the table of bench/RESULTS.md's section.
 """
 
 from __future__ import annotations
@@ -66,7 +70,7 @@ RECIPE = ("--patience", "1", "--hold-steps", "60", "--action-labels")
 # rates decaying over the budget, a quarter of each batch from the log
 ANCHOR = ("--normalize-obs", "--imitate-expert", "--bc-weight", "100", "--lr-decay", "--offline-ratio", "0.25")
 ROUND_EPISODES = 100  # episodes per offline round (6,000 steps: 8 rounds in 48,000)
-VARIANTS = ("critic_warmup",)  # run when named: the stage with one setting changed
+VARIANTS = ("critic_warmup", "no_anchor")  # run when named: the stage with one setting changed
 BAGS = Path("runs/prior/pusher_push/bags")  # bench/prior_report.py --task pusher_push's logs
 SHARED = Path("runs/push-online")  # the priors, the classifiers and the offline rounds, in process or over ROS
 
@@ -113,7 +117,8 @@ def main() -> int:
                    "--seed", str(seed), "--env-steps", str(args.env_steps), "--eval-every", str(args.eval_every),
                    "--eval-episodes", str(args.eval_episodes), "--logger", "none", "--out", str(run_dir)]
             cmd += ["--prior", str(prior)] if arm != "no_prior" else ["--no-prior"]
-            cmd += [*ANCHOR, *RECIPE] if arm != "no_corrections" else [*ANCHOR, "--corrector", "none"]
+            anchor = [] if arm == "no_anchor" else list(ANCHOR)
+            cmd += [*anchor, *RECIPE] if arm != "no_corrections" else [*anchor, "--corrector", "none"]
             if arm == "classifier":
                 classifier = SHARED / "classifiers" / f"seed{seed}.pt"
                 if not classifier.exists():

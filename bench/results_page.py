@@ -338,7 +338,7 @@ def crash_section(name: str, payload: dict) -> list[str]:
 # ----------------------------------------------------------------------------- the HIL-SERL stage
 
 THRESHOLDS = ("0.5", "0.8", "0.9", "0.95")
-ARM_ORDER = ("online", "online_ros", "imitate_expert", "critic_warmup", "normalize_obs", "classifier", "no_prior", "no_corrections", "offline_rounds")  # the stage, then its variants
+ARM_ORDER = ("online", "no_anchor", "imitate_expert", "critic_warmup", "normalize_obs", "classifier", "no_prior", "no_corrections", "offline_rounds")  # the stage, then its variants
 
 
 def hil_table(arms: dict) -> str:
