@@ -495,7 +495,8 @@ def push_online_section(name: str, payload: dict) -> list[str]:
              "[pusher_push_online.png](pusher_push_online.png).", ""]
     lines += note_lines(payload)
     lines += source_lines(name, payload) + ["", hil_table(payload["arms"]), ""]
-    judged = payload["arms"].get("classifier", {})
+    # in process the classifier ends episodes and the run counts them; over ROS the note says what it judged
+    judged = {seed: s for seed, s in payload["arms"].get("classifier", {}).items() if "ended_early" in s["counts"]}
     if judged:
         lines += ["The classifier in the loop, per training episode against the simulator's success at the same "
                   "state: episodes it ended as successes, of those the simulator calls failures (false ends), and "
