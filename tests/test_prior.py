@@ -192,3 +192,17 @@ def test_the_online_stage_reuses_an_auto_prior_only_of_the_same_data_and_seed(tm
     assert not reusable_auto_prior(ckpt, [str(mixed)], 3)
     assert not reusable_auto_prior(ckpt, [str(other)], 2)
     assert not reusable_auto_prior(tmp_path / "fixed" / "policy.pt", [str(mixed)], 2)  # not the default budget
+
+
+def test_a_step_rate_measured_on_a_busy_machine_says_so_and_keeps_the_load(own_cache, monkeypatch):
+    """Budgets in seconds (equal wall time) follow the cached rate for good: one measured while
+    other work competes for the cores warns, and the cache keeps the load it was taken under."""
+    import offline_rl_core.runs.prior as prior
+
+    monkeypatch.setattr(prior.os, "getloadavg", lambda: (99.0, 99.0, 99.0))
+    data = collect_transitions(2, 1.0, 0)
+    said = []
+    assert step_rate(TrainConfig(algo="bc", batch_size=32, hidden=32), data, said.append) > 0
+    assert any(line.startswith("warning: the machine is busy (load 99.0 on") for line in said)
+    entry, = json.loads((own_cache / "step_rates.json").read_text()).values()
+    assert entry["load"] == 99.0 and entry["cores"] >= 1

@@ -26,6 +26,7 @@ machine, measured the same way.
 from __future__ import annotations
 
 import math
+import os
 import statistics
 import time
 from dataclasses import asdict, dataclass, replace
@@ -35,7 +36,7 @@ import numpy as np
 import torch
 
 from ..common.errors import UserError
-from ..common.machine import machine_key, read_cache, write_cache
+from ..common.machine import available_cores, machine_key, read_cache, write_cache
 from ..learners import TrainConfig, train
 from ..learners.data import episodes_at_goal
 from ..learners.stepper import step_threads
@@ -152,6 +153,19 @@ def _time_chapter(data: Transitions, steps: int, threads: int) -> float:
     return (times[1] - times[0]) / steps
 
 
+def _load_note(log: Callable[[str], None]) -> dict:
+    """The machine's load as a measurement starts (kept beside it), and a warning when other
+    work competes for the cores: a rate measured then is low for good, and every budget in
+    seconds (equal wall time) follows it."""
+    load = round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else 0.0
+    cores = available_cores()
+    if load > cores:
+        log(f"warning: the machine is busy (load {load:.1f} on {cores} cores): what is measured now is cached "
+            f"({CACHE_FILE} in ~/.cache/pusher-rl) and every budget in seconds follows it; delete the file to measure "
+            "again when the machine is idle")
+    return {"load": load, "cores": cores}
+
+
 def step_rate(cfg: TrainConfig, data: Transitions, log: Callable[[str], None] = lambda s: None,
               task=None) -> float:
     """Steps per second of ``cfg``'s learner on this machine (measured once, then cached), timed
@@ -160,10 +174,11 @@ def step_rate(cfg: TrainConfig, data: Transitions, log: Callable[[str], None] = 
     cache = read_cache(CACHE_FILE)
     if key not in cache:
         log("measuring this learner's step rate on this machine (once; cached in ~/.cache/pusher-rl)")
+        load = _load_note(log)
         bc_like = cfg.algo in ("bc", "filtered_bc")
         samples = [_time_ours(cfg, data, 400 if bc_like else 100, 20, task) for _ in range(3)]
         write_cache(key, {"steps_per_s": round(1.0 / statistics.median(samples), 3), "what": list(map(str, _step_kind(cfg))),
-                          "measured": time.strftime("%Y-%m-%dT%H:%M:%S")}, CACHE_FILE)
+                          "measured": time.strftime("%Y-%m-%dT%H:%M:%S"), **load}, CACHE_FILE)
         cache = read_cache(CACHE_FILE)
         if key not in cache:  # an unwritable cache: use the measurement as it is
             return round(1.0 / statistics.median(samples), 3)
@@ -178,9 +193,11 @@ def chapter_awac_seconds(data: Transitions, log: Callable[[str], None] = lambda 
     cache = read_cache(CACHE_FILE)
     if key not in cache:
         log("timing the chapter's AWAC loop on this machine for the default budget (once; about 30 s)")
+        load = _load_note(log)
         per_step = min(statistics.median(_time_chapter(data, 300, t) for _ in range(3)) for t in threads)
         seconds = round(per_step * CHAPTER_STEPS, 3)
-        write_cache(key, {"seconds": seconds, "threads": threads, "measured": time.strftime("%Y-%m-%dT%H:%M:%S")}, CACHE_FILE)
+        write_cache(key, {"seconds": seconds, "threads": threads, "measured": time.strftime("%Y-%m-%dT%H:%M:%S"), **load},
+                    CACHE_FILE)
         return float(read_cache(CACHE_FILE).get(key, {"seconds": seconds})["seconds"])
     return float(cache[key]["seconds"])
 
