@@ -40,9 +40,8 @@ held-out resets every ``--eval-every`` steps, the intervention rate of each wind
 time (steps x the control period). A 48,000-step session over raw topics takes an hour or more
 on two cores. In one process the learner updates in step with the arm; over ROS it trains as
 the messages arrive, so the two are not the same run. A run whose ``summary.json`` exists is
-not run again (the
-script resumes; the priors, classifiers and offline rounds are shared by both ways, in
-runs/push-online). Writes the JSON (each arm's summaries, the command, the machine), the plot
+not run again (the script resumes; the priors, classifiers and offline rounds are shared by
+both ways, in runs/push-online). Writes the JSON (each arm's summaries, the command, the machine), the plot
 beside it, and prints the table of bench/RESULTS.md's section.
 """
 
@@ -61,7 +60,7 @@ from results_page import hil_table
 
 TASK = "pusher_push"
 ARMS = ("online", "classifier", "no_prior", "no_corrections", "offline_rounds")
-# the stage's settings that carry the push task (README, "Success without the simulator"): a
+# the corrector's settings that carry the push task (README, "Pushing a puck"): a
 # takeover at the first step without progress, kept to the episode's end, and the corrector's
 # labels of the states it leaves to the policy
 RECIPE = ("--patience", "1", "--hold-steps", "60", "--action-labels")
