@@ -103,7 +103,12 @@ class Trainer(Node):
             print("trainer: interrupted; no checkpoint written", file=sys.stderr)
             return 130
         self.publish({"done": True, "out": str(out), "checkpoint": str(out / "policy.pt")})
-        for pub in (self.progress_pub, self.diagnostics.publisher):  # the matched readers have the last reports
+        # a run of a second or two can end before a reader the graph already lists has matched
+        # this writer: give those a second to match, then the matched readers get the last reports
+        deadline = time.monotonic() + 1.0
+        for pub in (self.progress_pub, self.diagnostics.publisher):
+            while pub.get_subscription_count() < self.count_subscribers(pub.topic_name) and time.monotonic() < deadline:
+                time.sleep(0.02)
             pub.wait_for_all_acked(rclpy.duration.Duration(seconds=1.0))
         print(summary_line(out))
         return 0
