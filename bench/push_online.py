@@ -53,6 +53,7 @@ import sys
 from pathlib import Path
 
 from hil_online import curve_of, run
+from push_bound import ANCHOR  # the learner's anchor that carried pusher7_reach
 from offline_rl_core.benchmarks.harness import run_facts
 from offline_rl_core.common.atomic import write_json_atomic
 from offline_rl_core.task.spec import load_task
@@ -63,11 +64,8 @@ ARMS = ("online", "classifier", "no_prior", "no_corrections", "offline_rounds")
 # the corrector's settings that carry the push task (README, "Pushing a puck"): a
 # takeover at the first step without progress, kept to the episode's end, and the corrector's
 # labels of the states it leaves to the policy
-RECIPE = ("--patience", "1", "--hold-steps", "60", "--action-labels")
-# the learner's anchor that carried pusher7_reach (bench/push_bound.py's STAGE): actor and critic
-# on z-scored observations, the BC term (weight 100) also on the log's expert episodes, the
-# rates decaying over the budget, a quarter of each batch from the log
-ANCHOR = ("--normalize-obs", "--imitate-expert", "--bc-weight", "100", "--lr-decay", "--offline-ratio", "0.25")
+RULE = ("--patience", "1", "--hold-steps", "60")  # the offline rounds' corrector too
+RECIPE = RULE + ("--action-labels",)
 ROUND_EPISODES = 100  # episodes per offline round (6,000 steps: 8 rounds in 48,000)
 VARIANTS = ("critic_warmup", "no_anchor")  # run when named: the stage with one setting changed
 BAGS = Path("runs/prior/pusher_push/bags")  # bench/prior_report.py --task pusher_push's logs
@@ -107,8 +105,8 @@ def main() -> int:
             if arm == "offline_rounds":
                 rounds = args.env_steps // (ROUND_EPISODES * load_task(TASK).episodes.max_steps)
                 cmd = [*offline_rl, "hil", "--rounds", str(rounds), "--episodes", str(ROUND_EPISODES), "--task", TASK,
-                       "--bag", str(bag), "--prior", str(prior), "--seed", str(seed), "--patience", "1",
-                       "--hold-steps", "60", "--eval-episodes", str(args.eval_episodes), "--out", str(run_dir)]
+                       "--bag", str(bag), "--prior", str(prior), "--seed", str(seed), *RULE,
+                       "--eval-episodes", str(args.eval_episodes), "--out", str(run_dir)]
                 results.setdefault(arm, {})[str(seed)] = run(cmd, run_dir / "summary.json")
                 continue
             where = "--from-topics" if args.over_ros else "--in-process"

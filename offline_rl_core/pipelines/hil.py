@@ -281,19 +281,23 @@ class Loop:
         raise UserError(f"the policy node did not reload {served}; see {policy_node.log_path}:\n" + _tail(policy_node.output()))
 
 
-def resolve_task(loop: Loop, given: str | None, bags: list[str], prior: str | None, out: Path) -> TaskSpec:
-    """The task of a HIL run: ``--task``, else the bags' (``offline-rl train``'s rule); a given
-    prior must be of it, and a sim must host it (the arm of the run, and the held-out
-    rollouts it is scored on). Sets how the nodes are told it (``loop.task_arg``)."""
+def resolve_task(loop: Loop, cfg, out: Path) -> TaskSpec:
+    """The task of a HIL run (``cfg``: its HilConfig or OnlineHilConfig): ``--task``, else the
+    bags' (``offline-rl train``'s rule); a given prior must be of it, and a sim must host it
+    (the arm of the run, and the held-out rollouts it is scored on). Sets how the nodes are
+    told it (``loop.task_arg``); for a task other than pusher_reach, ``cfg.task`` too, so every
+    later step and the summary's config name what the nodes were told."""
     from ..runs.training_run import task_of_run
 
-    task = task_of_run(bags, given)
-    if prior:
-        policy_for_task(load_checkpoint(prior), prior, task)  # a prior of another task: one line naming both
+    task = task_of_run(cfg.bags, cfg.task)
+    if cfg.prior:
+        policy_for_task(load_checkpoint(cfg.prior), cfg.prior, task)  # a prior of another task: one line naming both
     if not task.sim:
         raise UserError(f"task {task.name} ({task.source_file()}): offline-rl hil runs the task in a sim and scores "
                         "it on held-out rollouts there; the task has no sim section")
     loop.task_arg = task_argument(task, out)
+    if task.digest != load_task(DEFAULT_TASK).digest:
+        cfg.task = loop.task_arg
     return task
 
 
@@ -411,9 +415,7 @@ def run_hil(cfg: HilConfig, log: Callable[[str], None] = lambda s: print(s, file
     loop = Loop(cfg, log, logger)
     with hil_session(out, loop):
         log(f"hil: {cfg.rounds} rounds x {cfg.episodes} episodes -> {out} (ROS_DOMAIN_ID {loop.env['ROS_DOMAIN_ID']})")
-        task = resolve_task(loop, cfg.task, cfg.bags, cfg.prior, out)
-        if task.digest != load_task(DEFAULT_TASK).digest:
-            cfg.task = loop.task_arg  # as the online stage: the summary's config names what the nodes were told
+        task = resolve_task(loop, cfg, out)
         prior_path, prior_from = resolve_prior(loop, cfg.prior, cfg.bags, cfg.seed, cfg.prior_steps, out, log)
         served = out / "policy.pt"
         with atomic_path(served) as tmp:

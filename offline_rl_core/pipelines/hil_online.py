@@ -46,7 +46,7 @@ from ..serving.signing import make_session_keys
 from ..evaluation.stats import wilson_ci
 from ..data.transitions import SOURCE_HUMAN
 from ..task.corrector import STEERS, CorrectorParams
-from ..task.spec import DEFAULT_TASK, TaskSpec, load_task
+from ..task.spec import TaskSpec, load_task
 
 DEFAULT_BAG = "bags/mix.db3"
 THRESHOLDS = (0.5, 0.8, 0.9, 0.95)
@@ -230,9 +230,7 @@ def run_hil_online(cfg: OnlineHilConfig, log: Callable[[str], None] = lambda s: 
     t0 = time.monotonic()
     curves = None  # in process: logged as the stage runs; over ROS: the curve scored after the session
     with hil_session(out, loop):
-        task = resolve_task(loop, cfg.task, cfg.bags, cfg.prior, out)
-        if task.digest != load_task(DEFAULT_TASK).digest:
-            cfg.task = loop.task_arg  # every later step (the nodes, the join, the rollouts) reads it from there
+        task = resolve_task(loop, cfg, out)  # sets cfg.task: the nodes, the join and the rollouts read it
         prior_path, prior_from = (None, "none") if cfg.no_prior else resolve_prior(
             loop, cfg.prior, cfg.bags, cfg.seed, cfg.prior_steps, out, log, cfg.prior_algo)
         if cfg.in_process:
