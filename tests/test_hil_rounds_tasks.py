@@ -4,8 +4,10 @@ expert, the corrections are recorded in the task's layout, the trainer retrains 
 checkpoint of the task, and the served policy is scored in the task's own env."""
 
 import json
+import re
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -69,6 +71,13 @@ def test_the_rounds_run_on_pusher_push(ros_env, tmp_path, push):
     assert [r["round"] for r in rows] == [1, 2]
     # the corrector heard the puck on its topic and took over with the push expert
     assert sum(r["correction_transitions"] for r in rows) > 0 and sum(r["takeovers"] for r in rows) > 0
+    for r in rows:
+        # every state was answered through the mux, the corrector heard each: the policy's own
+        # command never reached the arm's controller topic first (the served node only answers)
+        mux_log = (Path(r["bag"]).parent / "mux.log").read_text()
+        forwarded = re.search(r"forwarded (\d+) policy and (\d+) human commands", mux_log)
+        assert forwarded and int(forwarded[1]) + int(forwarded[2]) == r["transitions"], mux_log[-500:]
+        assert f"answered {r['transitions']} states" in (Path(r["bag"]).parent / "corrector.log").read_text()
     for r in rows:
         data = read_transitions(r["bag"])
         assert recorded_task(r["bag"]).digest == task.digest

@@ -32,9 +32,12 @@ def test_serve_launch_becomes_ros2_run_command_lines():
                         "-p", "episodes:=3", "-p", 'summary:="/tmp/s.json"', "-r", "pusher/command:=policy/action"]
     # the policy runs in the sim's mode: its watchdog only where the sim runs in realtime
     assert nodes["policy"].params == {"checkpoint": "runs/x/policy.pt", "task": "", "poll_period": 0.5,
-                                      "mode": "lockstep"}
-    served_only = load_launch(LAUNCH_DIR / "serve.launch.yaml", {"checkpoint": "c.pt", "closed_loop": "false"})
+                                      "mode": "lockstep", "publish_command": True}
+    served_only = load_launch(LAUNCH_DIR / "serve.launch.yaml", {"checkpoint": "c.pt", "closed_loop": "false",
+                                                                 "publish_command": "false"})
     assert [n.label for n in served_only] == ["policy"]  # if: $(var closed_loop)
+    # served for a mux (the corrections rounds): the policy answers on policy/action only
+    assert served_only[0].params["publish_command"] is False
 
 
 def test_the_task_argument_reaches_the_nodes_that_read_the_task():

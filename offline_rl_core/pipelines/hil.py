@@ -421,8 +421,11 @@ def run_hil(cfg: HilConfig, log: Callable[[str], None] = lambda s: print(s, file
         with atomic_path(served) as tmp:
             shutil.copyfile(prior_path, tmp)
 
+        # the mux drives the arm, never the policy directly: a task's sim takes its controller's
+        # topic too, where the policy's own command would answer a state before the corrector heard it
         policy_node = loop.launch("serve.launch.yaml", {"checkpoint": served, "task": loop.task_arg, "poll_period": 0.2,
-                                                        "closed_loop": "false"}, out, ready={"policy": "serving"})["policy"]
+                                                        "closed_loop": "false", "publish_command": "false"},
+                                  out, ready={"policy": "serving"})["policy"]
         rows: list[dict] = []
         correction_bags: list[str] = []
         prior_eval = None
