@@ -7,13 +7,14 @@ Import the fixtures into a test module with ``from ros_helpers import ros_env, s
 from __future__ import annotations
 
 import os
-import random
 import sys
 import time
 from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
+
+from offline_rl_core.pipelines.processes import claim_free_domain
 
 REPO = Path(__file__).resolve().parents[1]
 # ros_ws/tools (the installer of the ROS packages) is a folder of scripts, not a package
@@ -27,9 +28,10 @@ MODULES = {"sim": "pusher_sim", "recorder": "pusher_recorder", "trainer": "pushe
            "viz": "pusher_viz"}
 INDEX = Path(sys.prefix) / "share" / "ament_index" / "resource_index" / "packages"
 
-# One DDS domain per test session, localhost only: parallel sessions and other machines
-# on the network never see these nodes.
-_DOMAIN_ID = str(random.SystemRandom().randint(1, 100))
+# One DDS domain per test session, localhost only, that no other pusher-rl process on this
+# machine holds (a HIL session, a benchmark): parallel sessions and other machines on the
+# network never see these nodes.
+_DOMAIN_ID = str(claim_free_domain())
 
 
 def rclpy_available() -> bool:

@@ -4,6 +4,8 @@ multi-bag training with a correction ratio, hot reload during a run, and the loo
 from __future__ import annotations
 
 import json
+import os
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -377,6 +379,29 @@ def test_keyboard_mode_needs_a_terminal(ros_env, tmp_path):
     with RosProcess(ros2_run("corrections", "corrector", "--mode", "keyboard"), ros_env, tmp_path / "kb.log") as node:
         assert node.wait(timeout=60) == 2
         assert "corrector: error: --mode keyboard needs an interactive terminal" in node.output()
+
+
+def test_a_claimed_domain_is_not_drawn_by_another_process_until_its_holder_exits(tmp_path):
+    """Two pusher-rl sessions on one machine (a HIL run and the test suite) never draw the same
+    DDS domain while both run: the id is held by the process that drew it, and freed when it
+    ends, however it ends."""
+    env = {**os.environ, "TMPDIR": str(tmp_path)}  # a lock folder of the test's own
+    holder = subprocess.Popen([sys.executable, "-c", "from offline_rl_core.pipelines.processes import "
+                               "claim_free_domain as c; print(c(1, 3), flush=True); import sys; sys.stdin.read()"],
+                              env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        held = int(holder.stdout.readline())
+        draw = [sys.executable, "-c", "from offline_rl_core.pipelines.processes import claim_free_domain as c; "
+                "print(sorted({c(1, 3) for _ in range(2)}))"]
+        others = json.loads(subprocess.run(draw, env=env, capture_output=True, text=True, check=True).stdout)
+        assert held in (1, 2, 3) and sorted(others + [held]) == [1, 2, 3]  # the two ids the holder left
+    finally:
+        holder.kill()
+        holder.wait()
+    freed = subprocess.run([sys.executable, "-c", "from offline_rl_core.pipelines.processes import claim_free_domain "
+                            "as c; print(sorted({c(1, 3) for _ in range(3)}))"], env=env, capture_output=True,
+                           text=True, check=True)
+    assert json.loads(freed.stdout) == [1, 2, 3]  # a killed holder's id is free again
 
 
 def test_rosproc_stops_by_pid_with_escalation(tmp_path):

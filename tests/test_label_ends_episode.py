@@ -109,3 +109,20 @@ def test_a_raw_topic_session_records_the_labels_with_the_tasks_topics():
     args = _record_topics(OnlineHilConfig(task="pusher_push", from_topics=True)).split()
     topics = args[1:args.index("--types")]
     assert args[0] == "--topics" and "episode_label" in topics and "task_description" in topics
+
+
+def test_a_step_budget_ends_the_run_however_its_episodes_end():
+    """``steps``: the sim runs that many steps where episodes end early (on a label here): the
+    step that reaches it ends its episode, truncated, and the run is finished."""
+    loop = SimLoop("lockstep", seed=0, task="pusher_push", steps=7)
+    loop.start_episode()
+    lockstep_steps(loop, 2)
+    loop.label(True)
+    first = lockstep_steps(loop, 1)[0]
+    assert first.episode_over and not loop.finished  # episode 0: 3 steps, the label's
+    rest = lockstep_steps(loop, 4)
+    assert [s.episode_over for s in rest] == [False, False, False, True]
+    last = Transitions.from_rows(rest[-1].transition[None], loop.layout)
+    assert bool(last.truncated[0]) and not bool(last.terminated[0]) and int(last.step[0]) == 3
+    assert loop.finished and rest[-1].new_episode is None and loop.steps_taken == 7
+    assert loop.summary()["episodes"] == 2

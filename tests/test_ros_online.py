@@ -483,3 +483,59 @@ def test_on_the_push_task_the_scripted_corrector_takes_over_and_labels_every_sta
     assert len(policy) <= len(sent) <= len(policy) + 2  # each episode's last state: labelled, no transition
     summary = json.loads((out / "summary.json").read_text())
     assert summary["counts"]["labelled"] == len(policy) and summary["config"]["action_labels"] is True
+
+
+@pytest.mark.slow
+def test_over_ros_the_classifiers_success_ends_the_arms_episode_and_the_learners(ros_env, tmp_path, push):
+    """`hil --online --from-topics --success CLS --end-on-success` on pusher_push: the policy
+    node labels each state the classifier judges a success on episode_label, the sim ends the
+    episode at its next step, and the learner's episodes end at the first judged success
+    (terminated; the step the label let through is left out), as `offline-rl dataset`
+    builds them from the session's bag; the sim runs --env-steps steps, not whole episodes.
+    Here the classifier judges every state a success (its threshold 0): every episode ends
+    within a few steps, and the learner keeps one transition of each (the arm's last step of
+    an episode closes on no published state: no transition, as at any episode's end)."""
+    from offline_rl_core.data.bag import read_transitions
+    from offline_rl_core.data.bag.info import bag_info
+    from offline_rl_core.data.episode_labels import labels_from_success
+    from offline_rl_core.data.raw_topics import transitions_from_topics
+    from offline_rl_core.learners.data import MemberData
+    from offline_rl_core.learners.success_classifier import (ClassifierConfig, labelled_states, load_classifier,
+                                                             save_classifier, train_classifier)
+    from offline_rl_core.task.spec import load_task
+
+    task = load_task("pusher_push")
+    bag, prior = push
+    data = read_transitions(bag)
+    obs, success = labelled_states(data, labels_from_success(data), tail=10)
+    contents = train_classifier(obs, success, ClassifierConfig(steps=50), 0, task)
+    contents["config"]["threshold"] = 0.0  # every state a success
+    save_classifier(tmp_path / "always.pt", contents)
+    judge = load_classifier(tmp_path / "always.pt", task)
+    out = tmp_path / "online"
+    proc = subprocess.run([sys.executable, "-m", "offline_rl_core", "hil", "--online", "--task", "pusher_push",
+                           "--from-topics", "--success", str(tmp_path / "always.pt"), "--end-on-success",
+                           "--bag", str(bag), "--prior", str(prior), "--env-steps", "90", "--publish-every", "15",
+                           "--eval-every", "45", "--eval-episodes", "1", "--corrector", "none", "--logger", "none",
+                           "--out", str(out)], env=ros_env, cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    sim = json.loads((out / "sim.json").read_text())
+    # every episode the sim ran was ended by the classifier's label within a few steps of its
+    # start (the label of state s ends the step after the one its answer lets through, or that
+    # one), but the last, which the budget may cut first
+    assert sim["labelled"] >= sim["episodes"] - 1 and 90 // 4 <= sim["episodes"] <= 90
+    recorded = {t.name: t.count for t in bag_info(out / "session.db3").topics}
+    assert recorded["/episode_label"] >= sim["labelled"]  # the session bag keeps the policy node's labels
+    batch, report = transitions_from_topics(out / "session.db3", task, judge=judge, end_on_success=True)
+    assert batch.terminated.all() and np.array_equal(batch.step, np.zeros(len(batch)))  # each episode's first step
+    assert len(np.unique(batch.episode)) == len(batch) >= sim["episodes"] - 1
+    # every step the arm took counts toward the budget, those left out too (all but the last: no state closes it)
+    assert json.loads((out / "learner" / "live.json").read_text())["steps"] == 89
+    # the learner trained on those rows, in order: its episodes ended where the arm's did
+    state = torch.load(out / "learner" / "learner_state.pt", weights_only=True)
+    expected = MemberData.columns(batch)
+    for name in ("obs", "action", "reward", "next_obs", "not_done"):
+        assert np.array_equal(state["online_rows"][name].numpy(), expected[name][:state["n_online"]]), name
+    assert not state["online_rows"]["not_done"].numpy().any()
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["config"]["end_on_success"] is True and summary["curve"][0]["env_steps"] == 0

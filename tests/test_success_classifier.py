@@ -175,8 +175,8 @@ def test_the_online_stage_takes_its_reward_and_episode_end_from_the_classifier(l
 def test_hil_takes_the_classifier_in_process_or_on_raw_topics_only(tmp_path):
     over_ros = offline_rl("hil", "--online", "--success", "c.pt", "--out", str(tmp_path / "a"))
     assert over_ros.returncode == 2 and "--success: over ROS only with --from-topics" in over_ros.stderr
-    ends = offline_rl("hil", "--online", "--from-topics", "--end-on-success", "--out", str(tmp_path / "d"))
-    assert ends.returncode == 2 and "--end-on-success: only with --in-process" in ends.stderr
+    ends = offline_rl("hil", "--online", "--end-on-success", "--out", str(tmp_path / "d"))
+    assert ends.returncode == 2 and "--end-on-success: over ROS only with --from-topics" in ends.stderr
     offline_rounds = offline_rl("hil", "--success", "c.pt", "--out", str(tmp_path / "b"))
     assert offline_rounds.returncode == 2 and "--success: only with --online" in offline_rounds.stderr
     missing = offline_rl("hil", "--online", "--in-process", "--success", str(tmp_path / "none.pt"),

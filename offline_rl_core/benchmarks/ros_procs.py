@@ -10,14 +10,13 @@ from __future__ import annotations
 import importlib.util
 import json
 import os
-import random
 import shutil
 import subprocess
 import sys
 import time
 from pathlib import Path
 
-from ..pipelines.processes import RosProcess, isolated_ros_env
+from ..pipelines.processes import RosProcess, claim_free_domain, isolated_ros_env
 
 # The rclpy side of the DDS figures runs in its own process from the source tree:
 # offline_rl_core itself never imports ROS.
@@ -56,8 +55,8 @@ _DOMAIN: list[int] = []
 
 def isolate() -> int:
     """Pick one random domain for this process (once) and its children."""
-    if not _DOMAIN:
-        _DOMAIN.append(random.SystemRandom().randint(30, 200))
+    if not _DOMAIN:  # one no other pusher-rl process on this machine holds
+        _DOMAIN.append(claim_free_domain(101, 200))
     os.environ["ROS_DOMAIN_ID"] = str(_DOMAIN[0])
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     return _DOMAIN[0]

@@ -189,5 +189,8 @@ def register(subparsers) -> None:
                    "(`offline-rl classifier train`) judges each state's success for the learner's reward and the "
                    "episode's end, instead of the simulator (which is still counted beside it, never trained on)")
     o.add_argument("--end-on-success", action="store_true", default=None,
-                   help="with --in-process: an episode ends where success is judged (the classifier's or the simulator's)")
+                   help="an episode ends where success is judged (the classifier's or the simulator's); over ROS "
+                        "(with --from-topics) the arm's episode too: the policy node labels the classifier's success "
+                        "on episode_label, or the sim ends it on its own success; --env-steps need not be whole "
+                        "episodes")
     p.set_defaults(func=_run)

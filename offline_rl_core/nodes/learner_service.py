@@ -82,6 +82,9 @@ class LearnerServiceConfig:
     # to the states they label and imitated there (the critic learns from the action the arm took)
     action_labels: bool = False
     success: str | None = None  # raw topics: a success classifier judges each state, not the success distance
+    # raw topics: an episode ends at its first success, as the arm's do (a policy node's
+    # end_on_success classifier labels it, or the sim's terminate_on_success)
+    end_on_success: bool = False
     actors: tuple[str, ...] = ()  # the actors' namespaces, when several feed this learner (counted apart)
     live: LiveSettings = field(default_factory=LiveSettings)
     sim_time: bool = False  # raw topics joined by receive times: stamped by the sim time of their publication
@@ -158,7 +161,11 @@ class LearnerService:
         if cfg.action_labels and not cfg.from_topics:
             raise UserError("parameter action_labels: only with from_topics (the labels are joined to the raw "
                             "topics' states by stamp)")
-        self.live = LiveJoin(self.task, cfg.live, judge, cfg.action_labels) if cfg.from_topics else None
+        if cfg.end_on_success and not cfg.from_topics:
+            raise UserError("parameter end_on_success: only with from_topics (pusher/transition comes with its "
+                            "episode's end from the sim)")
+        self.live = LiveJoin(self.task, cfg.live, judge, cfg.action_labels, cfg.end_on_success) \
+            if cfg.from_topics else None
         # raw topics joined by receive times, on a sim's /clock: each message waits for the
         # /clock that says which tick it was published in (see receive_clock)
         self.publication_clock = PublicationClock() if (

@@ -36,6 +36,9 @@ episode is of the episode of the last transition handed out, as the bag's reader
 it: one pressed just after an episode ended labels that one and ends nothing. The episode's
 result (``summary``) stays the simulator's success; ``labelled`` counts the episodes a label
 ended, ``labels_against_simulator`` those whose label the simulator contradicts.
+
+``steps`` caps the run's environment steps however its episodes end (early, on success or
+a label): the step that reaches it ends its episode, truncated, and the run is finished.
 """
 
 from __future__ import annotations
@@ -92,12 +95,17 @@ class Step:
 
 class SimLoop:
     def __init__(self, mode: str = "realtime", seed: int = 0, episodes: int = 0, terminate_on_success: bool = False,
-                 start_ns: int = 0, task: TaskSpec | str | None = None, estop: EStopLatch | None = None):
+                 start_ns: int = 0, task: TaskSpec | str | None = None, estop: EStopLatch | None = None,
+                 steps: int = 0):
         if mode not in MODES:
             raise ValueError(f"mode must be one of {', '.join(MODES)}, got {mode!r}")
         self.mode = mode
         self.seed = seed
         self.max_episodes = episodes  # 0: run until stopped
+        # 0: no cap; else the steps of the run, however its episodes end (a budget of
+        # environment steps where episodes end early: the step that reaches it ends its episode)
+        self.max_steps = steps
+        self.steps_taken = 0
         self.start_ns = int(start_ns)
         self.task = load_task(task)
         self.env = make_env(self.task, terminate_on_success or self.task.reward.terminate_on_success)
@@ -128,7 +136,8 @@ class SimLoop:
     # ------------------------------------------------------------ episodes
     @property
     def finished(self) -> bool:
-        return bool(self.max_episodes) and len(self.results) >= self.max_episodes
+        return (bool(self.max_episodes) and len(self.results) >= self.max_episodes) or \
+            (bool(self.max_steps) and self.steps_taken >= self.max_steps)
 
     def start_episode(self) -> ArmState:
         """Reset for the current episode; its first state."""
@@ -266,6 +275,9 @@ class SimLoop:
         if self.label_of_current is not None:
             reward, info = self._scored_by_label(success_before, self.label_of_current)
             done = True
+        self.steps_taken += 1
+        if self.max_steps and self.steps_taken >= self.max_steps and not done:
+            info, done = {**info, "truncated": True}, True  # the run's budget: cut as a time limit cuts
         at = self.layout.slices
         row = np.empty(self.layout.width, np.float32)
         row[at["obs"]] = obs

@@ -99,7 +99,9 @@ class OnlineHilConfig:
     timeout: float = 4 * 3600.0
     from_topics: bool = False  # the learner joins the task's raw topics instead of pusher/transition
     success: str | None = None  # in process: a success classifier judges success, not the simulator
-    end_on_success: bool = False  # in process: an episode ends where success is judged
+    # an episode ends where success is judged; over ROS (raw topics) the arm's too: the policy
+    # node labels it with the classifier (--success), or the sim ends it on its own success
+    end_on_success: bool = False
     actors: int = 1  # over ROS: sims (each with its policy node, mux and corrector) feeding the one learner
 
     @property
@@ -118,9 +120,9 @@ class OnlineHilConfig:
             if self.action_labels and not self.from_topics:
                 raise UserError("--action-labels: over ROS only with --from-topics (the learner joins the labels to "
                                 "the raw topics' states by stamp)")
-            if self.end_on_success:
-                raise UserError("--end-on-success: only with --in-process (over ROS an episode ends at the sim's "
-                                "time limit or a person's label)")
+            if self.end_on_success and not self.from_topics:
+                raise UserError("--end-on-success: over ROS only with --from-topics (the learner ends the episodes "
+                                "it joins from the raw topics where the arm's end)")
             if self.success is not None and not self.from_topics:
                 raise UserError("--success: over ROS only with --from-topics (the learner judges the states it "
                                 "joins from the raw topics; pusher/transition comes scored by the sim)")
@@ -194,11 +196,11 @@ class OnlineHilConfig:
             raise UserError(f"task {task.name} ({task.source_file()}): the online stage runs in a sim and scores "
                             "its learning curve on held-out rollouts there; the task has no sim section")
         steps = task.episodes.max_steps
-        early_ends = self.in_process and (self.success or self.end_on_success)
+        early_ends = self.end_on_success or (self.in_process and self.success)
         if not early_ends and (self.env_steps < steps or self.env_steps % steps):
             raise UserError(f"--env-steps must be a positive multiple of {steps} (whole episodes of task "
                             f"{task.name}), got {self.env_steps}")
-        if self.env_steps % (steps * self.actors):
+        if self.actors > 1 and self.env_steps % (steps * self.actors):
             raise UserError(f"--env-steps is the total over the actors: with --actors {self.actors} a multiple of "
                             f"{steps * self.actors} (whole episodes of task {task.name} each), got {self.env_steps}")
         if self.steer == "stick":
@@ -296,7 +298,9 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
     for stale in (learner_dir / "snapshots").glob("policy_*.pt"):
         stale.unlink()
     (learner_dir / "progress.jsonl").unlink(missing_ok=True)
-    episodes = cfg.env_steps // load_task(cfg.task).episodes.max_steps
+    # episodes that end early (--end-on-success) leave their count open: the sim runs the
+    # session's steps however its episodes end
+    episodes = 0 if cfg.end_on_success else cfg.env_steps // load_task(cfg.task).episodes.max_steps
     lockstep = cfg.mode == "lockstep"
     arguments = {
         "bag": cfg.bags[0], "prior": prior_path or "", "out": out, "task": loop.task_arg,
@@ -317,6 +321,11 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
         "grace_steps": cfg.grace_steps, "logger": logger,
         "from_topics": "true" if cfg.raw_topics else "false",
         "success": str(Path(cfg.success).resolve()) if cfg.success else "",
+        "end_on_success": "true" if cfg.end_on_success else "false",
+        # where the episode ends: the classifier's success (the policy node labels it), else the sim's own
+        "end_classifier": str(Path(cfg.success).resolve()) if cfg.success and cfg.end_on_success else "",
+        "terminate_on_success": "true" if cfg.end_on_success and not cfg.success else "false",
+        "steps": cfg.env_steps if cfg.end_on_success else 0,
         "record_topics": _record_topics(cfg) if cfg.raw_topics else "",
         # commands without a header are joined by the sim time of their publication
         "sim_time": "true" if cfg.raw_topics and _joined_by_receive_times(cfg) else "false",
@@ -328,7 +337,8 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
     # this session's weights key pair: the policy node takes only weights the learner signed with it
     arguments["keys"] = make_session_keys(out / "keys").signing_key.parent
     over = f" over {cfg.actors} actors ({', '.join(cfg.namespaces)})" if cfg.actors > 1 else ""
-    log(f"hil online: {cfg.env_steps} environment steps ({episodes} episodes{over}, {cfg.mode}) with the "
+    shape = "episodes end at success" if cfg.end_on_success else f"{episodes} episodes"
+    log(f"hil online: {cfg.env_steps} environment steps ({shape}{over}, {cfg.mode}) with the "
         f"{cfg.corrector} corrector, learner utd {cfg.utd}, weights every {cfg.publish_every} steps -> {out} "
         f"(ROS_DOMAIN_ID {loop.env['ROS_DOMAIN_ID']})")
     launched = _launch(cfg, loop, arguments, out)
@@ -472,7 +482,7 @@ def session_transitions(cfg: OnlineHilConfig, bag: Path):
             from ..learners.success_classifier import load_classifier
 
             judge = load_classifier(cfg.success, load_task(cfg.task))
-        return transitions_from_topics(bag, cfg.task, judge=judge)[0]
+        return transitions_from_topics(bag, cfg.task, judge=judge, end_on_success=cfg.end_on_success)[0]
     from ..data.bag import read_transitions
 
     return read_transitions(bag)

@@ -3,7 +3,7 @@
 No ROS import: the nodes are separate processes (``ros2 run PKG EXE ...`` or the
 ``lib/<pkg>/<exe>`` scripts of the virtualenv), so ``offline_rl_core`` stays free of rclpy.
 
-    env = isolated_ros_env()                      # private random ROS_DOMAIN_ID, localhost only
+    env = isolated_ros_env()                      # a free random ROS_DOMAIN_ID, localhost only
     with RosProcess(ros2_run("sim", "node", "--ros-args", "-p", "mode:=lockstep"), env, "sim.log") as sim:
         ...
     # leaving the block stops it: SIGINT, then SIGTERM, then SIGKILL, each by its pid
@@ -18,11 +18,13 @@ an arm, or load the machine, on its own.
 from __future__ import annotations
 
 import ctypes
+import fcntl
 import os
 import random
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -39,15 +41,47 @@ _ISOLATION = {
 }
 
 
+# Domains this process holds (id -> the open lock file): kept open for the process's life.
+_CLAIMED: dict[int, object] = {}
+
+
+def domain_lock_dir() -> Path:
+    return Path(tempfile.gettempdir()) / f"pusher-rl-ros-domains-{os.getuid()}"
+
+
+def claim_free_domain(low: int = 1, high: int = 100) -> int:
+    """A random DDS domain in low..high that no other pusher-rl process on this machine holds,
+    held (an flock on a file per id) until this process exits. Two sessions on one machine (a
+    HIL session and the test suite, two benchmarks) drawing the same id would hear each
+    other's nodes; the lock is released by the kernel however the holder ends. With every id
+    taken, one at random (as before the locks)."""
+    lock_dir = domain_lock_dir()
+    lock_dir.mkdir(parents=True, exist_ok=True)
+    ids = list(range(low, high + 1))
+    random.SystemRandom().shuffle(ids)
+    for domain_id in ids:
+        if domain_id in _CLAIMED:
+            continue
+        handle = open(lock_dir / f"{domain_id}.lock", "a")
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            handle.close()
+            continue
+        _CLAIMED[domain_id] = handle
+        return domain_id
+    return ids[0]
+
+
 def isolated_ros_env(domain_id: int | None = None, base: dict | None = None) -> dict:
     """A copy of ``base`` (default ``os.environ``) on a private DDS domain.
 
-    ``domain_id`` None draws one at random from 1..100 (0 is everybody's default;
-    localhost-only discovery keeps other machines out whatever the id).
+    ``domain_id`` None claims a free one at random from 1..100 (``claim_free_domain``; 0 is
+    everybody's default; localhost-only discovery keeps other machines out whatever the id).
     """
     env = dict(os.environ if base is None else base)
     if domain_id is None:
-        domain_id = random.SystemRandom().randint(1, 100)
+        domain_id = claim_free_domain()
     if not 0 <= int(domain_id) <= 232:
         raise ValueError(f"ROS_DOMAIN_ID must be in 0..232, got {domain_id}")
     env.update(_ISOLATION)

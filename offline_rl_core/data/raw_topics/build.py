@@ -138,11 +138,12 @@ def _counts_text(counts: dict) -> str:
 
 
 def transitions_from_topics(bag: str | os.PathLike, task: TaskSpec | str | os.PathLike | None = None,
-                            judge=None) -> tuple[Transitions, JoinReport]:
+                            judge=None, end_on_success: bool = False) -> tuple[Transitions, JoinReport]:
     """The transitions of a raw-topic bag as ``task`` says (a TaskSpec, a built-in name or a
     task file; None: the task the bag records, else pusher_reach), and the report of the
     join; ``judge``: a success classifier whose judgement replaces the task's success
-    distance. UserError for a missing topic, a wrong type, a joint the messages lack, a
+    distance; ``end_on_success``: an episode ends at its first success (terminated; the
+    steps after it make no transition), whatever the task's reward says. UserError for a missing topic, a wrong type, a joint the messages lack, a
     command of the wrong length, or a bag that yields no transition."""
     from ..task_record import task_of_bag
 
@@ -151,7 +152,8 @@ def transitions_from_topics(bag: str | os.PathLike, task: TaskSpec | str | os.Pa
     plan = plan_for(task)
     streams, report = read_bag(bag, plan)
     try:
-        result = join(plan, streams, report, point_kinematics(task), engaged=bag_engaged_spans(bag), judge=judge)
+        result = join(plan, streams, report, point_kinematics(task), engaged=bag_engaged_spans(bag), judge=judge,
+                      terminate_on_success=True if end_on_success else None)
     except JoinEmpty as exc:
         raise UserError(f"{bag}: {exc}") from None
     return result.data, report
@@ -377,10 +379,12 @@ def _episode_starts(plan: JoinPlan, t: np.ndarray, recv: np.ndarray, goal: np.nd
 
 
 def join(plan: JoinPlan, s: Streams, report: JoinReport, kinematics=None, allow_empty: bool = False,
-         engaged: list[tuple[int, int]] | None = None, judge=None) -> JoinResult:
+         engaged: list[tuple[int, int]] | None = None, judge=None,
+         terminate_on_success: bool | None = None) -> JoinResult:
     """Steps 2-7 on decoded streams. JoinEmpty when no state is usable, or (unless
     ``allow_empty``: the live join's window) no transition can be built. ``judge``: an object
-    whose ``success(obs)`` (bool per observation) says which states are successes."""
+    whose ``success(obs)`` (bool per observation) says which states are successes;
+    ``terminate_on_success``: whether a success ends its episode (None: as the task's reward says)."""
     task = plan.task
     tol = plan.tolerance_ns
     n_joints = len(task.state.joints)
@@ -499,11 +503,12 @@ def join(plan: JoinPlan, s: Streams, report: JoinReport, kinematics=None, allow_
     success_before = latched_before(within)
     step = np.rint((t_state[a] - t_state[first_state[episode[a]]]) / plan.period_ns).astype(np.int64)
     next_vectors = {n: v[b] for n, v in vectors.items()}
-    score = features.score(task, positions[b], next_vectors, step + 1, success_before,
+    terminate = task.reward.terminate_on_success if terminate_on_success is None else terminate_on_success
+    score = features.score(task, positions[b], next_vectors, step + 1, success_before, terminate,
                            success_now=None if judged is None else judged[b])
     rule = None if judged is None else features.score(task, positions[b], next_vectors, step + 1,
                                                       latched_before(rule_within)).success
-    alive = ~(success_before & task.reward.terminate_on_success)
+    alive = ~(success_before & terminate)
     report.commands["after_termination"] = int((~alive).sum())
     c, a, b, step, step_index = c[alive], a[alive], b[alive], step[alive], step_index[alive]
     score = features.StepScore._make(f[alive] for f in score)

@@ -119,10 +119,13 @@ class _Buffer:
 
 class LiveJoin:
     """``judge``: a success classifier (``success(obs)``) whose judgement of each state
-    replaces the task's success distance, as in ``build.join``."""
+    replaces the task's success distance, as in ``build.join``; ``end_on_success``: an
+    episode ends at its first success (where the arm's episodes end on it too)."""
 
-    def __init__(self, task: TaskSpec, settings: LiveSettings | None = None, judge=None, action_labels: bool = False):
+    def __init__(self, task: TaskSpec, settings: LiveSettings | None = None, judge=None, action_labels: bool = False,
+                 end_on_success: bool = False):
         self.task = task
+        self.terminate_on_success = True if end_on_success else None  # None: as the task's reward says
         # verdicts remembered across polls: the window is joined again on each
         self.judge = None if judge is None else StateVerdicts(judge)
         self.plan = plan_for(task, action_labels)
@@ -243,7 +246,8 @@ class LiveJoin:
                           {name: b.rows for name, b in self.points.items()}, np.asarray(self.resets, np.int64),
                           None if self.labels is None else self.labels.rows)
         try:
-            result = join(self.plan, streams, report, self.kinematics, allow_empty=True, judge=self.judge)
+            result = join(self.plan, streams, report, self.kinematics, allow_empty=True, judge=self.judge,
+                          terminate_on_success=self.terminate_on_success)
         except JoinEmpty:
             return self._none()
         seals = (-NEVER, -NEVER, -NEVER, -NEVER) if ended else self._seals(quiet, level == 2)

@@ -133,6 +133,9 @@ PARAMS = [
     Param("success", "", "raw topics: a success classifier file (offline-rl classifier train) that judges each "
           "state's success, for the reward's bonus and the episode's end, instead of the task's success distance; "
           "empty: the distance", read_only=True, flag="--success"),
+    Param("end_on_success", False, "raw topics: an episode ends at its first success (terminated, the steps after it "
+          "left out), as the arm's episodes end where a policy node's end_on_success classifier labels them",
+          read_only=True, flag="--end-on-success"),
     Param("lateness", _L.lateness, "raw topics: seconds of stamps a silent topic (a goal sent once an episode) is "
           "taken complete behind the joint states", low=0.0, high=60.0, read_only=True, flag="--lateness"),
     Param("quiet", _L.quiet, "raw topics: seconds with nothing new, while idle, after which everything published is "
@@ -170,6 +173,7 @@ class Learner(Node):
             bags=list(s.bag), out=s.out, prior=s.prior or None, task=s.task or None, seed=s.seed,
             save_every=s.save_every, resume=s.resume, session_bag=s.session_bag or None,
             snapshot_every=s.snapshot_every, from_topics=s.from_topics, success=s.success or None,
+            end_on_success=s.end_on_success,
             action_labels=s.action_labels, actors=tuple(s.actors or ()),
             live=LiveSettings(lateness=s.lateness, quiet=s.quiet, quiet_missing=s.quiet_missing),
             settings=settings, train=train,

@@ -72,6 +72,8 @@ from std_msgs.msg import Float64MultiArray, String, UInt8MultiArray  # noqa: E40
 
 from offline_rl_core.serving.actor import Actor  # noqa: E402
 from offline_rl_core.common.errors import UserError  # noqa: E402
+from offline_rl_core.data.episode_labels import LABEL_TOPIC, label_json  # noqa: E402
+from offline_rl_core.learners.success_classifier import load_classifier  # noqa: E402
 from offline_rl_core.nodes.background_loads import BackgroundLoads  # noqa: E402
 from offline_rl_core.nodes.command_limits import action_bounds, within_limits  # noqa: E402
 from offline_rl_core.nodes.joint_messages import command_from_action  # noqa: E402
@@ -131,6 +133,10 @@ PARAMS = (
           "answer: no watchdog)", choices=("realtime", "lockstep"), read_only=True),
     Param("paced_every", 0, "answer state n only with weights version n // paced_every or newer (the learner's "
           "publish_every; 0: never wait)", low=0, read_only=True, flag="--paced-every"),
+    Param("end_on_success", "", "a success classifier file (offline-rl classifier train): every state it judges a "
+          "success is labelled one on episode_label ({\"label\": \"success\", \"source\": \"classifier\"}), so "
+          "the arm's episode ends at its next step where no simulator judges it (HIL-SERL's success classifier); "
+          "empty: off", read_only=True, flag="--end-on-success"),
     THREAD_PRIORITY,
 )
 
@@ -161,6 +167,7 @@ class PolicyServer(Node):
         self.pairing = StatePairing(points=tuple(self.builder.point_topics), required=self.builder.topic_only)
         self.held: Paired | None = None  # a state waiting for the weights version it needs
         self.answered = 0
+        self.labelled = 0  # states the end_on_success classifier labelled a success
         # what the worker loaded is taken on this thread, woken by the guard condition
         self.loads_ready = self.create_guard_condition(self.on_loaded)
         self.loads = BackgroundLoads(self.loads_ready.trigger, max_pending=WEIGHTS_QOS.depth, name="policy-loads")
@@ -169,7 +176,7 @@ class PolicyServer(Node):
         self.bounds = action_bounds(self.task) if self.task.safety.position_limits or \
             self.task.safety.velocity_limits else None
         self.position = None  # the latest state's joint positions (a safe command that holds them)
-        self.status = NodeStatus(self, fields=lambda: {"answered": self.answered,
+        self.status = NodeStatus(self, fields=lambda: {"answered": self.answered, "labelled_success": self.labelled,
                                                        "weights_version": self.policy.weights_version,
                                                        "weights_age_s": self.weights_age_s(),
                                                        "loads_dropped": dict(self.loads.dropped),
@@ -195,6 +202,9 @@ class PolicyServer(Node):
         if self.settings.weights_topic:  # raw: its size is checked before anything is decoded
             self.create_subscription(UInt8MultiArray, self.settings.weights_topic, self.on_weights, WEIGHTS_QOS,
                                      raw=True)
+        # the classifier that ends episodes: it judges the observation the policy acts on
+        self.judge = load_classifier(self.settings.end_on_success, task) if self.settings.end_on_success else None
+        self.label_pub = self.create_publisher(String, LABEL_TOPIC, 10) if self.judge is not None else None
         self.command_joint_state = task.command.type == JOINT_STATE
         self.command_pub = self.create_publisher(JointState if self.command_joint_state else Float64MultiArray,
                                                  task.command.topic, 10) if self.settings.publish_command else None
@@ -208,7 +218,9 @@ class PolicyServer(Node):
                                f"({task.source_file()}): {task.state.topic} + {task.goal.topic} -> policy/action"
                                + (f" + {self.command_pub.topic_name}" if self.command_pub is not None else "")
                                + (f"; points {', '.join(self.builder.topic_only)} only from their topics"
-                                  if self.builder.topic_only else ""))
+                                  if self.builder.topic_only else "")
+                               + (f"; {self.settings.end_on_success} ends an episode it judges a success (on "
+                                  f"{self.label_pub.topic_name})" if self.judge is not None else ""))
 
     @property
     def policy(self) -> LoadedPolicy:
@@ -365,6 +377,11 @@ class PolicyServer(Node):
         if problem:
             self.status.reject(self.task.state.topic, problem)
             return
+        if self.judge is not None and bool(self.judge.success(obs[None])[0]):
+            # before the answer: the step it lets the arm take is then the episode's last (a
+            # label without an episode is of the episode of the arm's last transition)
+            self.label_pub.publish(String(data=label_json(True, source="classifier")))
+            self.labelled += 1
         if self.bounds is not None:
             action = within_limits(self.task, action, self.bounds)
         joints = list(self.task.command.joints)

@@ -131,6 +131,9 @@ PARAMS = (
           choices=MODES, read_only=True),
     Param("seed", 0, "episode e resets with reset seed seed + e", low=0, read_only=True),
     Param("episodes", 0, "episodes to run before exiting (0: run until stopped)", low=0),
+    Param("steps", 0, "environment steps to run before exiting, however the episodes end (0: no cap; the step "
+          "that reaches it ends its episode, truncated): a budget of steps where episodes end early", low=0,
+          read_only=True),
     Param("summary", "", "JSON file written on exit: episodes, success_rate, mean_final_dist, mean_return, "
           "abandoned (episodes cut short by pusher/reset, failures in the success rate; absent when none), "
           "labelled and labels_against_simulator (episodes a person's label ended, and of them those the "
@@ -231,7 +234,7 @@ class PusherSim(Node):
         self.state_msg = JointState(name=list(task.state.joints))
 
         self.loop = SimLoop(s.mode, s.seed, s.episodes, s.terminate_on_success, start_ns, task=task,
-                            estop=self.estop.latch)
+                            estop=self.estop.latch, steps=s.steps)
         self.arm_markers = ArmMarkers(task, task_model(task))
         self.task_pub.publish(String(data=task_json(task)))
 
@@ -247,6 +250,7 @@ class PusherSim(Node):
         self.get_logger().info(
             f"{self.mode} {task.name}, seed {s.seed}, "
             f"{'endless' if not s.episodes else f'{s.episodes} episodes'}"
+            + (f" (at most {s.steps} steps)" if s.steps else "")
             + ("" if task.name == DEFAULT_TASK else f"; state on {task.state.topic}, commands on {commands}")
         )
 
