@@ -19,11 +19,14 @@ corrector's RECIPE (a takeover at the first step without progress, kept to the e
 and a label on every state it leaves to the policy, ``--action-labels``):
 
 - ``online``: from that prior, with the scripted corrector, the simulator's reward;
-- ``classifier``: the same, the reward from a success classifier (``offline-rl classifier
+- ``classifier``: the same, success judged by a success classifier (``offline-rl classifier
   train --labels simulator --successes 20 --failures 20 --head 16`` on the seed's log: 20
-  labelled successes and 20 failures) instead of the simulator, which is counted beside it
-  (``counts.false_ends``, ``counts.missed``); in process the classifier also ends the
-  episode (``--end-on-success``), over ROS its time limit does;
+  labelled successes and 20 failures) instead of the simulator: the learner's reward and the
+  episode's end (``--end-on-success``; over ROS the policy node labels the state the
+  classifier judges a success and the sim ends the episode there). In process the simulator's
+  word is counted beside it (``counts.false_ends``, ``counts.missed``);
+- ``classifier_reward`` (when named): the classifier's reward alone, episodes ending at their
+  time limit;
 - ``no_prior``: the learner from scratch, at its default width (corrector and labels on);
 - ``no_corrections``: the prior and online RL alone (no corrector, so no labels);
 - ``offline_rounds``: the chapter's offline correction rounds instead of the online stage
@@ -67,7 +70,7 @@ ARMS = ("online", "classifier", "no_prior", "no_corrections", "offline_rounds")
 RULE = ("--patience", "1", "--hold-steps", "60")  # the offline rounds' corrector too
 RECIPE = RULE + ("--action-labels",)
 ROUND_EPISODES = 100  # episodes per offline round (6,000 steps: 8 rounds in 48,000)
-VARIANTS = ("critic_warmup", "no_anchor")  # run when named: the stage with one setting changed
+VARIANTS = ("critic_warmup", "no_anchor", "classifier_reward")  # run when named: the stage with one setting changed
 BAGS = Path("runs/prior/pusher_push/bags")  # bench/prior_report.py --task pusher_push's logs
 SHARED = Path("runs/push-online")  # the priors, the classifiers and the offline rounds, in process or over ROS
 
@@ -116,14 +119,13 @@ def main() -> int:
             cmd += ["--prior", str(prior)] if arm != "no_prior" else ["--no-prior"]
             anchor = [] if arm == "no_anchor" else list(ANCHOR)
             cmd += [*anchor, *RECIPE] if arm != "no_corrections" else [*anchor, "--corrector", "none"]
-            if arm == "classifier":
+            if arm in ("classifier", "classifier_reward"):
                 classifier = SHARED / "classifiers" / f"seed{seed}.pt"
                 if not classifier.exists():
                     subprocess.run([*offline_rl, "classifier", "train", "--bag", str(bag), "--labels", "simulator",
                                     "--successes", "20", "--failures", "20", "--head", "16", "--seed", str(seed),
                                     "--out", str(classifier)], check=True)
-                # over ROS an episode ends at the time limit (or a person's label), not at the classifier's word
-                cmd += ["--success", str(classifier)] + ([] if args.over_ros else ["--end-on-success"])
+                cmd += ["--success", str(classifier)] + (["--end-on-success"] if arm == "classifier" else [])
             cmd += {"critic_warmup": ["--critic-warmup", "5000"]}.get(arm, [])
             results.setdefault(arm, {})[str(seed)] = run(cmd, run_dir / "summary.json")
             task = load_task(TASK)

@@ -338,7 +338,7 @@ def crash_section(name: str, payload: dict) -> list[str]:
 # ----------------------------------------------------------------------------- the HIL-SERL stage
 
 THRESHOLDS = ("0.5", "0.8", "0.9", "0.95")
-ARM_ORDER = ("online", "no_anchor", "imitate_expert", "critic_warmup", "normalize_obs", "classifier", "no_prior", "no_corrections", "offline_rounds")  # the stage, then its variants
+ARM_ORDER = ("online", "no_anchor", "imitate_expert", "critic_warmup", "normalize_obs", "classifier", "classifier_reward", "no_prior", "no_corrections", "offline_rounds")  # the stage, then its variants
 
 
 def hil_table(arms: dict) -> str:
@@ -488,9 +488,11 @@ def push_online_section(name: str, payload: dict) -> list[str]:
              "process, or over ROS with the learner joining the arm's raw topics live (`--over-ros`, "
              "`--from-topics`): the table's last column. `online`: the stage; `no_anchor`: without the learner's "
              "anchor (`--normalize-obs --imitate-expert --bc-weight 100 --lr-decay --offline-ratio 0.25`); "
-             "`classifier`: the learner's reward (in process, the episode's end too) from a success classifier "
-             "trained on 20 labelled successes and 20 failures of the seed's log (`--head 16`), the simulator "
-             "counted beside it; `no_prior`: from "
+             "`classifier`: success judged by a success classifier trained on 20 labelled successes and 20 "
+             "failures of the seed's log (`--head 16`) instead of the simulator, for the learner's reward and the "
+             "episode's end (`--end-on-success`: over ROS the policy node labels the state it judges a success and "
+             "the sim ends the episode there); `classifier_reward`: its reward alone, episodes ending at their "
+             "time limit; `no_prior`: from "
              "scratch at the learner's default width; `no_corrections`: no corrector (so no labels); "
              "`offline_rounds`: the offline correction rounds over ROS (`offline-rl hil --rounds`, AWAC retrained "
              "from the served policy on the log and the corrections after each round of 100 episodes) within the "
