@@ -56,7 +56,8 @@ NODE_GRAPH: dict[str, NodeAccess] = {
                       subscribe=("pusher/command",) + COMMANDS + ("effort_controller/commands", ESTOP,
                                                                    "episode_label"),
                       reply=("pusher/reset", ESTOP_RESET)),
-    "policy": NodeAccess(publish=("policy/action", "policy/provenance", "effort_controller/commands"),
+    "policy": NodeAccess(publish=("policy/action", "policy/provenance", "effort_controller/commands",
+                                  "episode_label"),  # with end_on_success: its classifier's labels
                          subscribe=("pusher/state", "pusher/target", "pusher/fingertip", "learner/weights", ESTOP),
                          reply=(ESTOP_RESET,)),
     "mux": NodeAccess(publish=("pusher/command/policy", "pusher/command/human", "corrections/intervening"),

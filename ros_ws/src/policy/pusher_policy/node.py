@@ -37,6 +37,12 @@ cannot outrun the learner. Every answer is also reported on ``policy/provenance`
 (std_msgs/String, JSON: stamp, weights_version, trained_through, weights_age_s: seconds
 since the learner cut them, explore), so a bag says which weights acted.
 
+Where no simulator says whether the episode succeeded, ``end_on_success`` (a success
+classifier file, ``offline-rl classifier train``) ends it as HIL-SERL's reward classifier
+does: each state the classifier judges a success is labelled one on ``episode_label``
+(``{"label": "success", "source": "classifier"}``) before the answer, and the sim (or a
+robot's reset routine) ends the episode at its next step (``offline_rl_core.data.episode_labels``).
+
 Safety: a forward controller holds its last command for ever, so in ``mode`` realtime (the
 default) the node that drives it watches itself (``offline_rl_core.nodes.watchdog``): when
 it sent the controller no command within the task's ``safety.command_timeout`` (its states
@@ -72,8 +78,6 @@ from std_msgs.msg import Float64MultiArray, String, UInt8MultiArray  # noqa: E40
 
 from offline_rl_core.serving.actor import Actor  # noqa: E402
 from offline_rl_core.common.errors import UserError  # noqa: E402
-from offline_rl_core.data.episode_labels import LABEL_TOPIC, label_json  # noqa: E402
-from offline_rl_core.learners.success_classifier import load_classifier  # noqa: E402
 from offline_rl_core.nodes.background_loads import BackgroundLoads  # noqa: E402
 from offline_rl_core.nodes.command_limits import action_bounds, within_limits  # noqa: E402
 from offline_rl_core.nodes.joint_messages import command_from_action  # noqa: E402
@@ -203,8 +207,14 @@ class PolicyServer(Node):
             self.create_subscription(UInt8MultiArray, self.settings.weights_topic, self.on_weights, WEIGHTS_QOS,
                                      raw=True)
         # the classifier that ends episodes: it judges the observation the policy acts on
-        self.judge = load_classifier(self.settings.end_on_success, task) if self.settings.end_on_success else None
-        self.label_pub = self.create_publisher(String, LABEL_TOPIC, 10) if self.judge is not None else None
+        self.judge = self.label_pub = None
+        if self.settings.end_on_success:  # imported here: a node that only serves stays clear of the training layers
+            from offline_rl_core.data.episode_labels import LABEL_TOPIC, label_json
+            from offline_rl_core.learners.success_classifier import load_classifier
+
+            self.judge = load_classifier(self.settings.end_on_success, task)
+            self.label_pub = self.create_publisher(String, LABEL_TOPIC, 10)
+            self.success_label = String(data=label_json(True, source="classifier"))
         self.command_joint_state = task.command.type == JOINT_STATE
         self.command_pub = self.create_publisher(JointState if self.command_joint_state else Float64MultiArray,
                                                  task.command.topic, 10) if self.settings.publish_command else None
@@ -380,7 +390,7 @@ class PolicyServer(Node):
         if self.judge is not None and bool(self.judge.success(obs[None])[0]):
             # before the answer: the step it lets the arm take is then the episode's last (a
             # label without an episode is of the episode of the arm's last transition)
-            self.label_pub.publish(String(data=label_json(True, source="classifier")))
+            self.label_pub.publish(self.success_label)
             self.labelled += 1
         if self.bounds is not None:
             action = within_limits(self.task, action, self.bounds)
