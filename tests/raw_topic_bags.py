@@ -15,6 +15,7 @@ import numpy as np
 from offline_rl_core.data.bag import BagWriter, encode_transition_rows, typestore
 from offline_rl_core.task.pusher_reach import ACT_DIM, JOINT_NAMES, MAX_STEPS, PusherReachEnv
 from offline_rl_core.data.collect import EpisodePlan
+from offline_rl_core.data.episode_labels import encode_label_message
 from offline_rl_core.data.transitions import LAYOUT_SLICES, SOURCE_NAMES, TRANSITION_WIDTH
 
 TICK_NS = 20_000_000
@@ -81,6 +82,7 @@ def record_raw_bag(
     estop: tuple[tuple[int, bool], ...] = (),
     late_resends: float = 0.0,
     republishes: float = 0.0,
+    labels: tuple[tuple[int, bool], ...] = (),
 ) -> None:
     """Roll out ``episodes`` as `offline-rl collect` does and write their raw topics.
 
@@ -96,6 +98,8 @@ def record_raw_bag(
     state's own (the mux answering a republished state late: its stamp, received later).
     ``republishes``: share of states published again after their command (a lockstep sim's
     paced wait), the command then sent again (the mux answering the copy).
+    ``labels``: (receive stamp, success) of a person's /episode_label messages, without an
+    episode number, to record too.
     """
     msgs = _Messages()
     env = PusherReachEnv()
@@ -118,6 +122,10 @@ def record_raw_bag(
     with BagWriter(path) as bag:
         for topic, msgtype in types.items():
             bag.add_topic(topic, msgtype)
+        if labels:
+            bag.add_topic("/episode_label", "std_msgs/msg/String")
+            for at, success in labels:
+                bag.write("/episode_label", at, encode_label_message(success))
         if estop:
             bag.add_topic("/estop", "std_msgs/msg/Bool")
             for at, value in estop:

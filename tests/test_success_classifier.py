@@ -231,3 +231,34 @@ def test_head_states_of_a_success_are_failures_and_never_its_tail(push_data):
     assert np.array_equal(obs[0], first[0])
     _, short = labelled_states(push_data, {0: True}, tail=10, head=10_000)  # head stops short of the tail
     assert short.sum() == 10 and len(short) == steps[0]
+
+
+def test_a_robots_raw_topic_session_trains_a_classifier_from_a_persons_labels(tmp_path):
+    """A bag of a robot's raw topics (a `hil --online --from-topics` session: no transitions),
+    a person's labels in it without an episode number: each is of the episode whose first
+    state came last before it, and `classifier train` joins the topics and trains on them."""
+    from raw_topic_bags import RAW_TOPICS, record_raw_bag
+
+    from offline_rl_core.runs.classifier_run import bag_transitions
+
+    plain = tmp_path / "plain.db3"
+    record_raw_bag(plain, episodes=3, expert_frac=0.34, seed=4, sim_like=False, topics=RAW_TOPICS)
+    _, starts = bag_transitions(plain)
+    assert len(starts) == 3 and starts == sorted(starts)
+    # the same session with a key pressed near each episode's end (the last one's after the log)
+    pressed = ((starts[1] - 1_000_000, False), (starts[2] - 1_000_000, True), (starts[2] + 10**12, False))
+    labelled = tmp_path / "labelled.db3"
+    record_raw_bag(labelled, episodes=3, expert_frac=0.34, seed=4, sim_like=False, topics=RAW_TOPICS, labels=pressed)
+    data, starts_again = bag_transitions(labelled)
+    assert starts_again == starts
+    assert episode_labels(labelled, starts) == {0: False, 1: True, 2: False}
+    out = offline_rl("classifier", "train", "--bag", str(labelled), "--labels", "topic", "--successes", "1",
+                     "--failures", "2", "--steps", "50", "--out", str(tmp_path / "cls.pt"))
+    assert out.returncode == 0, out.stderr
+    trained = load_classifier(tmp_path / "cls.pt")
+    assert trained.contents["trained_on"]["success_episodes"] == 1 and trained.contents["trained_on"]["episodes"] == 3
+    early = ((starts[0] - 1, True),)  # before any episode's first state: which episode cannot be told
+    record_raw_bag(tmp_path / "early.db3", episodes=3, expert_frac=0.34, seed=4, sim_like=False, topics=RAW_TOPICS,
+                   labels=early)
+    with pytest.raises(UserError, match=r"early.db3: /episode_label: a label at .* before any episode's first state"):
+        episode_labels(tmp_path / "early.db3", bag_transitions(tmp_path / "early.db3")[1])

@@ -70,9 +70,12 @@ def _decode_string(payload: bytes, where: str) -> str:
         raise UserError(f"{where}: not a std_msgs/String ({exc})") from None
 
 
-def episode_labels(path: str | os.PathLike) -> dict[int, bool]:
+def episode_labels(path: str | os.PathLike, episode_starts: list[int] | None = None) -> dict[int, bool]:
     """The labels a bag holds, by episode (``{}`` when it holds none); a UserError of one line
-    naming the bag and topic for a label that is not one."""
+    naming the bag and topic for a label that is not one. A label without an episode is of the
+    episode of the bag's last transition before it; in a bag of raw topics (no transitions),
+    of the last episode whose first state came before it: ``episode_starts``, when the bag
+    received each episode's first state (the raw join's ``episode_first_received``)."""
     from .bag.reader import open_bag, transition_topic
     from .bag.cdr import decode_transition_payloads
 
@@ -94,7 +97,13 @@ def episode_labels(path: str | os.PathLike) -> dict[int, bool]:
     out: dict[int, bool] = {}
     for t, text in sorted(labels, key=lambda x: x[0]):
         success, episode = parse_label(text, where)
-        if episode is None:
+        if episode is None and not stamps and episode_starts is not None:  # raw topics: by the episodes' starts
+            before = int(np.searchsorted(np.asarray(episode_starts, np.int64), t, side="right")) - 1
+            if before < 0:
+                raise UserError(f"{where}: a label at {t} ns comes before any episode's first state: which episode "
+                                "it labels cannot be told (give it an episode number)")
+            episode = before
+        elif episode is None:
             before = np.searchsorted(np.asarray(stamps, np.int64), t, side="right") - 1 if stamps else -1
             if before < 0:
                 raise UserError(f"{where}: a label at {t} ns comes before any transition: which episode it labels "

@@ -1,6 +1,8 @@
 """Training and scoring a success classifier from bags (``offline-rl classifier``).
 
-Labels come from each bag's ``episode_label`` topic (a person's, ``data.episode_labels``) or,
+A bag holds transitions, or a robot's raw topics (joined as its task says:
+``data.raw_topics``). Labels come from each bag's ``episode_label`` topic (a person's,
+``data.episode_labels``) or,
 for simulated data, from the simulator's success at each episode's end; ``labels="auto"``
 takes the topic where a bag has one. ``successes`` / ``failures`` keep the first that many of
 each, in episode order (a classifier from a few labelled episodes, as a person would give
@@ -33,6 +35,22 @@ class LabelledBag:
     source: str  # topic | simulator
 
 
+def bag_transitions(path) -> tuple[object, list[int] | None]:
+    """A bag's transitions: those it records, or (a robot's raw topics, a session of
+    `hil --online --from-topics`) those the join builds from its topics as its task says, with
+    when each episode's first state came (what a person's label without an episode is told by)."""
+    from ..data.bag.reader import open_bag, transition_topic
+
+    with open_bag(path) as reader:
+        recorded = transition_topic(reader) is not None
+    if recorded:
+        return read_transitions(path), None
+    from ..data.raw_topics import transitions_from_topics
+
+    data, report = transitions_from_topics(path)
+    return data, report.episode_first_received
+
+
 def labelled_bags(paths: list[str], labels: str = "auto", successes: int | None = None,
                   failures: int | None = None) -> list[LabelledBag]:
     """Each bag's transitions and labels, the first ``successes`` / ``failures`` kept over all bags."""
@@ -41,8 +59,8 @@ def labelled_bags(paths: list[str], labels: str = "auto", successes: int | None 
     out = []
     left = {True: successes, False: failures}
     for path in paths:
-        data = read_transitions(path)
-        found = episode_labels(path) if labels in ("auto", "topic") else {}
+        data, starts = bag_transitions(path)
+        found = episode_labels(path, starts) if labels in ("auto", "topic") else {}
         if labels == "topic" and not found:
             raise UserError(f"{path}: no episode_label messages (label episodes with the corrector's keys or a "
                             "gamepad, or give --labels simulator for simulated data)")

@@ -77,6 +77,9 @@ class JoinReport:
     estop_dropped: int | None = None  # transitions whose state came while the e-stop was engaged; None: no estop topic
     # with a judge: its successes against the task's success distance, per transition
     judged: dict | None = None
+    # per episode of the transitions: when the bag received its first state (its log time, ns):
+    # what tells which episode a label without an episode number labels
+    episode_first_received: list[int] | None = field(default=None, repr=False)
 
     def as_dict(self) -> dict:
         fields = {k: getattr(self, k) for k in ("bag", "task", "points", "command_topics", "states", "commands",
@@ -539,6 +542,7 @@ def join(plan: JoinPlan, s: Streams, report: JoinReport, kinematics=None, allow_
         source=source[c].astype(np.int64),
     )
     report.episodes = int(used_episodes.size)
+    report.episode_first_received = recv_state[first_state[used_episodes]].astype(np.int64).tolist()
     report.transitions = len(data)
     row_of_state = np.full(t_state.size, -1, np.int64)
     row_of_state[a] = np.arange(a.size)
