@@ -67,6 +67,24 @@ def episodes(task, n_per_kind: int, seed: int) -> Transitions:
     return Transitions.from_rows(np.stack(rows), Layout(task.obs_dim, task.act_dim))
 
 
+def ends_at_first_success(data: Transitions, judged: np.ndarray, truth: np.ndarray) -> dict:
+    """The classifier ending episodes (--end-on-success): each held-out episode cut at its first
+    state judged a success. A false end: that state is no success by the simulator; a missed
+    success: an episode that reaches one and is never judged one (it runs to its time limit)."""
+    ends = false_ends = missed = reaching = 0
+    for e in np.unique(data.episode):
+        at = np.flatnonzero(data.episode == e)
+        first = np.flatnonzero(judged[at])
+        reaching += bool(truth[at].any())
+        if first.size:
+            ends += 1
+            false_ends += not truth[at[first[0]]]
+        elif truth[at].any():
+            missed += 1
+    return {"episodes": int(np.unique(data.episode).size), "ended": ends,
+            "false_ends": rate(false_ends, ends), "missed": rate(missed, reaching)}
+
+
 def rate(k: int, n: int) -> dict:
     lo, hi = wilson_ci(k, n) if n else (None, None)
     return {"count": k, "of": n, "rate": round(k / n, 6) if n else None,
@@ -82,6 +100,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--head", type=int, default=0, help="classifier train --head: first states of every episode "
                     "that are failures")
+    ap.add_argument("--threshold", type=float, default=0.5, help="classifier train --threshold: the probability "
+                    "from which a state is judged a success")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
     task = load_task("pusher_push")
@@ -95,7 +115,7 @@ def main(argv=None) -> int:
         write_transitions(train_bag, train_data, task=task, labels=labels_from_success(train_data))
         write_transitions(held_bag, held_out, task=task, labels=labels_from_success(held_out))
         t1 = time.perf_counter()
-        contents = train_from_bags([str(train_bag)], Path(tmp) / "cls.pt", ClassifierConfig(head=args.head), args.seed,
+        contents = train_from_bags([str(train_bag)], Path(tmp) / "cls.pt", ClassifierConfig(head=args.head, threshold=args.threshold), args.seed,
                                    labels="topic", successes=args.successes, failures=args.failures)
         train_s = time.perf_counter() - t1
         judge = load_classifier(Path(tmp) / "cls.pt", task)
@@ -122,11 +142,12 @@ def main(argv=None) -> int:
                             "false_negative": rate(int((~judged & truth).sum()), int(truth.sum())),
                             "false_positive_noisy_expert": rate(int((judged & ~truth & (kind_of == 1)).sum()),
                                                                 int((~truth & (kind_of == 1)).sum()))},
+        "as_the_episodes_end": ends_at_first_success(held_out, judged, truth),
         "rollout_s": round(rollout_s, 1), "train_s": round(train_s, 1),
     }
     if args.json:
         write_json_atomic(args.json, result)
-    print({k: result[k] for k in ("held_out_episodes", "held_out_states")})
+    print({k: result[k] for k in ("held_out_episodes", "held_out_states", "as_the_episodes_end")})
     return 0
 
 

@@ -88,6 +88,8 @@ def main() -> int:
     p.add_argument("--out", help="run folder (default: runs/push-online, runs/push-online-ros with --over-ros)")
     p.add_argument("--json", default="bench/pusher_push_online.json")
     p.add_argument("--note", help="what bounded the measurement (seeds, arms not run), for the page")
+    p.add_argument("--collect", action="store_true", help="run nothing: write the JSON and the plot from the named "
+                   "seeds' and arms' runs that exist (arms run as separate invocations, side by side)")
     args = p.parse_args()
     facts = run_facts()
     offline_rl = [sys.executable, "-m", "offline_rl_core"]
@@ -95,16 +97,18 @@ def main() -> int:
     results: dict = {}
     for seed in args.seeds:
         bag = BAGS / f"mix_s{seed}_e0.3.db3"
-        if not bag.exists():
+        if not bag.exists() and not args.collect:
             bag.parent.mkdir(parents=True, exist_ok=True)
             subprocess.run([*offline_rl, "collect", "--task", TASK, "--episodes", "200", "--expert-frac", "0.3",
                             "--seed", str(seed), "--out", str(bag)], check=True)
         prior = SHARED / "priors" / f"auto-h{args.width}-s{seed}" / "policy.pt"
-        if not prior.exists():
+        if not prior.exists() and not args.collect:
             subprocess.run([*offline_rl, "train", "--algo", "auto", "--task", TASK, "--bag", str(bag), "--hidden",
                             str(args.width), "--seed", str(seed), "--out", str(prior.parent)], check=True)
         for arm in args.arms:
             run_dir = (SHARED if arm == "offline_rounds" else out) / arm / f"seed{seed}"
+            if args.collect and not (run_dir / "summary.json").exists():
+                continue
             if arm == "offline_rounds":
                 rounds = args.env_steps // (ROUND_EPISODES * load_task(TASK).episodes.max_steps)
                 cmd = [*offline_rl, "hil", "--rounds", str(rounds), "--episodes", str(ROUND_EPISODES), "--task", TASK,
