@@ -98,7 +98,7 @@ class OnlineHilConfig:
     in_process: bool = False
     timeout: float = 4 * 3600.0
     from_topics: bool = False  # the learner joins the task's raw topics instead of pusher/transition
-    success: str | None = None  # in process: a success classifier judges success, not the simulator
+    success: str | None = None  # a success classifier judges success, not the simulator (over ROS: raw topics)
     # an episode ends where success is judged; over ROS (raw topics) the arm's too: the policy
     # node labels it with the classifier (--success), or the sim ends it on its own success
     end_on_success: bool = False
