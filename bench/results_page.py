@@ -516,6 +516,14 @@ def push_online_section(name: str, payload: dict) -> list[str]:
     return lines + ["![success against environment steps](pusher_push_online.png)", ""]
 
 
+def push_full_budget_section(name: str, payload: dict) -> list[str]:
+    """A seed of the push stage at the issue's whole budget of 50,000 steps (bench/push_online.py --env-steps)."""
+    return (["### The HIL-SERL stage on pusher_push at the whole budget", ""] + note_lines(payload)
+            + source_lines(name, payload) + ["", hil_table(payload["arms"]), "",
+                                             "![success against environment steps](pusher_push_online_full_budget.png)",
+                                             ""])
+
+
 # the variants of bench/push_bound.py: edits of the first pusher_push (bench/push_tasks)
 WAVE_NOTE = ("`wave` is pusher_push as first shipped (the wave expert at 50 Hz; digest `f371e75b24e83718`, kept "
              "as bench/push_tasks/pusher_push_wave.yaml) and every other variant an edit of it; the shipped "
@@ -803,6 +811,7 @@ SECTIONS = {  # file -> its section, in the page's order (the speed sections fol
     "pusher7_online_probes.json": pusher7_probes_section,
     "pusher_push_report.json": push_experiment_section,
     "pusher_push_online.json": push_online_section,
+    "pusher_push_online_full_budget.json": push_full_budget_section,
     "pusher_push_bound.json": push_bound_section,
     "pusher_push_dagger.json": push_dagger_section,
     "crash_safety.json": crash_section,

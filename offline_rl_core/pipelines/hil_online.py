@@ -354,7 +354,9 @@ def _over_ros(cfg: OnlineHilConfig, loop, prior_path: Path | None, out: Path, lo
         if not launched["learner"].running() and restarts < MAX_LEARNER_RESTARTS and cfg.actors == 1:
             restarts += 1
             _restart_learner(cfg, loop, launched, learner_dir, out, restarts, log)
-        for name in ["learner"] + [actor + node for actor in actors for node in ("policy", "sim")]:
+        # every node of the session: one that died (a corrector that could not start) ends it at once
+        nodes = [actor + node for actor in actors for node in ("policy", "sim", "mux", "corrector")]
+        for name in ["learner"] + [n for n in nodes if n in launched.processes]:
             proc = launched[name]
             if proc.running() or launched.finished() is not None:
                 continue

@@ -71,6 +71,7 @@ from offline_rl_core.nodes.pairing import Paired, StatePairing
 from offline_rl_core.task.spec import DEFAULT_TASK, JOINT_STATE, POSE_STAMPED, load_task
 from pusher_common.node_main import run_node
 from pusher_common.params import Param, Settings
+from pusher_common.readers import ReadersGate
 from pusher_common.stamps import stamp_key
 from pusher_common.diagnostics import NodeDiagnostics
 from offline_rl_core.nodes.diagnostics import StatusDiagnosis
@@ -78,6 +79,8 @@ from offline_rl_core.nodes.gamepad import LABEL_TOPIC, GamepadTeleop, label_json
 from offline_rl_core.common.rejections import RejectionCounter
 
 from offline_rl_core.data.raw_topics.spec import ACTION_LABEL_TOPIC
+
+READERS_CHECK_PERIOD_S = 0.01  # while the first answer is held for the labels' readers
 from offline_rl_core.task.corrector import STEERS, CorrectorParams, ScriptedCorrector
 
 KEEP_ANSWERS = 64
@@ -163,11 +166,15 @@ PARAMS = (
     Param("action_labels", False, "scripted: also publish, on every state it leaves to the policy, the action it "
           f"would take on {ACTION_LABEL_TOPIC} (DAgger's labels, for a learner with action_labels); the arm "
           "never reads them", read_only=True, flag="--action-labels"),
+    Param("wait_for_readers", [], "with action_labels: hold the first answer until these nodes (names, e.g. "
+          f"[learner, recorder]) read {ACTION_LABEL_TOPIC} (a label sent before a reader is matched never reaches "
+          "it; a lockstep arm waits for the answer)", read_only=True),
     Param("steer", "expert", "how a takeover moves the arm: expert (the task's scripted expert) or stick (the "
           "fingertip steered straight at the goal, as with a Cartesian stick; reach tasks)", choices=STEERS,
           read_only=True, flag="--steer"),
 )
-RULE_PARAMS = tuple(p.name for p in PARAMS if p.name not in ("mode", "task", "gamepad", "action_labels"))
+RULE_PARAMS = tuple(p.name for p in PARAMS if p.name not in ("mode", "task", "gamepad", "action_labels",
+                                                              "wait_for_readers"))
 
 
 class Corrector(Node):
@@ -212,6 +219,11 @@ class Corrector(Node):
         self.action_label_pub = self.create_publisher(JointState, ACTION_LABEL_TOPIC, 10) \
             if self.action_labels else None
         self.labelled = 0
+        # the first answer waits until the labels' readers can hear them (pusher_common.readers)
+        self.labels_gate = ReadersGate(self, self.settings.wait_for_readers if self.action_labels else ())
+        self.held: Paired | None = None  # the state whose answer waits for the gate
+        self.gate_timer = self.create_timer(READERS_CHECK_PERIOD_S, self.answer_held, clock=Clock(
+            clock_type=ClockType.STEADY_TIME)) if self.labels_gate.waiting else None
         self.rejected = RejectionCounter()
         if self.mode == "gamepad":
             self.create_subscription(Joy, "joy", self.on_joy, 10)
@@ -291,8 +303,20 @@ class Corrector(Node):
     def on_state(self, msg: JointState) -> None:
         self.answer(self.pairing.on_state(stamp_key(msg.header.stamp), msg))
 
+    def answer_held(self) -> None:
+        """Answer the state held for the labels' readers, once they read the labels (its timer)."""
+        if not self.labels_gate.open([self.action_label_pub]):
+            return
+        self.gate_timer.cancel()
+        self.get_logger().info(f"the readers of {self.action_label_pub.topic_name} are matched: answering")
+        held, self.held = self.held, None
+        self.answer(held)
+
     def answer(self, paired: Paired | None) -> None:
         if paired is None:
+            return
+        if self.labels_gate.waiting:
+            self.held = paired  # the newest state: the arm waits for its answer
             return
         msg, stamp = paired.state, paired.stamp
         out = self.answers.get(stamp)
