@@ -79,10 +79,9 @@ from offline_rl_core.nodes.gamepad import LABEL_TOPIC, GamepadTeleop, label_json
 from offline_rl_core.common.rejections import RejectionCounter
 
 from offline_rl_core.data.raw_topics.spec import ACTION_LABEL_TOPIC
-
-READERS_CHECK_PERIOD_S = 0.01  # while the first answer is held for the labels' readers
 from offline_rl_core.task.corrector import STEERS, CorrectorParams, ScriptedCorrector
 
+READERS_CHECK_PERIOD_S = 0.01  # while the first answer is held for the labels' readers
 KEEP_ANSWERS = 64
 KEYS = {
     "a": (0, -1.0), "d": (0, 1.0), "s": (0, 0.0),
@@ -173,8 +172,8 @@ PARAMS = (
           "fingertip steered straight at the goal, as with a Cartesian stick; reach tasks)", choices=STEERS,
           read_only=True, flag="--steer"),
 )
-RULE_PARAMS = tuple(p.name for p in PARAMS if p.name not in ("mode", "task", "gamepad", "action_labels",
-                                                              "wait_for_readers"))
+RULE_PARAMS = tuple(p.name for p in PARAMS
+                    if p.name not in ("mode", "task", "gamepad", "action_labels", "wait_for_readers"))
 
 
 class Corrector(Node):
