@@ -222,13 +222,11 @@ class LearnerService:
         that holds none; and each bag's summary."""
         if not from_topics:
             return load_bags(bags, task=task)
-        from ..data.bag.reader import open_bag, transition_topic
+        from ..data.bag.reader import records_transitions
 
         parts, summaries = [], []
         for bag in bags:
-            with open_bag(bag) as reader:
-                joined = transition_topic(reader) is None
-            data, summary = load_bags([bag], from_topics=joined or None, task=task)
+            data, summary = load_bags([bag], from_topics=not records_transitions(bag) or None, task=task)
             parts.append(data)
             summaries += summary
         if len(parts) == 1:

@@ -39,11 +39,9 @@ def bag_transitions(path) -> tuple[object, list[int] | None]:
     """A bag's transitions: those it records, or (a robot's raw topics, a session of
     `hil --online --from-topics`) those the join builds from its topics as its task says, with
     when each episode's first state came (what a person's label without an episode is told by)."""
-    from ..data.bag.reader import open_bag, transition_topic
+    from ..data.bag.reader import records_transitions
 
-    with open_bag(path) as reader:
-        recorded = transition_topic(reader) is not None
-    if recorded:
+    if records_transitions(path):
         return read_transitions(path), None
     from ..data.raw_topics import transitions_from_topics
 

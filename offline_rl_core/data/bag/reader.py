@@ -296,6 +296,12 @@ def transition_topic(reader: Reader) -> str | None:
     return one_topic(reader, TRANSITION_TOPIC)
 
 
+def records_transitions(path) -> bool:
+    """Whether the bag records transitions (else it holds a robot's raw topics to join)."""
+    with open_bag(path) as reader:
+        return transition_topic(reader) is not None
+
+
 def _transition_connections(reader: Reader, path: Path) -> list:
     if reader.message_count == 0:
         raise UserError(f"{path} is an empty bag (no messages); {RECORD_HINT}")
